@@ -1,0 +1,220 @@
+"""Command-line entry points: ``nirspi-run`` (the Hydra app) and ``nirspi-collect``.
+
+``nirspi-run`` runs one configuration, or a sweep with ``-m``. Each job writes ``record.json``,
+``arrays.npz`` and PNGs into its own output folder; a sweep also writes ``results.parquet`` and
+``results.csv`` into the sweep folder. Errors in the configuration are printed as one line that
+names the key and the allowed values, with exit status 2 (set ``NIRSPI_TRACEBACK=1`` to see the
+traceback). In a sweep, a failing job is recorded as failed and the others go on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import logging
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from nirspi_pipe.errors import NirspiError
+
+__all__ = ["run", "collect", "execute_job"]
+
+log = logging.getLogger("nirspi_pipe")
+
+CONFIG_MODULE = "nirspi_pipe.conf"
+CONFIG_NAME = "config"
+_EXIT_CONFIG = 2
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    first = text[0] if text else type(exc).__name__
+    return first if isinstance(exc, NirspiError) else f"{type(exc).__name__}: {first}"
+
+
+def _summary(record: dict[str, Any], out_dir: Path) -> str:
+    choices = record.get("choices", {})
+    cfg = record.get("config", {})
+    res = cfg.get("camera", {}).get("resolution")
+    head = (
+        f"nirspi-run: scene={choices.get('scene')} scan={choices.get('scan')} "
+        f"solver={choices.get('solver')} {res}x{res} seed={record['meta'].get('seed')}"
+    )
+    lines = [head]
+    if record["meta"]["status"] != "ok":
+        lines.append(f"  FAILED: {record['meta']['error']}")
+    m = record.get("metrics", {})
+    if m:
+        parts = []
+        for name, fmt in (("ssim", "SSIM {:.4f}"), ("psnr", "PSNR {:.2f} dB"), ("rmse", "RMSE {:.4g}")):
+            if name in m:
+                parts.append(fmt.format(m[name]))
+        parts += [f"{k} {v:.4g}" for k, v in m.items() if k not in ("ssim", "psnr", "rmse")]
+        lines.append("  " + "  ".join(parts))
+    t = record.get("timings_ms", {})
+    if t:
+        stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
+        lines.append(f"  ms: {stages} | total {t.get('total', 0.0):.1f}")
+    for w in record["meta"].get("warnings", []):
+        lines.append(f"  warning: {w}")
+    lines.append(f"  -> {out_dir}")
+    return "\n".join(lines)
+
+
+def execute_job(cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str]) -> dict[str, Any]:
+    """Run one job and write its record and arrays into ``out_dir``. Never raises for a failing
+    pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
+    traceback goes to ``error.txt``. Returns the record."""
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.pipeline import run_pipeline
+    from nirspi_pipe.records import config_hash, provenance, write_arrays, write_record
+
+    config = OmegaConf.to_container(cfg, resolve=True)
+    started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    record: dict[str, Any] = {
+        "config": config,
+        "choices": choices,
+        "metrics": {},
+        "timings_ms": {},
+        "derived": {},
+        "info": {},
+        "meta": {
+            "config_hash": config_hash(config),
+            "seed": cfg.get("seed"),
+            **provenance((os.getcwd(),)),
+            "status": "failed",
+            "error": None,
+            "warnings": [],
+            "overrides": overrides,
+            "started": started,
+        },
+    }
+    t0 = time.perf_counter()
+    output = None
+    try:
+        output = run_pipeline(cfg)
+    except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
+        record["meta"]["error"] = _one_line(exc)
+        record["meta"]["error_type"] = type(exc).__name__
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "error.txt").write_text(traceback.format_exc())
+    else:
+        record.update(
+            metrics=output.metrics,
+            timings_ms=output.timings_ms,
+            derived=output.derived,
+            info=output.info,
+        )
+        record["meta"].update(status="ok", warnings=output.warnings)
+    record["meta"]["wall_s"] = time.perf_counter() - t0
+    if output is not None:
+        p = output.products
+        truth = p.truth
+        out_cfg = cfg.get("output", {}) or {}
+        arrays = {
+            "reconstruction": p.image.data,
+            "upscaled": p.upscaled.data if p.upscaled is not None else None,
+            "truth_radiance": truth.radiance if truth is not None else None,
+            "truth_depth_m": truth.depth_m if truth is not None else None,
+            "truth_mask": truth.mask if truth is not None else None,
+            "indices": p.acquisition.indices,
+            "y_pos": p.acquisition.y_pos,
+            "y_neg": p.acquisition.y_neg,
+            "depth_m": p.depth.depth_m if p.depth is not None else None,
+        }
+        images = {"reconstruction": p.image.data, "truth": truth.radiance if truth is not None else None}
+        write_arrays(
+            out_dir,
+            arrays if out_cfg.get("arrays", True) else {},
+            images if out_cfg.get("images", True) else {},
+        )
+    write_record(out_dir, record)
+    return record
+
+
+def _hydra_task(cfg: Any) -> None:
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    out_dir = Path(hc.runtime.output_dir)
+    choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
+    overrides = list(hc.overrides.task)
+    record = execute_job(cfg, out_dir, choices, overrides)
+    quiet = bool((cfg.get("output") or {}).get("quiet", False))
+    failed = record["meta"]["status"] != "ok"
+    if hc.mode == RunMode.RUN:
+        if failed:
+            config_error = record["meta"].get("error_type") == "ConfigError"
+            hint = "" if config_error else f" (traceback: {out_dir / 'error.txt'})"
+            print(f"nirspi-run: error: {record['meta']['error']}{hint}", file=sys.stderr)
+            if os.environ.get("NIRSPI_TRACEBACK"):
+                print((out_dir / "error.txt").read_text(), file=sys.stderr)
+            raise SystemExit(_EXIT_CONFIG if config_error else 1)
+        if not quiet:
+            print(_summary(record, out_dir))
+    elif failed:
+        log.error("job %s failed: %s", hc.job.num, record["meta"]["error"])
+
+
+def run(argv: list[str] | None = None) -> None:
+    """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …)."""
+    import hydra
+
+    from nirspi_pipe.validate import check_overrides
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    problem = check_overrides(args)
+    if problem:
+        print(f"nirspi-run: error: {problem}", file=sys.stderr)
+        raise SystemExit(_EXIT_CONFIG)
+    main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(
+        _hydra_task
+    )
+    sys.argv = [sys.argv[0], *args]
+    main()
+
+
+def collect(argv: list[str] | None = None) -> None:
+    """``nirspi-collect DIR``: rebuild ``results.parquet``/``results.csv`` from the records in a
+    sweep folder (for sweeps that were killed or are still running)."""
+    from nirspi_pipe.results import build_tables
+    from nirspi_pipe.results import collect as collect_dir
+
+    parser = argparse.ArgumentParser(prog="nirspi-collect", description=collect.__doc__)
+    parser.add_argument("sweep_dir", type=Path, help="a multirun folder (hydra.sweep.dir)")
+    parser.add_argument("--quiet", action="store_true", help="do not print the table")
+    parser.add_argument(
+        "--tables", nargs="*", default=None, metavar="NAME",
+        help="paper tables to rebuild (default: those listed by the sweep's experiment)",
+    )
+    ns = parser.parse_args(argv)
+    try:
+        frame = collect_dir(ns.sweep_dir)
+    except FileNotFoundError as exc:
+        print(f"nirspi-collect: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if not ns.quiet:
+        import pandas as pd
+
+        with pd.option_context("display.width", 160, "display.max_columns", 12):
+            print(frame.head(20).to_string(index=False))
+    tables = ns.tables if ns.tables is not None else _sweep_tables(ns.sweep_dir)
+    build_tables(frame, ns.sweep_dir, tables)
+    counts = frame["status"].value_counts().to_dict() if len(frame) else {}
+    print(f"nirspi-collect: {len(frame)} records {counts} -> {ns.sweep_dir / 'results.parquet'}")
+
+
+def _sweep_tables(sweep_dir: Path) -> list[str]:
+    """The ``tables`` listed in a sweep's saved ``multirun.yaml`` (empty when absent)."""
+    from omegaconf import OmegaConf
+
+    path = sweep_dir / "multirun.yaml"
+    if not path.is_file():
+        return []
+    return [str(t) for t in (OmegaConf.load(path).get("tables") or [])]

@@ -1,0 +1,1 @@
+"""Hadamard/Walsh basis, fast transforms and scan orders."""

@@ -1,0 +1,181 @@
+"""Collect run records into one tidy pandas table (one row per job).
+
+Columns, grouped by prefix:
+
+* identity: ``job`` (folder relative to the sweep), ``status``, ``error``, ``config_hash``,
+  ``seed``, ``git_sha``;
+* choices: one column per config group, named after the group (``scene``, ``scan``, …);
+* parameters: one column per overridden key (``scene.distance_mm``, ``seed``, …), typed, read
+  from each job's resolved config;
+* ``metrics.<name>``, ``timings_ms.<stage>``, ``derived.<name>``, ``info.<stage>.<name>``.
+
+Failed jobs are rows with ``status == "failed"`` and their ``error``; they are never dropped.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import pandas as pd
+
+from nirspi_pipe.records import RECORD_NAME, read_record
+
+__all__ = ["find_records", "records_to_frame", "collect", "CollectResults", "override_keys"]
+
+log = logging.getLogger(__name__)
+
+_SKIP_PREFIXES = ("hydra.", "hydra/")
+
+
+def find_records(sweep_dir: Path) -> list[Path]:
+    """All ``record.json`` files below ``sweep_dir``, in job order (numeric folders first)."""
+    def key(p: Path) -> tuple:
+        rel = p.parent.relative_to(sweep_dir).parts
+        return tuple((0, int(s), "") if s.isdigit() else (1, 0, s) for s in rel)
+
+    return sorted(Path(sweep_dir).rglob(RECORD_NAME), key=key)
+
+
+def override_keys(overrides: Iterable[str]) -> list[str]:
+    """Config keys named by Hydra override strings (``+scene.x=1`` → ``scene.x``)."""
+    keys = []
+    for ov in overrides:
+        if "=" not in ov:
+            continue
+        key = ov.split("=", 1)[0].lstrip("+~")
+        if key and not key.startswith(_SKIP_PREFIXES):
+            keys.append(key)
+    return keys
+
+
+def _lookup(config: Mapping[str, Any], dotted: str) -> Any:
+    node: Any = config
+    for part in dotted.split("."):
+        if isinstance(node, Mapping) and part in node:
+            node = node[part]
+        else:
+            return None
+    if isinstance(node, (Mapping, list)):
+        return str(node)
+    return node
+
+
+def _flatten(prefix: str, mapping: Mapping[str, Any] | None, out: dict[str, Any]) -> None:
+    for k, v in (mapping or {}).items():
+        name = f"{prefix}.{k}"
+        if isinstance(v, Mapping):
+            _flatten(name, v, out)
+        elif isinstance(v, list):
+            out[name] = str(v)
+        else:
+            out[name] = v
+
+
+def _uniform(column: pd.Series) -> pd.Series:
+    """Make an object column parquet-safe: all numbers → numeric, mixed types → strings."""
+    values = column.dropna()
+    if len(values) == 0:
+        return column
+    if values.map(lambda v: isinstance(v, (bool, int, float))).all():
+        if values.map(lambda v: isinstance(v, bool)).all():
+            return column
+        return pd.to_numeric(column)
+    return column.map(lambda v: v if v is None or isinstance(v, str) else str(v))
+
+
+def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
+    """One row per ``(job, record)``; see the module docstring for the columns."""
+    groups: list[str] = []
+    params: list[str] = []
+    for _, rec in records:
+        for g in rec.get("choices", {}):
+            if g not in groups:
+                groups.append(g)
+        for k in override_keys(rec.get("meta", {}).get("overrides", [])):
+            if k not in params and k not in groups:
+                params.append(k)
+    rows = []
+    for job, rec in records:
+        meta = rec.get("meta", {})
+        row: dict[str, Any] = {
+            "job": job,
+            "status": meta.get("status"),
+            "error": meta.get("error"),
+            "config_hash": meta.get("config_hash"),
+            "seed": meta.get("seed"),
+            "git_sha": meta.get("git_sha"),
+        }
+        choices = rec.get("choices", {})
+        for g in groups:
+            row[g] = choices.get(g)
+        config = rec.get("config", {})
+        for p in params:
+            if p != "seed":
+                row[p] = _lookup(config, p)
+        _flatten("metrics", rec.get("metrics"), row)
+        _flatten("timings_ms", rec.get("timings_ms"), row)
+        _flatten("derived", rec.get("derived"), row)
+        _flatten("info", rec.get("info"), row)
+        rows.append(row)
+    frame = pd.DataFrame(rows)
+    for col in frame.columns:
+        if frame[col].dtype == object:
+            frame[col] = _uniform(frame[col])
+    return frame
+
+
+def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
+    """Read every record under ``sweep_dir`` into a frame; write ``results.parquet`` and
+    ``results.csv`` there when ``write``. Works on complete, partial or killed sweeps."""
+    sweep = Path(sweep_dir)
+    if not sweep.is_dir():
+        raise FileNotFoundError(f"sweep folder {sweep} does not exist")
+    records = []
+    for path in find_records(sweep):
+        try:
+            records.append((str(path.parent.relative_to(sweep)), read_record(path)))
+        except (OSError, ValueError) as exc:
+            log.warning("skipping unreadable record %s: %s", path, exc)
+    frame = records_to_frame(records)
+    if write:
+        frame.to_parquet(sweep / "results.parquet", index=False)
+        frame.to_csv(sweep / "results.csv", index=False)
+    return frame
+
+
+def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> None:
+    """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
+    logged and skipped, so it never costs the sweep's other results."""
+    from nirspi_pipe.tables import build_table
+
+    for name in names:
+        try:
+            build_table(str(name), frame, sweep / "tables")
+            print(f"nirspi-run: table {name} -> {sweep / 'tables'}")
+        except Exception as exc:  # noqa: BLE001 - reported, results kept
+            log.error("table %s failed: %s: %s", name, type(exc).__name__, exc)
+            print(f"nirspi-run: table {name} FAILED: {type(exc).__name__}: {exc}")
+
+
+try:  # the callback base class is Hydra's; keep import errors out of the pure functions above
+    from hydra.experimental.callback import Callback
+except ImportError:  # pragma: no cover
+    Callback = object  # type: ignore[misc,assignment]
+
+
+class CollectResults(Callback):  # type: ignore[misc]
+    """Hydra callback: after a multirun, write ``results.parquet``/``results.csv`` in the sweep
+    folder and log a one-line status count."""
+
+    def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
+        sweep = Path(config.hydra.sweep.dir)
+        if not sweep.is_dir():
+            return
+        frame = collect(sweep)
+        tables = list(config.get("tables") or []) if hasattr(config, "get") else []
+        build_tables(frame, sweep, tables)
+        counts = frame["status"].value_counts().to_dict() if len(frame) else {}
+        summary = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no records"
+        print(f"nirspi-run: {len(frame)} jobs ({summary}) -> {sweep / 'results.parquet'}")

@@ -1,0 +1,1 @@
+"""sfs stage implementations."""

@@ -1,0 +1,1 @@
+"""Solvers: reconstruct an image from single-pixel measurements."""

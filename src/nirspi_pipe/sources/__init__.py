@@ -1,0 +1,1 @@
+"""Sources: where single-pixel measurements come from (simulator, recorded file, device)."""

@@ -1,0 +1,153 @@
+"""Stage protocols: what each config group's ``_target_`` must provide.
+
+A stage is any object built by ``hydra.utils.instantiate`` from its group's config that has the
+method named here. Stages are pure with respect to their inputs: they never mutate them, they
+take randomness only from the ``numpy.random.Generator`` they are handed, and they do not time
+themselves (the runner in :mod:`nirspi_pipe.pipeline` does). Bookkeeping a stage wants in the
+record goes into the ``info`` mapping of the dataclass it returns; physical quantities a source
+used go into ``Acquisition.derived``. Problems that make a result meaningless are reported with
+``warnings.warn``; the runner stores them in the record.
+
+=========  ==============================================  ==========================
+group      method                                          returns
+=========  ==============================================  ==========================
+scene      ``render(camera)``                              :class:`Scene`
+source     ``acquire(scene, indices, n, rng)``             :class:`Acquisition`
+scan       ``select(n)`` (``ratio`` attribute)             flat pattern indices
+solver     ``solve(acquisition)``                          :class:`Image2D`
+upscale    ``upscale(image)``                              :class:`Image2D`
+sfs        ``solve(image, camera)``                        :class:`DepthMap`
+itof       ``measure(scene, rng)``                         :class:`ItofSample`
+fusion     ``fuse(depth, itof, camera)``                   :class:`PointCloud`
+surface    ``reconstruct(cloud)``                          :class:`Mesh`
+metrics    ``compute(products)``                           ``{name: float}``
+=========  ==============================================  ==========================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from nirspi_pipe.types import (
+    Acquisition,
+    Camera,
+    DepthMap,
+    Image2D,
+    ItofSample,
+    Mesh,
+    PointCloud,
+    Scene,
+)
+
+__all__ = [
+    "SceneModel",
+    "Source",
+    "ScanOrder",
+    "Solver",
+    "Upscaler",
+    "ShapeFromShading",
+    "Itof",
+    "Fusion",
+    "Surface",
+    "Metrics",
+    "Products",
+]
+
+
+@runtime_checkable
+class SceneModel(Protocol):
+    """Renders ground truth (geometry, reflectance, shading) for a camera."""
+
+    def render(self, camera: Camera) -> Scene: ...
+
+
+@runtime_checkable
+class Source(Protocol):
+    """Produces single-pixel measurements for the given pattern indices.
+
+    ``scene`` is None when the source does not need one (``needs_scene`` False): a recorded file
+    or a live device. A source may then ignore ``indices`` and return what was recorded.
+    """
+
+    needs_scene: bool
+
+    def acquire(
+        self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator
+    ) -> Acquisition: ...
+
+
+@runtime_checkable
+class ScanOrder(Protocol):
+    """A scan order: a permutation of the ``n²`` pattern indices, truncated to ``ratio``."""
+
+    ratio: float
+
+    def order(self, n: int) -> np.ndarray: ...
+
+    def select(self, n: int) -> np.ndarray: ...
+
+
+@runtime_checkable
+class Solver(Protocol):
+    """Reconstructs an image (relative radiance) from an acquisition."""
+
+    def solve(self, acquisition: Acquisition) -> Image2D: ...
+
+
+@runtime_checkable
+class Upscaler(Protocol):
+    """Super-resolves a reconstructed image."""
+
+    def upscale(self, image: Image2D) -> Image2D: ...
+
+
+@runtime_checkable
+class ShapeFromShading(Protocol):
+    """Recovers depth from a shaded image."""
+
+    def solve(self, image: Image2D, camera: Camera) -> DepthMap: ...
+
+
+@runtime_checkable
+class Itof(Protocol):
+    """Measures the four iToF reference points."""
+
+    def measure(self, scene: Scene | None, rng: np.random.Generator) -> ItofSample: ...
+
+
+@runtime_checkable
+class Fusion(Protocol):
+    """Fuses SFS depth with the iToF points into a metric point cloud."""
+
+    def fuse(self, depth: DepthMap, itof: ItofSample | None, camera: Camera) -> PointCloud: ...
+
+
+@runtime_checkable
+class Surface(Protocol):
+    """Builds a triangle mesh from a point cloud."""
+
+    def reconstruct(self, cloud: PointCloud) -> Mesh: ...
+
+
+@dataclass(frozen=True)
+class Products:
+    """Everything one run produced, handed to the metrics stage. Absent stages give None."""
+
+    truth: Scene | None
+    acquisition: Acquisition
+    image: Image2D
+    upscaled: Image2D | None = None
+    depth: DepthMap | None = None
+    itof: ItofSample | None = None
+    cloud: PointCloud | None = None
+    mesh: Mesh | None = None
+
+
+@runtime_checkable
+class Metrics(Protocol):
+    """Scores a run's products against the ground truth."""
+
+    def compute(self, products: Products) -> dict[str, float]: ...
