@@ -179,7 +179,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
         if "sfs" in stages:
             depth = clock.call("sfs", stages["sfs"].solve, upscaled if upscaled is not None else image, camera)
         if "itof" in stages:
-            itof = clock.call("itof", stages["itof"].measure, truth, rngs["itof"])
+            itof = clock.call("itof", stages["itof"].measure, truth, acq, rngs["itof"])
         if "fusion" in stages:
             if depth is None:
                 raise ConfigError("fusion", cfg.get("fusion"), "null unless an sfs stage is set")

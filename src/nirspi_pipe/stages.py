@@ -17,7 +17,7 @@ scan       ``select(n)`` (``ratio`` attribute)             flat pattern indices
 solver     ``solve(acquisition)``                          :class:`Image2D`
 upscale    ``upscale(image)``                              :class:`Image2D`
 sfs        ``solve(image, camera)``                        :class:`DepthMap`
-itof       ``measure(scene, rng)``                         :class:`ItofSample`
+itof       ``measure(scene, acquisition, rng)``            :class:`ItofSample`
 fusion     ``fuse(depth, itof, camera)``                   :class:`PointCloud`
 surface    ``reconstruct(cloud)``                          :class:`Mesh`
 metrics    ``compute(products)``                           ``{name: float}``
@@ -113,9 +113,15 @@ class ShapeFromShading(Protocol):
 
 @runtime_checkable
 class Itof(Protocol):
-    """Measures the four iToF reference points."""
+    """Measures the four iToF reference points.
 
-    def measure(self, scene: Scene | None, rng: np.random.Generator) -> ItofSample: ...
+    The iToF lasers look through the same medium as the single-pixel camera: the fog
+    extinction and background light the source used are in ``acquisition.derived``
+    (``beta_per_m``, ``background_irradiance_w_m2``; absent means none)."""
+
+    def measure(
+        self, scene: Scene | None, acquisition: Acquisition, rng: np.random.Generator
+    ) -> ItofSample: ...
 
 
 @runtime_checkable
