@@ -109,5 +109,5 @@ def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore
         if isinstance(node, DictConfig) and leaf not in node:
             where = parent or "the top level"
             known = ", ".join(sorted(str(k) for k in node.keys() if str(k) != "_target_"))
-            return f"{key} is not a key of {where}; keys: {known} (use +{key}=... to add one)"
+            return f"{key} is not a key of {where}; allowed keys: {known} (or +{key}=... to add one)"
     return None

@@ -125,6 +125,14 @@ def fwht2(image: np.ndarray) -> np.ndarray:
     if image.ndim < 2 or image.shape[-1] != image.shape[-2]:
         raise ValueError(f"fwht2 expects square images, got shape {image.shape}")
     n = image.shape[-1]
+    if not is_power_of_two(n):
+        raise ValueError(f"fwht2 side must be a power of two, got {n}")
+    if n <= 1 << _MAX_FACTOR_BITS:
+        # Small images: the two dense products H O H are cheaper than reshaping (Eq. 1 for all k).
+        if not np.issubdtype(image.dtype, np.floating):
+            image = image.astype(np.float64)
+        h = _sylvester_cached(n).astype(image.dtype, copy=False)
+        return h @ image @ h
     flat = image.reshape(*image.shape[:-2], n * n)
     return fwht(flat, axis=-1).reshape(image.shape)
 

@@ -1,0 +1,41 @@
+"""Shared fixtures: the installed console scripts, run in subprocesses from a temp folder."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+
+def script(name: str) -> str:
+    """Path of an installed console script of this environment (next to the interpreter)."""
+    candidate = Path(sys.executable).parent / name
+    if candidate.exists():
+        return str(candidate)
+    found = shutil.which(name)
+    if found is None:
+        pytest.fail(f"console script {name} is not installed; run `pip install .` first")
+    return found
+
+
+def run_cli(args: list[str], cwd: Path, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
+    """Run a console script (``args[0]``) with the rest as arguments, capturing text output."""
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "NIRSPI_TRACEBACK")}
+    env["MPLBACKEND"] = "Agg"
+    return subprocess.run(
+        [script(args[0]), *args[1:]], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env
+    )
+
+
+@pytest.fixture
+def cli(tmp_path: Path):
+    """Run ``nirspi-*`` commands from an empty temporary directory."""
+    def _run(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
+        return run_cli(list(args), tmp_path, timeout)
+
+    _run.cwd = tmp_path  # type: ignore[attr-defined]
+    return _run
