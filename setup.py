@@ -2,4 +2,9 @@
 
 from setuptools import find_packages, setup
 
-setup(packages=find_packages("src") + ["nirspi_pipe.conf", "nirspi_pipe.experiments"])
+setup(
+    packages=sorted(
+        set(find_packages("src"))
+        | {"nirspi_pipe.conf", "nirspi_pipe.experiments", "hydra_plugins.nirspi_pipe_sweeper"}
+    )
+)

@@ -103,3 +103,49 @@ def test_bench_lists_benchmarks(cli) -> None:
     assert res.returncode == 2 and "transform" in res.stderr
     res = cli("nirspi-bench", "transform", "--sizes", "16", "--repeat", "3")
     assert res.returncode == 0 and "ratio" in res.stdout
+
+
+def test_sweep_resumes_and_keys_folders_by_config_hash(cli) -> None:
+    args = ["nirspi-run", "-m", "seed=0,1", "scene.reflectance=0.5,1.5", "camera.resolution=16",
+            "output.images=false", "hydra.sweep.dir=sweep"]
+    first = cli(*args)
+    assert first.returncode == 0, first.stderr
+    assert "4 to run" in first.stdout
+    sweep = cli.cwd / "sweep"
+    df = pd.read_parquet(sweep / "results.parquet")
+    assert (df["job"] == df["config_hash"]).all()  # folder name = hash of the resolved config
+    ok_mtimes = {p: p.stat().st_mtime for p in sweep.glob("*/record.json")
+                 if json.loads(p.read_text())["meta"]["status"] == "ok"}
+    assert len(ok_mtimes) == 2
+    again = cli(*args)
+    assert again.returncode == 0, again.stderr
+    assert "2 to run, 2 skipped (already complete)" in again.stdout
+    for p, t in ok_mtimes.items():  # complete jobs were not recomputed
+        assert p.stat().st_mtime == t
+    df2 = pd.read_parquet(sweep / "results.parquet")
+    assert list(df2["status"]) == list(df["status"]) and len(df2) == 4
+
+
+def test_killed_job_shows_as_missing(cli) -> None:
+    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false",
+              "hydra.sweep.dir=sweep")
+    assert res.returncode == 0, res.stderr
+    sweep = cli.cwd / "sweep"
+    victim = sorted(sweep.glob("*/record.json"))[0]
+    victim.unlink()  # as if the job had been killed before writing its record
+    res = cli("nirspi-collect", "sweep", "--quiet")
+    assert res.returncode == 0, res.stderr
+    df = pd.read_parquet(sweep / "results.parquet")
+    assert sorted(df["status"]) == ["missing", "ok", "ok"]
+    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false",
+              "hydra.sweep.dir=sweep")
+    assert "1 to run, 2 skipped" in res.stdout
+    assert (pd.read_parquet(sweep / "results.parquet")["status"] == "ok").all()
+
+
+def test_submitit_local_launcher(cli) -> None:
+    res = cli("nirspi-run", "-m", "hydra/launcher=submitit_local", "seed=0,1", "camera.resolution=16",
+              "output.images=false", "hydra.sweep.dir=sweep", timeout=600)
+    assert res.returncode == 0, res.stderr
+    df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
+    assert len(df) == 2 and (df["status"] == "ok").all()

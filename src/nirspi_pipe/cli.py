@@ -65,7 +65,9 @@ def _summary(record: dict[str, Any], out_dir: Path) -> str:
     return "\n".join(lines)
 
 
-def execute_job(cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str]) -> dict[str, Any]:
+def execute_job(
+    cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str], job_num: int | None = None
+) -> dict[str, Any]:
     """Run one job and write its record and arrays into ``out_dir``. Never raises for a failing
     pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
     traceback goes to ``error.txt``. Returns the record."""
@@ -91,6 +93,7 @@ def execute_job(cfg: Any, out_dir: Path, choices: dict[str, str], overrides: lis
             "error": None,
             "warnings": [],
             "overrides": overrides,
+            "job_num": job_num,
             "started": started,
         },
     }
@@ -145,7 +148,7 @@ def _hydra_task(cfg: Any) -> None:
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
-    record = execute_job(cfg, out_dir, choices, overrides)
+    record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))
     quiet = bool((cfg.get("output") or {}).get("quiet", False))
     failed = record["meta"]["status"] != "ok"
     if hc.mode == RunMode.RUN:
@@ -158,14 +161,21 @@ def _hydra_task(cfg: Any) -> None:
             raise SystemExit(_EXIT_CONFIG if config_error else 1)
         if not quiet:
             print(_summary(record, out_dir))
-    elif failed:
-        log.error("job %s failed: %s", hc.job.num, record["meta"]["error"])
+    else:
+        if failed:
+            log.error("job %s failed: %s", out_dir.name, record["meta"]["error"])
+        from nirspi_pipe.sweeper import progress_line
+
+        line = progress_line(Path(hc.sweep.dir))
+        if line:
+            print(f"nirspi-run: {line}", flush=True)
 
 
 def run(argv: list[str] | None = None) -> None:
     """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …)."""
     import hydra
 
+    from nirspi_pipe.sweeper import register_hydra_plugins
     from nirspi_pipe.validate import check_overrides
 
     args = list(sys.argv[1:] if argv is None else argv)
@@ -173,6 +183,7 @@ def run(argv: list[str] | None = None) -> None:
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)
+    register_hydra_plugins()
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(
         _hydra_task
     )

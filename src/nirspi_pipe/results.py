@@ -127,20 +127,42 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
 
 
 def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
-    """Read every record under ``sweep_dir`` into a frame; write ``results.parquet`` and
-    ``results.csv`` there when ``write``. Works on complete, partial or killed sweeps."""
+    """Read every record of a sweep into a frame; write ``results.parquet`` and ``results.csv``
+    into the sweep folder when ``write``. Works on complete, partial or killed sweeps.
+
+    With the ``nirspi`` sweeper's ``sweep.json``, the rows are exactly that sweep's jobs, in
+    sweep order, and a job without a record (killed, or never started) is a row with
+    ``status == "missing"``. Without it, every ``record.json`` below the folder is a row.
+    """
+    from nirspi_pipe.sweeper import read_sweep_file
+
     sweep = Path(sweep_dir)
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
+    info = read_sweep_file(sweep)
+    if info:
+        paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]]
+    else:
+        paths = find_records(sweep)
     records = []
-    for path in find_records(sweep):
+    seen: set[Path] = set()
+    for path in paths:
+        if path in seen:
+            continue
+        seen.add(path)
+        job = str(path.parent.relative_to(sweep))
         try:
-            records.append((str(path.parent.relative_to(sweep)), read_record(path)))
+            records.append((job, read_record(path)))
+        except FileNotFoundError:
+            records.append((job, {"meta": {"status": "missing", "error": "no record: killed or not run"}}))
         except (OSError, ValueError) as exc:
-            log.warning("skipping unreadable record %s: %s", path, exc)
+            log.warning("unreadable record %s: %s", path, exc)
+            records.append((job, {"meta": {"status": "failed", "error": f"unreadable record: {exc}"}}))
     frame = records_to_frame(records)
     if write:
-        frame.to_parquet(sweep / "results.parquet", index=False)
+        tmp = sweep / "results.parquet.tmp"
+        frame.to_parquet(tmp, index=False)
+        tmp.replace(sweep / "results.parquet")
         frame.to_csv(sweep / "results.csv", index=False)
     return frame
 
@@ -168,6 +190,11 @@ except ImportError:  # pragma: no cover
 class CollectResults(Callback):  # type: ignore[misc]
     """Hydra callback: after a multirun, write ``results.parquet``/``results.csv`` in the sweep
     folder and log a one-line status count."""
+
+    def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
+        from nirspi_pipe.sweeper import register_hydra_plugins
+
+        register_hydra_plugins()
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(config.hydra.sweep.dir)

@@ -1,0 +1,192 @@
+"""The ``nirspi`` sweeper: Hydra's basic grid sweeper made resumable, keyed and observable.
+
+It expands the sweep exactly like Hydra's ``basic`` sweeper (command-line sweeps plus
+``hydra.sweeper.params``), then for every job:
+
+* composes its config and keys its output folder by :func:`nirspi_pipe.records.config_hash`
+  of the resolved config (``hydra.sweep.subdir=<hash>``), so the same job always lands in the
+  same folder whatever its position in the sweep;
+* skips the job when that folder already holds a complete record (``status == "ok"``), so
+  rerunning a sweep command recomputes only what is missing or failed;
+* writes ``sweep.json`` in the sweep folder (start time, totals, every job's key and
+  overrides), which the jobs read to print progress and an ETA, and which
+  :func:`nirspi_pipe.results.collect` uses to list jobs that never wrote a record.
+
+Jobs that composed badly are not launched; they are recorded as failed with the error.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.plugins.sweeper import Sweeper
+from omegaconf import OmegaConf
+
+from nirspi_pipe.records import RECORD_NAME, config_hash, read_record
+
+__all__ = ["NirspiSweeperBase", "register_hydra_plugins", "SWEEP_FILE", "job_key", "read_sweep_file", "progress_line"]
+
+log = logging.getLogger(__name__)
+
+SWEEP_FILE = "sweep.json"
+
+
+def job_key(job_cfg: Any) -> str:
+    """The folder key of a composed job config: the hash of its resolved non-hydra part."""
+    plain = OmegaConf.to_container(job_cfg, resolve=False)
+    plain.pop("hydra", None)
+    resolved = OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+    return config_hash(resolved)
+
+
+def read_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
+    """``sweep.json`` of a sweep folder, or None when there is none (e.g. a basic sweep)."""
+    path = Path(sweep_dir) / SWEEP_FILE
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _record_status(folder: Path) -> str | None:
+    try:
+        return read_record(folder / RECORD_NAME).get("meta", {}).get("status")
+    except (OSError, ValueError):
+        return None
+
+
+def progress_line(sweep_dir: Path) -> str | None:
+    """``"7/12 jobs done (1 failed), 3 skipped | elapsed 0:42 | ETA 1:12"`` for a running sweep,
+    from ``sweep.json`` and the records written since the sweep started; None without one."""
+    info = read_sweep_file(sweep_dir)
+    if not info:
+        return None
+    started = float(info["started"])
+    done = failed = 0
+    for job in info["jobs"]:
+        if job.get("skipped"):
+            continue
+        rec = Path(sweep_dir) / job["key"] / RECORD_NAME
+        try:
+            if rec.stat().st_mtime >= started:
+                done += 1
+                failed += _record_status(rec.parent) != "ok"
+        except OSError:
+            continue
+    total = int(info["to_run"])
+    elapsed = max(0.0, time.time() - started)
+    eta = elapsed / done * (total - done) if done else float("nan")
+
+    def hms(s: float) -> str:
+        if s != s:  # NaN
+            return "?"
+        s = int(round(s))
+        return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+    skipped = int(info["total"]) - total
+    parts = [f"{done}/{total} jobs done" + (f" ({failed} failed)" if failed else "")]
+    if skipped:
+        parts[0] += f", {skipped} skipped"
+    parts.append(f"elapsed {hms(elapsed)}")
+    parts.append(f"ETA {hms(eta)}")
+    return " | ".join(parts)
+
+
+class NirspiSweeperBase(Sweeper):
+    """Grid sweeper with config-hash job folders, resume and progress (see module docstring).
+
+    It reuses Hydra's basic sweeper's expansion (``BasicSweeper.split_arguments``) but does not
+    subclass it: Hydra's plugin scan re-imports core plugin modules, which breaks ``super()``
+    in subclasses of its classes.
+    """
+
+    def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None,
+                 resume: bool = True) -> None:
+        self.max_batch_size = max_batch_size
+        self.params = dict(params or {})
+        self.resume = resume
+        self.hydra_context: Any = None
+        self.config: Any = None
+        self.launcher: Any = None
+
+    def setup(self, *, hydra_context: Any, task_function: Any, config: Any) -> None:
+        from hydra.core.plugins import Plugins
+
+        self.hydra_context = hydra_context
+        self.config = config
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
+
+    def _expand(self, arguments: list[str]) -> list[list[str]]:
+        params_conf = [f"{k}={v}" for k, v in self.params.items()]
+        params_conf.extend(arguments)
+        parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
+        batches = BasicSweeper.split_arguments(parser.parse_overrides(params_conf), None)
+        return [list(job) for batch in batches for job in batch]
+
+    def sweep(self, arguments: list[str]) -> Any:
+        assert self.config is not None and self.launcher is not None
+        assert self.hydra_context is not None
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
+        loader = self.hydra_context.config_loader
+
+        started = time.time()
+        jobs: list[dict[str, Any]] = []
+        to_launch: list[list[str]] = []
+        for overrides in self._expand(arguments):
+            job_cfg = loader.load_sweep_config(self.config, overrides)
+            key = job_key(job_cfg)
+            skipped = self.resume and _record_status(sweep_dir / key) == "ok"
+            jobs.append({"key": key, "overrides": overrides, "skipped": skipped})
+            if not skipped:
+                to_launch.append([*overrides, f"hydra.sweep.subdir={key}"])
+        keys = [j["key"] for j in jobs]
+        if len(set(keys)) != len(keys):
+            log.warning("some jobs of this sweep have identical configs; they share one folder")
+        info = {
+            "started": started,
+            "total": len(jobs),
+            "to_run": len(to_launch),
+            "jobs": jobs,
+        }
+        tmp = sweep_dir / (SWEEP_FILE + ".tmp")
+        tmp.write_text(json.dumps(info, indent=1))
+        tmp.replace(sweep_dir / SWEEP_FILE)
+        n_skip = len(jobs) - len(to_launch)
+        print(
+            f"nirspi-run: sweep of {len(jobs)} jobs in {sweep_dir}: {len(to_launch)} to run"
+            + (f", {n_skip} skipped (already complete)" if n_skip else ""),
+            flush=True,
+        )
+        returns: list[Sequence[Any]] = []
+        if not to_launch:
+            return returns
+        batch_size = self.max_batch_size or len(to_launch)
+        for start in range(0, len(to_launch), batch_size):
+            batch = to_launch[start : start + batch_size]
+            results = self.launcher.launch(batch, initial_job_idx=start)
+            returns.append(results)
+        return returns
+
+
+def register_hydra_plugins() -> None:
+    """Register nirspi-pipe's Hydra plugin classes explicitly.
+
+    Hydra only instantiates sweepers from the ``hydra_plugins`` namespace, which it discovers by
+    scanning; that scan misses editable installs (Hydra issue #2359). Registering the class by
+    hand makes ``hydra/sweeper=nirspi`` work for every kind of install.
+    """
+    from hydra.core.plugins import Plugins
+
+    from hydra_plugins.nirspi_pipe_sweeper import NirspiSweeper
+
+    Plugins.instance().register(NirspiSweeper)
