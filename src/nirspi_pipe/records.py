@@ -9,8 +9,8 @@ Record format (one JSON object)::
      "derived":   {name: float},              # physical quantities the source used
      "info":      {stage: {name: value}},     # stage bookkeeping (iterations, stop reason)
      "meta":      {"config_hash", "seed", "versions", "git_sha", "git_dirty", "platform",
-                   "status": "ok" | "failed", "error", "warnings", "overrides",
-                   "started", "wall_s"}}
+                   "opencl_devices", "status": "ok" | "failed", "error", "error_type",
+                   "warnings", "overrides", "job_num", "started", "wall_s"}}
 """
 
 from __future__ import annotations
@@ -96,6 +96,20 @@ def _git_state(start: str) -> tuple[str | None, bool | None]:
     return sha, bool(status) if status is not None else None
 
 
+@lru_cache(maxsize=1)
+def opencl_devices() -> tuple[str, ...]:
+    """``"platform / device"`` names of the OpenCL devices pyopencl sees (empty when none).
+
+    Cached per process: the first call costs the OpenCL platform query (~0.1–0.5 s).
+    """
+    try:
+        import pyopencl as cl
+
+        return tuple(f"{p.name} / {d.name}" for p in cl.get_platforms() for d in p.get_devices())
+    except Exception as exc:  # noqa: BLE001 - provenance must never fail a run
+        return (f"unavailable: {type(exc).__name__}",)
+
+
 def provenance(search_dirs: tuple[str, ...] = ()) -> dict[str, Any]:
     """Package versions, platform and the git commit of the code that ran.
 
@@ -119,6 +133,7 @@ def provenance(search_dirs: tuple[str, ...] = ()) -> dict[str, Any]:
         "git_sha": sha,
         "git_dirty": dirty,
         "platform": f"{platform.system()}-{platform.machine()} ({platform.platform()})",
+        "opencl_devices": list(opencl_devices()),
     }
 
 
