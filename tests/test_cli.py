@@ -165,3 +165,28 @@ def test_same_config_and_seed_are_bitwise_reproducible_across_processes(cli) -> 
 
     with np.load(cli.cwd / "a" / "arrays.npz") as fa, np.load(cli.cwd / "b" / "arrays.npz") as fb:
         assert np.array_equal(fa["reconstruction"], fb["reconstruction"])
+
+
+def test_meta_experiment_runs_each_experiments_grid(cli) -> None:
+    exp = cli.cwd / "extra" / "experiment"
+    exp.mkdir(parents=True)
+    (exp / "small_a.yaml").write_text(
+        "# @package _global_\ncamera:\n  resolution: 8\nhydra:\n  sweeper:\n    params:\n      seed: 0,1\n"
+    )
+    (exp / "small_b.yaml").write_text(
+        "# @package _global_\ncamera:\n  resolution: 16\nhydra:\n  sweeper:\n    params:\n"
+        "      scene.reflectance: 0.2,0.4,0.6\n"
+    )
+    (exp / "both.yaml").write_text(
+        "# @package _global_\nhydra:\n  sweeper:\n    experiments: [small_a, small_b]\n"
+    )
+    res = cli("nirspi-run", "-m", "+experiment=both", "output.images=false", "hydra.sweep.dir=sweep",
+              f"hydra.searchpath=[pkg://nirspi_pipe.experiments,file://{cli.cwd / 'extra'}]")
+    assert res.returncode == 0, res.stderr
+    assert "sweep of 5 jobs" in res.stdout
+    df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
+    assert list(df["experiment"]) == ["small_a"] * 2 + ["small_b"] * 3
+    assert (df["status"] == "ok").all()
+    res8 = [json.loads((cli.cwd / "sweep" / j / "record.json").read_text())["config"]["camera"]["resolution"]
+            for j in df["job"]]
+    assert res8 == [8, 8, 16, 16, 16]

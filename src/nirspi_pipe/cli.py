@@ -194,19 +194,18 @@ def run(argv: list[str] | None = None) -> None:
 def collect(argv: list[str] | None = None) -> None:
     """``nirspi-collect DIR``: rebuild ``results.parquet``/``results.csv`` from the records in a
     sweep folder (for sweeps that were killed or are still running)."""
-    from nirspi_pipe.results import build_tables
-    from nirspi_pipe.results import collect as collect_dir
+    from nirspi_pipe.results import finish_sweep
 
     parser = argparse.ArgumentParser(prog="nirspi-collect", description=collect.__doc__)
     parser.add_argument("sweep_dir", type=Path, help="a multirun folder (hydra.sweep.dir)")
     parser.add_argument("--quiet", action="store_true", help="do not print the table")
     parser.add_argument(
         "--tables", nargs="*", default=None, metavar="NAME",
-        help="paper tables to rebuild (default: those listed by the sweep's experiment)",
+        help="paper tables to rebuild (default: those the sweep's experiments list)",
     )
     ns = parser.parse_args(argv)
     try:
-        frame = collect_dir(ns.sweep_dir)
+        frame = finish_sweep(ns.sweep_dir, ns.tables)
     except FileNotFoundError as exc:
         print(f"nirspi-collect: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -215,17 +214,6 @@ def collect(argv: list[str] | None = None) -> None:
 
         with pd.option_context("display.width", 160, "display.max_columns", 12):
             print(frame.head(20).to_string(index=False))
-    tables = ns.tables if ns.tables is not None else _sweep_tables(ns.sweep_dir)
-    build_tables(frame, ns.sweep_dir, tables)
     counts = frame["status"].value_counts().to_dict() if len(frame) else {}
     print(f"nirspi-collect: {len(frame)} records {counts} -> {ns.sweep_dir / 'results.parquet'}")
 
-
-def _sweep_tables(sweep_dir: Path) -> list[str]:
-    """The ``tables`` listed in a sweep's saved ``multirun.yaml`` (empty when absent)."""
-    from omegaconf import OmegaConf
-
-    path = sweep_dir / "multirun.yaml"
-    if not path.is_file():
-        return []
-    return [str(t) for t in (OmegaConf.load(path).get("tables") or [])]

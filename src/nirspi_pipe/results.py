@@ -106,6 +106,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
             "config_hash": meta.get("config_hash"),
             "seed": meta.get("seed"),
             "git_sha": meta.get("git_sha"),
+            "tables": ",".join(str(t) for t in (rec.get("config", {}).get("tables") or [])),
         }
         choices = rec.get("choices", {})
         for g in groups:
@@ -167,18 +168,56 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     return frame
 
 
-def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> None:
+def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
     """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
-    logged and skipped, so it never costs the sweep's other results."""
+    logged and skipped, so it never costs the sweep's other results. Returns those built."""
     from nirspi_pipe.tables import build_table
 
+    built = []
     for name in names:
         try:
             build_table(str(name), frame, sweep / "tables")
+            built.append(str(name))
             print(f"nirspi-run: table {name} -> {sweep / 'tables'}")
         except Exception as exc:  # noqa: BLE001 - reported, results kept
             log.error("table %s failed: %s: %s", name, type(exc).__name__, exc)
             print(f"nirspi-run: table {name} FAILED: {type(exc).__name__}: {exc}")
+    return built
+
+
+def tables_by_experiment(frame: pd.DataFrame) -> dict[str, list[str]]:
+    """``{experiment: [table, …]}`` from the ``experiment`` and ``tables`` columns of a frame."""
+    out: dict[str, list[str]] = {}
+    if "tables" not in frame.columns or len(frame) == 0:
+        return out
+    exp = frame["experiment"] if "experiment" in frame.columns else pd.Series([""] * len(frame))
+    for name, tables in zip(exp.fillna(""), frame["tables"].fillna("")):
+        for t in str(tables).split(","):
+            if t and t not in out.setdefault(str(name), []):
+                out[str(name)].append(t)
+    return out
+
+
+def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.DataFrame:
+    """Collect a sweep's records, build its paper tables, and write ``report.md`` when it ran
+    more than one experiment. ``tables`` overrides the tables the records ask for.
+
+    Each experiment's tables are built from that experiment's rows only."""
+    from nirspi_pipe.report import write_report
+
+    sweep = Path(sweep_dir)
+    frame = collect(sweep)
+    built: list[str] = []
+    if tables is not None:
+        built += build_tables(frame, sweep, tables)
+    else:
+        for exp, names in tables_by_experiment(frame).items():
+            sub = frame[frame["experiment"] == exp] if exp and "experiment" in frame.columns else frame
+            built += build_tables(sub.reset_index(drop=True), sweep, names)
+    if len(built) > 1:
+        path = write_report(sweep, built, frame)
+        print(f"nirspi-run: report -> {path}")
+    return frame
 
 
 try:  # the callback base class is Hydra's; keep import errors out of the pure functions above
@@ -200,9 +239,7 @@ class CollectResults(Callback):  # type: ignore[misc]
         sweep = Path(config.hydra.sweep.dir)
         if not sweep.is_dir():
             return
-        frame = collect(sweep)
-        tables = list(config.get("tables") or []) if hasattr(config, "get") else []
-        build_tables(frame, sweep, tables)
+        frame = finish_sweep(sweep)
         counts = frame["status"].value_counts().to_dict() if len(frame) else {}
         summary = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no records"
         print(f"nirspi-run: {len(frame)} jobs ({summary}) -> {sweep / 'results.parquet'}")

@@ -107,10 +107,11 @@ class NirspiSweeperBase(Sweeper):
     """
 
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None,
-                 resume: bool = True) -> None:
+                 resume: bool = True, experiments: list[str] | None = None) -> None:
         self.max_batch_size = max_batch_size
         self.params = dict(params or {})
         self.resume = resume
+        self.experiments = list(experiments or [])
         self.hydra_context: Any = None
         self.config: Any = None
         self.launcher: Any = None
@@ -124,12 +125,28 @@ class NirspiSweeperBase(Sweeper):
             hydra_context=hydra_context, task_function=task_function, config=config
         )
 
-    def _expand(self, arguments: list[str]) -> list[list[str]]:
-        params_conf = [f"{k}={v}" for k, v in self.params.items()]
+    def _grid(self, params: dict[str, str], arguments: list[str]) -> list[list[str]]:
+        params_conf = [f"{k}={v}" for k, v in params.items()]
         params_conf.extend(arguments)
         parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
         batches = BasicSweeper.split_arguments(parser.parse_overrides(params_conf), None)
         return [list(job) for batch in batches for job in batch]
+
+    def _expand(self, arguments: list[str]) -> list[list[str]]:
+        """Every job's overrides. With ``experiments`` (a meta-experiment such as ``paper``),
+        the union of each listed experiment's own grid, each job tagged ``+experiment=<name>``;
+        command-line overrides other than the experiment apply to all of them."""
+        if not self.experiments:
+            return self._grid(self.params, arguments)
+        shared = [a for a in arguments if not a.lstrip("+~").startswith("experiment=")]
+        loader = self.hydra_context.config_loader
+        jobs: list[list[str]] = []
+        for name in self.experiments:
+            sub = loader.load_sweep_config(self.config, [f"+experiment={name}", *shared])
+            params = OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False)
+            params = {str(k): str(v) for k, v in params.items()}
+            jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))
+        return jobs
 
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None
@@ -154,6 +171,7 @@ class NirspiSweeperBase(Sweeper):
             log.warning("some jobs of this sweep have identical configs; they share one folder")
         info = {
             "started": started,
+            "experiments": self.experiments,
             "total": len(jobs),
             "to_run": len(to_launch),
             "jobs": jobs,

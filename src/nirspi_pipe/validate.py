@@ -61,8 +61,8 @@ def check_overrides(args: list[str]) -> str | None:
     from hydra.errors import HydraException
 
     overrides = _override_args(args)
-    if not overrides:
-        return None
+    if not overrides or any(o.startswith("hydra.searchpath") for o in overrides):
+        return None  # no overrides, or a search path we do not see: Hydra judges
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except HydraException:
