@@ -25,7 +25,7 @@ class ConfigError(NirspiError, ValueError):
         else:
             super().__init__(f"{key}={value!r} is not allowed; allowed: {allowed}")
 
-    def under(self, prefix: str) -> "ConfigError":
+    def under(self, prefix: str) -> ConfigError:
         """The same error with its key prefixed by ``prefix`` (``scene`` → ``scene.distance_mm``)."""
         if not prefix or self.key.startswith(prefix + "."):
             return self

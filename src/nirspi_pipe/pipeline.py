@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 import numpy as np
 from omegaconf import DictConfig
 
-from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
 
@@ -148,7 +148,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
     seed = int(cfg.get("seed", 0))
     if seed < 0:
         raise ConfigError("seed", seed, "an integer >= 0")
-    streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS))))
+    streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
     clock = _Clock()

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any
+from collections.abc import Iterable, Mapping
 
 import pandas as pd
 
@@ -191,7 +192,7 @@ def tables_by_experiment(frame: pd.DataFrame) -> dict[str, list[str]]:
     if "tables" not in frame.columns or len(frame) == 0:
         return out
     exp = frame["experiment"] if "experiment" in frame.columns else pd.Series([""] * len(frame))
-    for name, tables in zip(exp.fillna(""), frame["tables"].fillna("")):
+    for name, tables in zip(exp.fillna(""), frame["tables"].fillna(""), strict=False):
         for t in str(tables).split(","):
             if t and t not in out.setdefault(str(name), []):
                 out[str(name)].append(t)

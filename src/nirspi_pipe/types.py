@@ -8,7 +8,8 @@ never rebound, and stages never write into arrays they received.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 

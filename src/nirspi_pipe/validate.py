@@ -108,6 +108,6 @@ def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore
         node = OmegaConf.select(cfg, parent) if parent else cfg
         if isinstance(node, DictConfig) and leaf not in node:
             where = parent or "the top level"
-            known = ", ".join(sorted(str(k) for k in node.keys() if str(k) != "_target_"))
+            known = ", ".join(sorted(str(k) for k in node if str(k) != "_target_"))
             return f"{key} is not a key of {where}; allowed keys: {known} (or +{key}=... to add one)"
     return None
