@@ -175,10 +175,12 @@ def _run(problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweep
             return solve_opencl(problem, scheme, tol, max_sweeps)
         except Exception as exc:  # noqa: BLE001 - turned into a one-line user error
             if type(exc).__module__.startswith("pyopencl") or isinstance(exc, RuntimeError):
-                first = str(exc).strip().splitlines()
+                lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+                errs = [ln for ln in lines if "error" in ln.lower() and "clBuildProgram" not in ln]
+                why = errs[0] if errs else (lines[0] if lines else type(exc).__name__)
                 raise NirspiError(
-                    "sfs.backend=opencl: the OpenCL kernel could not run here "
-                    f"({first[-1] if first else type(exc).__name__}); use sfs.backend=numpy"
+                    f"sfs.backend=opencl: the OpenCL kernel could not run here ({why}); "
+                    "use sfs.backend=numpy"
                 ) from None
             raise
     return solve_numpy(problem, scheme, tol, max_sweeps)
@@ -368,6 +370,8 @@ class PerspectiveSFS:
         data = np.asarray(image.data)
         if data.ndim != 2:
             raise NirspiError(f"sfs needs a 2D image, got shape {data.shape}")
+        if min(data.shape) < 3:
+            raise NirspiError("sfs=perspective needs an image of at least 3x3 pixels")
         rows, cols = data.shape
         f = float(camera.focal_px) * cols / camera.resolution  # focal length at this grid size
         xh = (np.arange(cols) + 0.5 - cols / 2.0) / f
@@ -386,9 +390,7 @@ class PerspectiveSFS:
             init = np.where(fixed, 0.0, BIG)
             model = 1
         problem = SweepProblem(rhs=rhs, fixed=fixed, init=init, model=model, xhat=xh, yhat=yh, focal_px=f)
-        scheme = _effective_scheme(self.scheme, data.shape)
-        if scheme != "lax_friedrichs":
-            raise NirspiError("sfs=perspective needs an image of at least 3x3 pixels")
+        scheme = self.scheme
         res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps))
         w = np.where(prep.mask, res.z, np.nan)
         valid = prep.mask & (res.z < 0.5 * BIG)
