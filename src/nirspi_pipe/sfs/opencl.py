@@ -157,7 +157,8 @@ def _program(model: int, scheme: int):
 
     ctx, _ = _context()
     src = _KERNEL % {"big": BIG}
-    return cl.Program(ctx, src).build(options=[f"-DMODEL={model}", f"-DSCHEME={scheme}"])
+    prg = cl.Program(ctx, src).build(options=[f"-DMODEL={model}", f"-DSCHEME={scheme}"])
+    return cl.Kernel(prg, "fsm")
 
 
 def opencl_available() -> bool:
@@ -188,7 +189,7 @@ def solve_opencl(
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
     ctx, queue = _context()
-    prg = _program(int(problem.model), 0 if scheme == "lax_friedrichs" else 1)
+    kernel = _program(int(problem.model), 0 if scheme == "lax_friedrichs" else 1)
     rows, cols = problem.rhs.shape
     upd = ~problem.fixed
     if scheme == "lax_friedrichs":
@@ -214,7 +215,7 @@ def solve_opencl(
     sx, sy = problem.sigmas()
     max_rounds = max(1, -(-int(max_sweeps) // 4))
     lsz = int(max(1, local_size))
-    prg.fsm(
+    kernel(
         queue, (lsz,), (lsz,), *bufs,
         np.int32(rows), np.int32(cols), np.float64(sx), np.float64(sy),
         np.float64(2.0 / float(problem.focal_px)), np.int32(max_rounds), np.float64(tol),
