@@ -89,15 +89,15 @@ def main(argv: list[str]) -> int:
                 err = _rmse(res.z, z_true, mask)
                 r2, r1 = t / refs[2][0], t / refs[1][0]
                 name = f"{scheme}/{backend}"
-                key = f"{name} vs fmm order 2"
-                meets = r2 <= 2.0 and err <= refs[2][1]
-                best[key] = min(best.get(key, np.inf), 0.0 if meets else 1.0)
+                for order, ratio in ((2, r2), (1, r1)):
+                    key = f"{name} vs scikit-fmm order {order}"
+                    meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
+                    best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
                 print(f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
                       f"{'' if res.converged else '  (not converged)'}")
     print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
     for key, v in best.items():
-        print(f"  {key}: {'meets' if v == 0.0 else 'misses'} the target at every size" if v == 0.0
-              else f"  {key}: misses the target")
+        print(f"  {key}: {'meets the target at every size' if v == 0.0 else 'misses the target'}")
     if not ok_cl and "opencl" in ns.backends:
         print("  opencl: not measured (no OpenCL device here builds float64 kernels)")
     return 0
