@@ -1,0 +1,103 @@
+"""``nirspi-bench sfs``: our fast-sweeping eikonal solvers against scikit-fmm's fast marching.
+
+The problem is the SFS eikonal of an orthographic Lambertian sphere (radius 0.45·n pixels, light
+at the viewer): ``|∇z| = F = sqrt(1/I² − 1)`` with ``I = sqrt(1 − r²/R²)``, ``F`` capped at
+``I = 0.05`` outside the sphere (as the SFS stage does), and Dirichlet data ``z = z_true`` on the
+circle through the brightest pixels' centres (our solvers: those pixels fixed; scikit-fmm: the
+zero contour of ``φ = r − r_s``, speed ``1/F``). Both run in the same process on the same
+``F``; errors are RMS against the analytic depth ``R − sqrt(R² − r²)`` over the sphere pixels
+with ``I > 0.05``, in pixels. Target: time within 2× of scikit-fmm at equal or better error.
+
+scikit-fmm is an optional extra: ``pip install 'nirspi-pipe[bench]'`` (or ``pip install
+scikit-fmm``).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from nirspi_pipe.benchmarks import median_time_s
+from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, solve_numpy
+
+I_MIN = 0.05
+
+
+def sphere_problem(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """``(F, fixed, z_true, eval_mask, phi, z_source)`` of the sphere eikonal on an ``n × n`` grid."""
+    radius = 0.45 * n
+    c = np.arange(n) + 0.5 - n / 2.0
+    r = np.hypot(c[None, :], c[:, None])
+    inside = r < radius
+    intensity = np.where(inside, np.sqrt(np.clip(1.0 - (r / radius) ** 2, 0.0, 1.0)), 0.0)
+    f = np.sqrt(1.0 / np.maximum(intensity, I_MIN) ** 2 - 1.0)
+    z_true = radius - np.sqrt(np.clip(radius**2 - r**2, 0.0, None))
+    r_s = float(r.min())
+    fixed = r <= r_s + 1e-9
+    z_src = float(radius - np.sqrt(radius**2 - r_s**2))
+    return f, fixed, z_true, inside & (intensity > I_MIN), r - r_s, z_src
+
+
+def _rmse(z: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((z - truth)[mask] ** 2)))
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="nirspi-bench sfs", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--schemes", nargs="+", default=["godunov", "lax_friedrichs"],
+                        choices=["godunov", "lax_friedrichs"])
+    parser.add_argument("--backends", nargs="+", default=["numpy", "opencl"], choices=["numpy", "opencl"])
+    ns = parser.parse_args(argv)
+    try:
+        import skfmm
+    except ImportError:
+        print("nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
+              "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm)")
+        return 2
+    solvers = {"numpy": solve_numpy}
+    if "opencl" in ns.backends:
+        from nirspi_pipe.sfs.opencl import opencl_available, solve_opencl
+
+        if opencl_available():
+            solvers["opencl"] = solve_opencl
+    ok_cl = "opencl" in solvers
+    header = f"{'size':>6} {'solver':<26} {'ms':>9} {'sweeps':>6} {'rmse px':>8} {'t/fmm2':>7} {'t/fmm1':>7}"
+    print(header)
+    best: dict[str, float] = {}
+    for n in ns.sizes:
+        f, fixed, z_true, mask, phi, z_src = sphere_problem(n)
+        speed = 1.0 / f
+        refs = {}
+        for order in (2, 1):
+            t = median_time_s(lambda: skfmm.travel_time(phi, speed, order=order), ns.repeat)
+            z = np.abs(np.asarray(skfmm.travel_time(phi, speed, order=order))) + z_src
+            refs[order] = (t, _rmse(z, z_true, mask))
+            print(f"{n:>4}^2 {'scikit-fmm order ' + str(order):<26} {t * 1e3:>9.2f} {'-':>6} {refs[order][1]:>8.3f}")
+        problem = SweepProblem(f, fixed, np.where(fixed, z_true, BIG))
+        for backend in ns.backends:
+            if backend not in solvers:
+                print(f"{n:>4}^2 {backend:<26} unavailable: no OpenCL device builds float64 kernels here")
+                continue
+            for scheme in ns.schemes:
+                solve = solvers[backend]
+                res = solve(problem, scheme, 1e-4, 8000)
+                t = median_time_s(lambda: solve(problem, scheme, 1e-4, 8000), ns.repeat if scheme == "godunov" else 1)
+                err = _rmse(res.z, z_true, mask)
+                r2, r1 = t / refs[2][0], t / refs[1][0]
+                name = f"{scheme}/{backend}"
+                for order, ratio in ((2, r2), (1, r1)):
+                    key = f"{name} vs scikit-fmm order {order}"
+                    meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
+                    best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
+                print(f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
+                      f"{'' if res.converged else '  (not converged)'}")
+    print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
+    for key, v in best.items():
+        print(f"  {key}: {'meets the target at every size' if v == 0.0 else 'misses the target'}")
+    if not ok_cl and "opencl" in ns.backends:
+        print("  opencl: not measured (no OpenCL device here builds float64 kernels)")
+    return 0

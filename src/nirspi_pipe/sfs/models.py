@@ -1,0 +1,404 @@
+"""SFS stages: orthographic Lambertian (Alg. A2 done right), perspective, and non-Lambertian.
+
+Every stage turns an :class:`~nirspi_pipe.types.Image2D` of relative radiance (reflectance ×
+cos incidence, light at the camera) into a :class:`~nirspi_pipe.types.DepthMap` with
+``metric=False``: depth in units of the pixel pitch *at the object* (``z_metric = z_ref +
+depth · z_ref / focal_px`` for a nearest-point distance ``z_ref``), zero at the nearest
+(singular) points and growing away from the camera, valid where ``mask``. The fusion stage
+fixes scale and offset from the iToF points. See ``docs/sfs.md`` for the equations.
+
+Shared keys (all stages):
+
+* ``albedo``: ``auto`` (the brightest object pixel is frontal: divide by the maximum of the,
+  optionally median-filtered, image over the object) or a number in (0, 1].
+* ``min_intensity``: normalised radiance ``I/albedo`` at or below which a pixel is not object
+  (background, shadow, I = 0). It also caps the slope at ``sqrt(1/min² − 1)``.
+* ``source_tol``: pixels with ``I/albedo ≥ 1 − source_tol`` are singular points (Dirichlet
+  ``z = 0``).
+* ``median_px``: odd median-filter window applied to the image first (0 = off); use it against
+  salt noise.
+* ``scheme``, ``backend``, ``tol`` (pixel units), ``max_sweeps``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.sfs.sweeping import BIG, SCHEMES, SweepProblem, SweepResult, solve_numpy
+from nirspi_pipe.types import Camera, DepthMap, Image2D
+
+__all__ = [
+    "LaxFriedrichsSFS",
+    "PerspectiveSFS",
+    "OrenNayarSFS",
+    "PhongSFS",
+    "oren_nayar_ab",
+    "prepare_image",
+]
+
+BACKENDS = ("numpy", "opencl")
+
+
+def oren_nayar_ab(roughness_rad: float) -> tuple[float, float]:
+    """Oren–Nayar ``A = 1 − 0.5σ²/(σ² + 0.33)`` and ``B = 0.45σ²/(σ² + 0.09)`` (σ in radians)."""
+    s = float(roughness_rad) ** 2
+    return 1.0 - 0.5 * s / (s + 0.33), 0.45 * s / (s + 0.09)
+
+
+# Largest roughness for which the Oren–Nayar brightness with the light at the camera,
+# A·c + B·(1 − c²), is increasing in c = cos θ on [0, 1] (A ≥ 2B): beyond it two slopes give the
+# same brightness and the inversion below is ambiguous.
+_ON_MAX_ROUGHNESS = float(
+    next(r for r in np.linspace(0.0, 1.5, 15001)[::-1] if oren_nayar_ab(r)[0] >= 2 * oren_nayar_ab(r)[1])
+)
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Image after validation and albedo normalisation (internal)."""
+
+    norm: np.ndarray  # I / albedo, clipped to [0, 1]
+    mask: np.ndarray  # object pixels
+    sources: np.ndarray  # singular points (Dirichlet z = 0)
+    albedo: float
+    info: dict[str, Any]
+
+
+def _check_common(obj: Any, schemes: tuple[str, ...]) -> None:
+    if obj.scheme not in schemes:
+        raise ConfigError("scheme", obj.scheme, ", ".join(schemes))
+    if obj.backend not in BACKENDS:
+        raise ConfigError("backend", obj.backend, ", ".join(BACKENDS))
+    if not (isinstance(obj.tol, (int, float)) and np.isfinite(obj.tol) and obj.tol > 0):
+        raise ConfigError("tol", obj.tol, "a tolerance in pixels > 0")
+    if int(obj.max_sweeps) != obj.max_sweeps or obj.max_sweeps < 4:
+        raise ConfigError("max_sweeps", obj.max_sweeps, "an integer >= 4")
+    if obj.albedo != "auto":
+        ok = isinstance(obj.albedo, (int, float)) and not isinstance(obj.albedo, bool)
+        if not ok or not 0.0 < float(obj.albedo) <= 1.0:
+            raise ConfigError("albedo", obj.albedo, "auto, or a reflectance in (0, 1]")
+    if not 0.0 < float(obj.min_intensity) < 1.0:
+        raise ConfigError("min_intensity", obj.min_intensity, "a normalised radiance in (0, 1)")
+    if not 0.0 <= float(obj.source_tol) < 0.5:
+        raise ConfigError("source_tol", obj.source_tol, "a value in [0, 0.5)")
+    m = obj.median_px
+    if int(m) != m or m < 0 or (m > 0 and m % 2 == 0):
+        raise ConfigError("median_px", m, "0 (off) or an odd window size in pixels")
+
+
+def prepare_image(
+    data: np.ndarray,
+    albedo: float | str,
+    min_intensity: float,
+    source_tol: float,
+    median_px: int,
+    weight: np.ndarray | None = None,
+) -> Prepared:
+    """Validate and normalise an SFS input image (relative radiance).
+
+    ``weight`` (optional, ``(h, w)`` > 0) divides the image before the ``auto`` albedo is taken
+    (perspective models normalise ``I/Q`` or ``I/Q³``). Non-finite pixels are set to 0 with a
+    warning; so are negative ones. Returns the normalised image in [0, 1], the object mask and
+    the singular points; warns when a region has none (the Dirichlet problem then has no data).
+    """
+    from scipy import ndimage
+
+    img = np.array(data, dtype=np.float64)
+    if img.ndim != 2:
+        raise NirspiError(f"sfs needs a 2D image, got shape {img.shape}")
+    bad = ~np.isfinite(img)
+    if bad.any():
+        warnings.warn(f"sfs: {int(bad.sum())} non-finite pixels set to 0", stacklevel=3)
+        img[bad] = 0.0
+    if (img < 0).any():
+        img = np.maximum(img, 0.0)  # reconstruction ringing below zero: no light
+    if median_px:
+        img = ndimage.median_filter(img, size=int(median_px), mode="nearest")
+    scaled = img / weight if weight is not None else img
+    info: dict[str, Any] = {}
+    if albedo == "auto":
+        rho = float(scaled.max())
+        if rho <= 0.0:
+            rho = 1.0
+    else:
+        rho = float(albedo)
+    norm = scaled / rho
+    mask = norm > min_intensity
+    over = norm > 1.0 + source_tol
+    if over.any():
+        warnings.warn(
+            f"sfs: {int(over.sum())} pixels are brighter than the albedo ({rho:.3g}): "
+            "Lambertian shading cannot exceed it, so the brightness equation has no real "
+            "solution there; they are treated as singular points (z = 0)",
+            stacklevel=3,
+        )
+    norm = np.clip(norm, 0.0, 1.0)
+    sources = mask & (norm >= 1.0 - source_tol)
+    if not mask.any():
+        warnings.warn(
+            f"sfs: no object pixels (I/albedo <= {min_intensity} everywhere): nothing to "
+            "reconstruct, the depth map is empty",
+            stacklevel=3,
+        )
+    else:
+        labels, n = ndimage.label(mask)
+        with_src = np.unique(labels[sources])
+        missing = [k for k in range(1, n + 1) if k not in set(with_src.tolist())]
+        if missing:
+            warnings.warn(
+                f"sfs: {len(missing)} of {n} object regions have no singular point "
+                f"(I/albedo >= {1 - source_tol:g}): the eikonal problem has no Dirichlet data "
+                "there and its solution is not determined; each is anchored at its brightest "
+                "pixel (z = 0), which is right only if that pixel faces the camera",
+                stacklevel=3,
+            )
+            idx = ndimage.maximum_position(norm, labels, missing)
+            for ij in idx:
+                sources[ij] = True
+        info["regions"] = int(n)
+        info["regions_without_singular_point"] = len(missing)
+    info["albedo"] = rho
+    info["singular_points"] = int(sources.sum())
+    return Prepared(norm, mask, sources, rho, info)
+
+
+def _run(problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweeps: int) -> SweepResult:
+    if backend == "opencl":
+        from nirspi_pipe.sfs.opencl import solve_opencl
+
+        try:
+            return solve_opencl(problem, scheme, tol, max_sweeps)
+        except Exception as exc:  # noqa: BLE001 - turned into a one-line user error
+            if type(exc).__module__.startswith("pyopencl") or isinstance(exc, RuntimeError):
+                lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+                errs = [ln for ln in lines if "error" in ln.lower() and "clBuildProgram" not in ln]
+                why = errs[0] if errs else (lines[0] if lines else type(exc).__name__)
+                raise NirspiError(
+                    f"sfs.backend=opencl: the OpenCL kernel could not run here ({why}); "
+                    "use sfs.backend=numpy"
+                ) from None
+            raise
+    return solve_numpy(problem, scheme, tol, max_sweeps)
+
+
+def _finish(
+    z: np.ndarray, prep: Prepared, res: SweepResult, name: str, extra: dict[str, Any], backend: str, scheme: str
+) -> DepthMap:
+    """Mask, make finite, warn on non-convergence and pack the DepthMap."""
+    valid = prep.mask & np.isfinite(z) & (z < 0.5 * BIG)
+    depth = np.where(valid, z, 0.0)
+    if valid.any():
+        depth = np.where(valid, depth - depth[valid].min(), 0.0)
+    if not res.converged:
+        warnings.warn(
+            f"sfs ({name}): not converged after {res.sweeps} sweeps (last change "
+            f"{res.final_change:.3g} px > tol); raise sfs.max_sweeps",
+            stacklevel=3,
+        )
+    info = {
+        "model": name,
+        "scheme": scheme,
+        "backend": backend,
+        "sweeps": int(res.sweeps),
+        "final_change": float(res.final_change),
+        "converged": bool(res.converged),
+        "depth_units": "pixel_pitch",
+        "valid_fraction": float(valid.mean()),
+        **prep.info,
+        **extra,
+    }
+    return DepthMap(depth_m=depth, mask=valid, metric=False, info=info)
+
+
+def _effective_scheme(scheme: str, shape: tuple[int, int]) -> str:
+    if scheme == "lax_friedrichs" and min(shape) < 3:
+        warnings.warn("sfs: image smaller than 3x3, using the godunov scheme", stacklevel=3)
+        return "godunov"
+    return scheme
+
+
+@dataclass(frozen=True)
+class LaxFriedrichsSFS:
+    """SFS ``lax_friedrichs``: orthographic Lambertian SFS, light at the camera (Alg. A2, fixed).
+
+    Solves the eikonal ``|∇z| = F = sqrt(1/I² − 1)`` (I normalised by the albedo; the printed
+    Alg. A2 line 17 puts Z where I belongs) with ``z = 0`` at the singular points ``I = 1`` by
+    Kao–Osher–Qian Lax–Friedrichs fast sweeping (``scheme: lax_friedrichs``) or by the Godunov
+    upwind update (``scheme: godunov``, much faster for this equation). Depth in pixel pitches.
+    """
+
+    scheme: str = "lax_friedrichs"
+    backend: str = "numpy"
+    tol: float = 1e-4
+    max_sweeps: int = 4000
+    albedo: float | str = "auto"
+    min_intensity: float = 0.05
+    source_tol: float = 1e-3
+    median_px: int = 0
+
+    def __post_init__(self) -> None:
+        _check_common(self, SCHEMES)
+
+    def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
+        """``cos θ`` from the normalised radiance; Lambertian: ``I/albedo`` itself."""
+        return norm
+
+    def _model_info(self) -> dict[str, Any]:
+        return {}
+
+    def solve(self, image: Image2D, camera: Camera) -> DepthMap:
+        """Depth (pixel pitches, 0 at the singular points) from ``image``; ``camera`` is unused
+        by the orthographic model except for bookkeeping."""
+        prep = prepare_image(image.data, self.albedo, self.min_intensity, self.source_tol, self.median_px)
+        c = np.clip(self.cos_incidence(prep.norm), self.min_intensity, 1.0)
+        f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
+        scheme = _effective_scheme(self.scheme, f.shape)
+        problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, 0.0, BIG))
+        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps))
+        extra = {"focal_px": float(camera.focal_px), **self._model_info()}
+        return _finish(res.z, prep, res, type(self).__name__, extra, self.backend, scheme)
+
+
+@dataclass(frozen=True)
+class OrenNayarSFS(LaxFriedrichsSFS):
+    """SFS ``oren_nayar``: orthographic SFS for an Oren–Nayar surface (after Tozza & Falcone
+    2016), light at the camera.
+
+    With the light along the view direction, θ_i = θ_r = θ and φ_i = φ_r, so the Oren–Nayar
+    brightness is ``I/ρ = A cos θ + B sin²θ`` (``A``, ``B`` from ``roughness_rad``). For
+    ``roughness_rad ≤ 0.6`` rad it increases with ``cos θ``, so each pixel's ``cos θ`` follows
+    from its brightness (root of ``B c² − A c + I/ρ − B = 0``) and the depth solves the same
+    eikonal ``|∇z| = sqrt(1/c² − 1)``. ``albedo: auto`` takes the brightest pixel as frontal
+    (``I = ρA``).
+    """
+
+    roughness_rad: float = 0.3
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0.0 <= float(self.roughness_rad) <= _ON_MAX_ROUGHNESS:
+            raise ConfigError(
+                "roughness_rad",
+                self.roughness_rad,
+                f"radians in [0, {_ON_MAX_ROUGHNESS:.3f}] (beyond, brightness is not monotone in "
+                "the incidence angle with the light at the camera and SFS is ambiguous)",
+            )
+
+    def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
+        a, b = oren_nayar_ab(self.roughness_rad)
+        # norm = I/ρ' with ρ' = ρA (frontal brightness): I/ρ = A·norm.
+        target = a * norm
+        if b < 1e-12:
+            return np.clip(target / a, 0.0, 1.0)
+        disc = np.maximum(a * a - 4.0 * b * (target - b), 0.0)
+        return np.clip((a - np.sqrt(disc)) / (2.0 * b), 0.0, 1.0)
+
+    def _model_info(self) -> dict[str, Any]:
+        a, b = oren_nayar_ab(self.roughness_rad)
+        return {"oren_nayar_a": a, "oren_nayar_b": b}
+
+
+@dataclass(frozen=True)
+class PhongSFS(LaxFriedrichsSFS):
+    """SFS ``phong``: orthographic SFS for a Phong surface, light at the camera (after Tozza &
+    Falcone 2016): ``I/ρ = (1 − k_s) cos θ + k_s cos^α θ`` (the mirror direction of the light is
+    the view direction, so the specular lobe is ``cos^α θ``). Increasing in ``cos θ``, inverted
+    per pixel by bisection, then the eikonal as in ``lax_friedrichs``.
+    """
+
+    specular: float = 0.3
+    shininess: float = 10.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0.0 <= float(self.specular) < 1.0:
+            raise ConfigError("specular", self.specular, "a specular fraction k_s in [0, 1)")
+        if not 1.0 <= float(self.shininess) <= 1000.0:
+            raise ConfigError("shininess", self.shininess, "a Phong exponent in [1, 1000]")
+
+    def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
+        ks, alpha = float(self.specular), float(self.shininess)
+        lo, hi = np.zeros_like(norm), np.ones_like(norm)
+        for _ in range(60):  # bisection: g(c) = (1 − ks)c + ks c^α is increasing on [0, 1]
+            mid = 0.5 * (lo + hi)
+            low = (1.0 - ks) * mid + ks * mid**alpha < norm
+            lo = np.where(low, mid, lo)
+            hi = np.where(low, hi, mid)
+        return 0.5 * (lo + hi)
+
+    def _model_info(self) -> dict[str, Any]:
+        return {"specular": float(self.specular), "shininess": float(self.shininess)}
+
+
+@dataclass(frozen=True)
+class PerspectiveSFS:
+    """SFS ``perspective``: perspective Lambertian SFS with a point light at the optical centre
+    (Prados & Faugeras 2005), our camera's geometry.
+
+    With ``w = f ln z`` (f = ``camera.focal_px``) and ``x̂`` the normalised image coordinates,
+    the brightness equation becomes ``sqrt(|∇w|² + (x̂·∇w + 1)²) = Q/Î`` without fall-off and
+    ``= (Q³/Î) exp(−2w/f)`` with ``1/r²`` fall-off (``falloff: true``), ``Q = 1/sqrt(1 + |x̂|²)``
+    the cosine of the ray angle. Solved by Lax–Friedrichs sweeping (KOQ) with σ from the
+    Hamiltonian's bound. Without fall-off the singular points (``Î = Q``) carry ``w = 0``; with
+    fall-off the equation is strictly increasing in ``w`` and needs no boundary data (the
+    sweeping starts from the supersolution ``w₀ = (f/2) ln(K sqrt(1 + |x̂|²)) + 1``). Output:
+    ``f (z/z_min − 1)``, the depth behind the nearest point in pixel pitches at that point.
+    """
+
+    falloff: bool = True
+    scheme: str = "lax_friedrichs"
+    backend: str = "numpy"
+    tol: float = 1e-4
+    max_sweeps: int = 4000
+    albedo: float | str = "auto"
+    min_intensity: float = 0.05
+    source_tol: float = 1e-3
+    median_px: int = 0
+
+    def __post_init__(self) -> None:
+        _check_common(self, ("lax_friedrichs",))
+        if not isinstance(self.falloff, bool):
+            raise ConfigError("falloff", self.falloff, "true or false")
+
+    def solve(self, image: Image2D, camera: Camera) -> DepthMap:
+        """Depth (pixel pitches at the nearest point, 0 there) from ``image`` seen by ``camera``."""
+        data = np.asarray(image.data)
+        if data.ndim != 2:
+            raise NirspiError(f"sfs needs a 2D image, got shape {data.shape}")
+        if min(data.shape) < 3:
+            raise NirspiError("sfs=perspective needs an image of at least 3x3 pixels")
+        rows, cols = data.shape
+        f = float(camera.focal_px) * cols / camera.resolution  # focal length at this grid size
+        xh = (np.arange(cols) + 0.5 - cols / 2.0) / f
+        yh = (np.arange(rows) + 0.5 - rows / 2.0) / f
+        r2 = xh[None, :] ** 2 + yh[:, None] ** 2
+        q = 1.0 / np.sqrt(1.0 + r2)  # cos of the ray angle, f/|m|
+        weight = q**3 if self.falloff else q
+        prep = prepare_image(data, self.albedo, self.min_intensity, self.source_tol, self.median_px, weight)
+        rhs = 1.0 / np.maximum(prep.norm, self.min_intensity)  # Q/Î = 1/norm (Q folded in weight)
+        if self.falloff:
+            fixed = np.zeros_like(prep.sources)
+            init = 0.5 * f * np.log(rhs * np.sqrt(1.0 + r2)) + 1.0
+            model = 2
+        else:
+            fixed = prep.sources
+            init = np.where(fixed, 0.0, BIG)
+            model = 1
+        problem = SweepProblem(rhs=rhs, fixed=fixed, init=init, model=model, xhat=xh, yhat=yh, focal_px=f)
+        scheme = self.scheme
+        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps))
+        w = np.where(prep.mask, res.z, np.nan)
+        valid = prep.mask & (res.z < 0.5 * BIG)
+        z_rel = np.zeros_like(res.z)
+        if valid.any():
+            w0 = float(np.nanmin(np.where(valid, w, np.nan)))
+            z_rel = np.where(valid, np.exp(np.clip((res.z - w0) / f, 0.0, 50.0)), 1.0)
+        depth = f * (z_rel - 1.0)  # pixel pitches at the nearest point
+        depth = np.where(valid, depth, BIG)
+        extra = {"focal_px": f, "falloff": bool(self.falloff)}
+        return _finish(depth, prep, res, "PerspectiveSFS", extra, self.backend, scheme)
