@@ -40,6 +40,8 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
@@ -188,9 +190,12 @@ def _label_amenta(
 
 
 def power_crust(
-    samples: np.ndarray, labelling: str = "view", box_factor: float = 3.0
+    samples: np.ndarray, labelling: str = "view", box_factor: float = 3.0, weld_factor: float = 0.25
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Power crust of ``samples`` ``(n, 3)`` (metres).
+
+    Power-diagram vertices closer than ``weld_factor`` × the median sample spacing are welded,
+    and each power face (a polygon) is triangulated around its centroid.
 
     Returns ``(vertices (v, 3) metres, faces (f, 3), info)``; faces are oriented from the inner
     to the outer pole (outward normals).
@@ -208,9 +213,13 @@ def power_crust(
     poles, radii = poles[first], merged_r
     n_minus = len(owner) - n
     pairs = np.column_stack([inv[owner[n:]], inv[n:], owner[n:]]) if n_minus else np.zeros((0, 3), np.int64)
+    # a tiny deterministic joggle (1e-7 of the extent) of the poles, used consistently for the
+    # hull and the power centres, avoids degenerate (flat) regular tetrahedra
+    ext = max(float(np.ptp(s, axis=0).max()), 1e-12)
+    poles = poles + np.random.default_rng(0).normal(0.0, 1e-7 * ext, poles.shape)
     lifted = np.column_stack([poles, np.sum(poles**2, axis=1) - radii**2])
     try:
-        hull = ConvexHull(lifted, qhull_options="QJ")
+        hull = ConvexHull(lifted, qhull_options="Qt")
     except QhullError as exc:
         raise NirspiError(f"power crust: power diagram failed ({str(exc).splitlines()[0]})") from None
     lower = hull.equations[:, 3] < 0
@@ -240,7 +249,7 @@ def power_crust(
     a, b, tet_id, key = a[closed], b[closed], tet_id[closed], key[closed]
     if len(key) == 0:
         raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
-    # order each ring by angle around its edge, then fan-triangulate the polygon
+    # order each ring by angle around its edge
     pa, pb = poles[a], poles[b]
     axis = pb - pa
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
@@ -248,34 +257,59 @@ def power_crust(
     u = np.cross(axis, ref)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     w = np.cross(axis, u)
-    rel = centres[tet_id] - pa
+    # around the polygon's own centroid: the line through the two poles need not pierce it
+    _, ginv = np.unique(key, return_inverse=True)
+    gsum = np.zeros((ginv.max() + 1, 3))
+    np.add.at(gsum, ginv, centres[tet_id])
+    gmean = gsum / np.bincount(ginv)[:, None]
+    rel = centres[tet_id] - gmean[ginv]
     ang = np.arctan2(np.einsum("ij,ij->i", rel, w), np.einsum("ij,ij->i", rel, u))
     order = np.lexsort((ang, key))
     key, tet_id, a, b = key[order], tet_id[order], a[order], b[order]
+    # weld power vertices closer than weld_factor x the sample spacing (co-spherical poles give
+    # several tetrahedra with one power centre; near-coincident ones make sliver triangles)
+    spacing = float(np.median(cKDTree(s).query(s, k=2)[0][:, 1]))
+    wtol = max(weld_factor * spacing, 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12))
+    ids = np.unique(tet_id)
+    close = cKDTree(centres[ids]).query_pairs(wtol, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(len(ids), len(ids)))
+    n_cl, cl = connected_components(graph, directed=False)
+    vpos = np.zeros((n_cl, 3))
+    np.add.at(vpos, cl, centres[ids])
+    vpos /= np.bincount(cl, minlength=n_cl)[:, None]
+    vid = cl[np.searchsorted(ids, tet_id)]
+    # drop repeated vertices along each ring (cyclic), then polygons with < 3 vertices
     _, start, size = np.unique(key, return_index=True, return_counts=True)
-    grp = np.repeat(np.arange(len(start)), np.maximum(size - 2, 0))
-    k_in = np.arange(len(grp)) - np.repeat(np.cumsum(np.maximum(size - 2, 0)) - np.maximum(size - 2, 0), np.maximum(size - 2, 0))
-    f0 = tet_id[start[grp]]
-    f1 = tet_id[start[grp] + 1 + k_in]
-    f2 = tet_id[start[grp] + 2 + k_in]
-    faces = np.column_stack([f0, f1, f2])
+    grp = np.repeat(np.arange(len(start)), size)
+    prev = np.arange(len(key)) - 1
+    prev[start] = start + size - 1
+    keep = vid != vid[prev]
+    keep[start[size == 1]] = True
+    key, vid, a, b = key[keep], vid[keep], a[keep], b[keep]
+    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    ok = size >= 3
+    grp = np.repeat(np.arange(len(start)), size)
+    sel = ok[grp]
+    # triangulate each polygon around its centroid (a hexagon gives six equilateral triangles;
+    # a fan from one vertex would give slivers)
+    nxt = np.arange(len(key)) + 1
+    last = start + size - 1
+    nxt[last] = start
+    cen = np.zeros((len(start), 3))
+    np.add.at(cen, grp, vpos[vid])
+    cen /= size[:, None]
+    verts = np.vstack([vpos, cen])
+    faces = np.column_stack([n_cl + grp, vid, vid[nxt]])[sel]
     # orient outwards: normal along (outer pole − inner pole)
-    ea, eb = a[start[grp]], b[start[grp]]
+    ea, eb = a[sel], b[sel]
     out_dir = np.where(inner[ea][:, None], poles[eb] - poles[ea], poles[ea] - poles[eb])
-    nrm = np.cross(centres[f1] - centres[f0], centres[f2] - centres[f0])
+    nrm = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
     flip = np.einsum("ij,ij->i", nrm, out_dir) < 0
     faces[flip] = faces[flip][:, [0, 2, 1]]
-    # weld power vertices that coincide (co-spherical poles give several tetrahedra with one
-    # power centre) and drop the faces this collapses
-    wtol = 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12)
-    _, wfirst, winv = np.unique(np.round(centres / wtol).astype(np.int64), axis=0, return_index=True, return_inverse=True)
-    faces = winv.ravel()[faces]
-    centres = centres[wfirst]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     used, faces = np.unique(faces, return_inverse=True)
     faces = faces.reshape(-1, 3)
-    info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(len(start))}
-    return centres[used], faces, info
+    info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(ok.sum())}
+    return verts[used], faces, info
 
 
 def trim_to_samples(
@@ -307,14 +341,19 @@ class PowerCrust:
             spacings, beyond which a face is dropped.
         box_factor: half-size of the bounding box added to bound the Voronoi cells, in units of
             the samples' extent.
+        weld_factor: power-diagram vertices closer than this × the median sample spacing are
+            merged (removes the slivers of near-degenerate power faces); 0 = exact coincidences only.
     """
 
     labelling: str = "view"
     closed: bool = False
     trim_factor: float = 1.5
     box_factor: float = 3.0
+    weld_factor: float = 0.25
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.weld_factor < 1.0:
+            raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
         if self.labelling not in ("view", "amenta"):
             raise ConfigError("labelling", self.labelling, "view or amenta")
         if not self.trim_factor > 0:
@@ -327,7 +366,7 @@ class PowerCrust:
         pts = np.asarray(cloud.points_m, dtype=np.float64)
         if not np.all(np.isfinite(pts)):
             raise NirspiError("power crust: the point cloud has non-finite points")
-        verts, faces, info = power_crust(pts, self.labelling, self.box_factor)
+        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor)
         info["faces_closed"] = int(len(faces))
         if not self.closed:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
