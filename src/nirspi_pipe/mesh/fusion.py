@@ -2,6 +2,8 @@
 
 Steps (see docs/mesh.md for the derivations and the departures from the paper):
 
+0. **Despiking.** SFS pixels that stand out of their 3×3 median by more than ``despike_k``
+   robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
 1. **Regions and metric scaling (Alg. A3).** The image is split into four angular sectors around
    the principal point, each centred on one iToF spot (with the default laser azimuth of 45°
    these are the image quadrants). The relative SFS depth ``z_r`` becomes metric depth
@@ -62,9 +64,32 @@ __all__ = [
     "heat_diffusion",
     "pca_normals",
     "back_project",
+    "despike",
 ]
 
 _MAX_POINTS = 5_000_000  # guard on Alg. A4's output (d_pitch far below the triangle size)
+
+
+def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.ndarray:
+    """Valid-pixel mask without the spikes of a depth map ``(n, n)`` (any unit).
+
+    A pixel is a spike when it differs from the median of its valid 3×3 neighbours by more than
+    ``k`` robust standard deviations (1.4826 × the median absolute residual over the map), with
+    the deviation floored at ``0.1·unit`` (``unit``: one pixel pitch in the map's depth unit) so
+    that a noise-free surface keeps its curvature. Linear slopes leave no residual.
+    """
+    n0, n1 = depth.shape
+    pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (3, 3)).reshape(n0, n1, 9)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows off the object
+        med = np.nanmedian(win, axis=-1)
+    res = np.where(valid, depth - med, np.nan)
+    good = np.isfinite(res)
+    if not good.any():
+        return valid
+    sigma = max(1.4826 * float(np.median(np.abs(res[good]))), 0.1 * unit)
+    return valid & ~(np.abs(np.nan_to_num(res)) > k * sigma)
 
 
 def back_project(depth_m: np.ndarray, camera: Camera) -> np.ndarray:
@@ -330,6 +355,8 @@ class ItofFusion:
             (0 = hard quadrants as in the paper).
         anchor_radius_px: an iToF spot off the SFS mask is matched to the nearest valid pixel
             within this radius (pixels), else it is not used.
+        despike_k: drop SFS pixels farther than this many robust standard deviations from the
+            median of their 3×3 neighbours (SFS outliers) before anything else; null = off.
         max_edge_factor: drop grid triangles whose longest edge exceeds this × the median.
         knn: neighbours for the outlier test, the diffusion graph and the normals.
         outlier_std: statistical outlier threshold in standard deviations; null = off.
@@ -344,6 +371,7 @@ class ItofFusion:
     region_offset_prior_mm: float = 5.0
     blend_deg: float = 30.0
     anchor_radius_px: float = 2.0
+    despike_k: float | None = 4.0
     max_edge_factor: float = 4.0
     knn: int = 8
     outlier_std: float | None = 2.5
@@ -365,6 +393,8 @@ class ItofFusion:
             raise ConfigError("blend_deg", self.blend_deg, "degrees in [0, 90]")
         if not self.anchor_radius_px >= 0:
             raise ConfigError("anchor_radius_px", self.anchor_radius_px, "pixels >= 0")
+        if self.despike_k is not None and not self.despike_k > 0:
+            raise ConfigError("despike_k", self.despike_k, "standard deviations > 0, or null")
         if not self.max_edge_factor > 1:
             raise ConfigError("max_edge_factor", self.max_edge_factor, "a factor > 1")
         if int(self.knn) != self.knn or not 3 <= self.knn <= 64:
@@ -423,6 +453,11 @@ class ItofFusion:
             warnings.warn(f"fusion: {bad} masked SFS pixels are not finite; dropped", stacklevel=3)
         if not valid.any():
             raise NirspiError("fusion: the SFS depth map has no valid pixel (empty mask)")
+        spikes = 0
+        if self.despike_k is not None:
+            unit = 1.0 if not depth.metric else float(np.median(zr_map[valid])) / camera.focal_px
+            kept = despike(zr_map, valid, self.despike_k, unit)
+            spikes, valid = int(valid.sum() - kept.sum()), kept
         used, zr, z, sig = self._anchor_values(zr_map, valid, itof, camera)
         pts = np.asarray(itof.points_m, dtype=np.float64)
         c = n / 2.0 - 0.5
@@ -452,6 +487,7 @@ class ItofFusion:
             "offset_m": t,
             "region_offsets_m": [float(v) for v in delta],
             "anchors_used": int(used.sum()),
+            "spikes_removed": spikes,
         }
         return np.where(valid, z_m, np.inf), valid, fit
 
