@@ -81,9 +81,11 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     n0, n1 = depth.shape
     pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
     win = np.lib.stride_tricks.sliding_window_view(pad, (3, 3)).reshape(n0, n1, 9)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows off the object
-        med = np.nanmedian(win, axis=-1)
+    srt = np.sort(win, axis=-1)  # NaN sort last
+    cnt = np.isfinite(win).sum(axis=-1)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[..., None], axis=-1)[..., 0]
+    med = np.where(cnt > 0, 0.5 * (lo + hi), np.nan)  # median of the valid neighbours
     res = np.where(valid, depth - med, np.nan)
     good = np.isfinite(res)
     if not good.any():
@@ -477,7 +479,7 @@ class ItofFusion:
         rows, cols = np.mgrid[0:n, 0:n]
         pix_ang = np.degrees(np.arctan2(-(rows - c), cols - c))
         w = region_weights(pix_ang, anchor_ang, self.blend_deg)
-        z_m = s * zr_map + t + w @ delta
+        z_m = s * zr_map + t + np.einsum("ijk,k->ij", w, delta)
         valid &= np.isfinite(z_m) & (z_m > 0)
         if not valid.any():
             raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
