@@ -290,7 +290,7 @@ class ContinuousWave4:
         info = {
             "ambiguity_range_m": lam,
             "frames": self.frames,
-            "sigma_floor_m": self.sigma_floor_m,
+            "sigma_floor_m": float(self.sigma_floor_m),
             "valid_spots": int(np.isfinite(sigma).sum()),
             "signal_electrons_mean": float(np.mean(sig_e)),
             "background_electrons_mean": float(np.mean(bg_e)),

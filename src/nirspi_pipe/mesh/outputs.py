@@ -46,6 +46,11 @@ def truth_mesh(truth: Scene) -> Mesh:
 
 def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, int] = (900, 450)) -> Path:
     """Off-screen render (PNG) of ``mesh`` (left) beside ``truth`` (right), same camera."""
+    import os
+
+    if not os.environ.get("DISPLAY"):
+        # headless: go straight to EGL instead of failing over from X with a warning (VTK >= 9.4)
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 
     shape = (1, 2) if truth is not None else (1, 1)
