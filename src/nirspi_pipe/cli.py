@@ -136,6 +136,10 @@ def execute_job(
             arrays if out_cfg.get("arrays", True) else {},
             images if out_cfg.get("images", True) else {},
         )
+        if p.mesh is not None:
+            from nirspi_pipe.mesh.outputs import write_mesh_outputs
+
+            write_mesh_outputs(out_dir, p)  # mesh.ply and mesh.png (mesh beside the truth)
     write_record(out_dir, record)
     return record
 

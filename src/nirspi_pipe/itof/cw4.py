@@ -1,0 +1,300 @@
+"""iToF ``cw4``: four continuous-wave indirect time-of-flight lasers (paper §3, Table 1).
+
+Four 1550 nm lasers sit at the camera (the origin) and point at 90° to each other around the
+optical axis, each ``spot_angle_deg`` off axis, so that by default (azimuth 45°) each spot lands
+in one image quadrant. Each has its own photodiode. A laser is sine-modulated at ``f_mod`` and the
+photodiode signal is correlated with the modulation at four phase offsets (0, 90°, 180°, 270°):
+
+    A_k = B/4 + (N_s/4)·(1 + c_d·cos(φ + k·π/2)),   k = 0..3
+
+with ``N_s`` the signal photo-electrons, ``B`` the background photo-electrons and ``c_d`` the
+demodulation contrast. The four readings give the phase and the distance (4-phase
+demodulation)::
+
+    φ = atan2(A3 − A1, A0 − A2),   d = c·φ / (4π f_mod)   (φ wrapped to [0, 2π))
+
+which is unambiguous up to ``c / (2 f_mod)`` (31.2 m at 4.8 MHz); farther targets wrap.
+
+Noise. The ``A_k`` are Poisson counts (shot noise of signal and background light) accumulated
+over ``frames = round(averaging_s / T_int)`` integration windows of ``T_int``. The shot-noise
+range deviation (Lange & Seitz 2001) is ``σ_shot = c/(4π f) · sqrt(ΣA_k / 2) / (2 a)`` with
+``a = ½·|(A0 − A2, A3 − A1)|``, estimated from the measured counts as a device would. On top sits
+the electronics floor given by Table 1's noise-equivalent distance: ``σ_floor = NED ·
+sqrt(ENBW)`` with the equivalent noise bandwidth ``ENBW = 1 / (2·averaging_s)`` of a boxcar
+average. Table 1's ``NED = 1 cm/√Hz`` with the default 0.5 s average gives ``σ_floor = 1 cm``,
+Table 1's ``σ_min``. (Read as a single 150 µs window, NED would give 58 cm, which contradicts
+σ_min; the paper does not say how NED is referenced, so this is our reading.)
+
+Photon budget (not in the paper, documented assumptions): the spot's power ``P`` falls on a
+Lambertian surface of reflectance ``R`` at range ``r`` and incidence ``θ``; a coaxial receiver
+of aperture ``A_rx`` collects ``P·R·cos θ·A_rx / (π r²)``, attenuated by fog on the way out and
+back, ``exp(−2βr)``. Background irradiance ``E_bg`` on the target (in the detector's band)
+reflects as radiance ``R·E_bg/π`` into the receiver's field of view (solid angle
+``π sin²(α_FOV)``); following Koschmieder (Eq. 7) with the airlight as bright as the object,
+fog does not reduce the background. Fog backscatter of the laser into the receiver is ignored.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.types import Acquisition, ItofSample, Scene
+
+__all__ = ["ContinuousWave4", "demodulate_4phase", "laser_directions", "ambiguity_range_m"]
+
+C_M_S = 299_792_458.0  # speed of light, m/s
+H_J_S = 6.626_070_15e-34  # Planck constant, J·s
+
+
+def ambiguity_range_m(f_mod_hz: float) -> float:
+    """Unambiguous range of a CW iToF at modulation frequency ``f_mod_hz`` (Hz): ``c/(2f)``, m."""
+    return C_M_S / (2.0 * f_mod_hz)
+
+
+def demodulate_4phase(samples: np.ndarray, f_mod_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """4-phase CW demodulation.
+
+    Args:
+        samples: ``(..., 4)`` correlation samples ``A0..A3`` at phase offsets 0, 90°, 180°, 270°
+            (photo-electrons or any linear unit).
+        f_mod_hz: modulation frequency, Hz.
+
+    Returns:
+        ``(distance_m, amplitude, offset)``: the distance ``c·φ/(4π f)`` in metres with
+        ``φ = atan2(A3 − A1, A0 − A2)`` wrapped to ``[0, 2π)`` (so the distance is in
+        ``[0, c/(2f))``), the amplitude ``a = ½|(A0 − A2, A3 − A1)|`` and the offset ``ΣA_k``
+        (units of the samples).
+    """
+    a = np.asarray(samples, dtype=np.float64)
+    i = a[..., 0] - a[..., 2]
+    q = a[..., 3] - a[..., 1]
+    phi = np.mod(np.arctan2(q, i), 2.0 * np.pi)
+    dist = C_M_S * phi / (4.0 * np.pi * f_mod_hz)
+    # the wrap can return exactly 2π for tiny negative angles: fold it back into [0, c/2f)
+    dist = np.where(dist >= ambiguity_range_m(f_mod_hz), 0.0, dist)
+    return dist, 0.5 * np.hypot(i, q), a.sum(axis=-1)
+
+
+def laser_directions(spot_angle_deg: float, azimuth_deg: float) -> np.ndarray:
+    """Unit directions ``(4, 3)`` of the four lasers in the camera frame (+z forward, +y up).
+
+    Laser ``k`` is ``spot_angle_deg`` off the optical axis at azimuth ``azimuth_deg + 90°·k``
+    (measured from +x towards +y), so the four are at 90° to each other around the axis.
+    """
+    th = np.deg2rad(spot_angle_deg)
+    psi = np.deg2rad(azimuth_deg + 90.0 * np.arange(4))
+    return np.stack(
+        [np.sin(th) * np.cos(psi), np.sin(th) * np.sin(psi), np.full(4, np.cos(th))], axis=-1
+    )
+
+
+def _sample_at(scene: Scene, d: np.ndarray) -> tuple[bool, float, float, float]:
+    """Where the ray ``d`` (unit) meets the scene: ``(hit, range_m, reflectance, cos_incidence)``.
+
+    The z-depth is interpolated bilinearly between the four pixel centres around the spot when
+    all four are on the object (nearest pixel otherwise); reflectance and normal come from the
+    nearest pixel. Raises :class:`ConfigError` (``spot_angle_deg``) when the spot leaves the image.
+    """
+    cam = scene.camera
+    n, f = cam.resolution, cam.focal_px
+    col = d[0] / d[2] * f + n / 2.0 - 0.5
+    row = -d[1] / d[2] * f + n / 2.0 - 0.5
+    if not (-0.5 <= col < n - 0.5 and -0.5 <= row < n - 0.5):
+        raise ConfigError("spot_angle_deg", None, "spots inside the camera's field of view")
+    ri, ci = int(round(row)), int(round(col))
+    if not scene.mask[ri, ci] or not np.isfinite(scene.depth_m[ri, ci]):
+        return False, np.inf, 0.0, 0.0
+    r0, c0 = int(np.floor(row)), int(np.floor(col))
+    z = float(scene.depth_m[ri, ci])
+    if 0 <= r0 < n - 1 and 0 <= c0 < n - 1:
+        block = scene.depth_m[r0 : r0 + 2, c0 : c0 + 2]
+        if np.all(np.isfinite(block)) and np.all(scene.mask[r0 : r0 + 2, c0 : c0 + 2]):
+            fr, fc = row - r0, col - c0
+            z = float(
+                block[0, 0] * (1 - fr) * (1 - fc) + block[0, 1] * (1 - fr) * fc
+                + block[1, 0] * fr * (1 - fc) + block[1, 1] * fr * fc
+            )
+    cos_inc = float(np.clip(-scene.normals[ri, ci] @ d, 0.0, 1.0))
+    return True, z / float(d[2]), float(scene.reflectance[ri, ci]), cos_inc
+
+
+@dataclass(frozen=True)
+class ContinuousWave4:
+    """iToF ``cw4``: four CW lasers with 4-phase demodulation, shot noise, background and fog.
+
+    Defaults are the paper's Table 1 and §3 where it gives them (f_mod, T_int, NED, 5 mW,
+    α_FOV); the rest are documented assumptions (see the module docstring).
+
+    Attributes:
+        f_mod_mhz: modulation frequency, MHz (Table 1 F_mod-eq = 4.8 MHz; ambiguity 31.2 m).
+        t_int_us: integration window of one frame, µs (Table 1: 150 µs).
+        averaging_s: time over which frames are averaged, s; sets the electronics floor
+            ``NED·sqrt(1/(2·averaging_s))`` and the accumulated photon counts.
+        ned_cm_per_sqrt_hz: noise-equivalent distance, cm/√Hz (Table 1: 1).
+        laser_power_mw: optical power of each laser, mW (§3: 5 mW, IEC 62471).
+        wavelength_nm: laser wavelength, nm (1550).
+        spot_angle_deg: angle of each laser off the optical axis, degrees (must stay inside the
+            camera's field of view). 3.5° puts the spots ~12 mm off axis at 20 cm, inside the
+            paper's Ø50 mm sphere.
+        azimuth_deg: azimuth of laser 0 around the axis, degrees; 45° puts one spot per quadrant.
+        aperture_mm: diameter of each receiver's collecting lens, mm (assumption).
+        rx_half_fov_deg: half field of view of each receiver, degrees (Table 1 α_FOV = 10°);
+            sets how much background light it collects.
+        quantum_efficiency: InGaAs quantum efficiency at 1550 nm (0.8).
+        demod_contrast: demodulation contrast ``c_d`` in (0, 1] (sine modulation, 4 taps).
+        min_phase_snr: a spot whose phase noise exceeds ``1/min_phase_snr`` rad gives no valid
+            return: it is reported with ``sigma = inf`` (fusion ignores it) and a warning.
+    """
+
+    f_mod_mhz: float = 4.8
+    t_int_us: float = 150.0
+    averaging_s: float = 0.5
+    ned_cm_per_sqrt_hz: float = 1.0
+    laser_power_mw: float = 5.0
+    wavelength_nm: float = 1550.0
+    spot_angle_deg: float = 3.5
+    azimuth_deg: float = 45.0
+    aperture_mm: float = 5.0
+    rx_half_fov_deg: float = 10.0
+    quantum_efficiency: float = 0.8
+    demod_contrast: float = 0.5
+    min_phase_snr: float = 3.0
+
+    def __post_init__(self) -> None:
+        positive = {
+            "f_mod_mhz": "a frequency in MHz > 0",
+            "t_int_us": "an integration time in µs > 0",
+            "averaging_s": "an averaging time in s > 0",
+            "laser_power_mw": "a power in mW > 0",
+            "wavelength_nm": "a wavelength in nm > 0",
+            "aperture_mm": "a diameter in mm > 0",
+            "min_phase_snr": "a phase SNR > 0",
+        }
+        for key, allowed in positive.items():
+            v = getattr(self, key)
+            if not (np.isfinite(v) and v > 0):
+                raise ConfigError(key, v, allowed)
+        if not (np.isfinite(self.ned_cm_per_sqrt_hz) and self.ned_cm_per_sqrt_hz >= 0):
+            raise ConfigError("ned_cm_per_sqrt_hz", self.ned_cm_per_sqrt_hz, "a NED in cm/√Hz >= 0")
+        if self.averaging_s < self.t_int_us * 1e-6:
+            raise ConfigError("averaging_s", self.averaging_s, "at least one frame (>= t_int_us)")
+        if not 0.0 <= self.spot_angle_deg < 80.0:
+            raise ConfigError("spot_angle_deg", self.spot_angle_deg, "degrees in [0, 80)")
+        if not np.isfinite(self.azimuth_deg):
+            raise ConfigError("azimuth_deg", self.azimuth_deg, "a finite angle in degrees")
+        if not 0.0 < self.rx_half_fov_deg < 90.0:
+            raise ConfigError("rx_half_fov_deg", self.rx_half_fov_deg, "degrees in (0, 90)")
+        if not 0.0 < self.quantum_efficiency <= 1.0:
+            raise ConfigError("quantum_efficiency", self.quantum_efficiency, "a fraction in (0, 1]")
+        if not 0.0 < self.demod_contrast <= 1.0:
+            raise ConfigError("demod_contrast", self.demod_contrast, "a contrast in (0, 1]")
+
+    @property
+    def f_mod_hz(self) -> float:
+        """Modulation frequency, Hz."""
+        return self.f_mod_mhz * 1e6
+
+    @property
+    def frames(self) -> int:
+        """Number of ``T_int`` frames averaged (≥ 1)."""
+        return max(1, int(round(self.averaging_s / (self.t_int_us * 1e-6))))
+
+    @property
+    def sigma_floor_m(self) -> float:
+        """Electronics floor ``NED · sqrt(1/(2·averaging_s))``, metres."""
+        return self.ned_cm_per_sqrt_hz * 1e-2 * np.sqrt(1.0 / (2.0 * self.averaging_s))
+
+    def expected_counts(
+        self, range_m: float, reflectance: float, cos_inc: float, beta_per_m: float, background_w_m2: float
+    ) -> tuple[float, float]:
+        """Expected signal and background photo-electrons ``(N_s, B)`` over all frames.
+
+        Args:
+            range_m: laser-to-target range, m (``inf`` = no target).
+            reflectance: Lambertian reflectance of the target, [0, 1].
+            cos_inc: cosine of the incidence angle, [0, 1].
+            beta_per_m: fog extinction coefficient, 1/m (signal × exp(−2βr)).
+            background_w_m2: in-band background irradiance on the target, W/m².
+        """
+        e_ph = H_J_S * C_M_S / (self.wavelength_nm * 1e-9)  # J per photon
+        t_total = self.frames * self.t_int_us * 1e-6
+        a_rx = np.pi * (0.5 * self.aperture_mm * 1e-3) ** 2
+        if np.isfinite(range_m) and range_m > 0:
+            p_sig = (
+                self.laser_power_mw * 1e-3 * reflectance * cos_inc * a_rx / (np.pi * range_m**2)
+                * np.exp(-2.0 * beta_per_m * range_m)
+            )
+        else:
+            p_sig = 0.0
+        omega = np.pi * np.sin(np.deg2rad(self.rx_half_fov_deg)) ** 2
+        refl_bg = reflectance if np.isfinite(range_m) else 0.0
+        p_bg = background_w_m2 * refl_bg / np.pi * a_rx * omega
+        k = self.quantum_efficiency * t_total / e_ph
+        return float(p_sig * k), float(p_bg * k)
+
+    def measure(self, scene: Scene | None, acquisition: Acquisition, rng: np.random.Generator) -> ItofSample:
+        """Simulate the four spots on the ground-truth ``scene`` and demodulate them.
+
+        Fog (``beta_per_m``, 1/m) and background light (``background_irradiance_w_m2``, W/m²) are
+        read from ``acquisition.derived``; absent keys mean clear air and darkness.
+
+        Returns an :class:`ItofSample` with ``points_m`` ``(4, 3)`` (metres, camera frame: the
+        measured range along each laser's direction) and ``sigma_m`` ``(4,)`` (range standard
+        deviation in metres; ``inf`` for a spot without a valid return).
+        """
+        if scene is None:
+            raise NirspiError("itof=cw4 simulates the lasers and needs the ground-truth scene")
+        beta = float(acquisition.derived.get("beta_per_m", 0.0))
+        e_bg = float(acquisition.derived.get("background_irradiance_w_m2", 0.0))
+        if not (np.isfinite(beta) and beta >= 0 and np.isfinite(e_bg) and e_bg >= 0):
+            raise NirspiError(f"itof: invalid fog/background in acquisition.derived (beta={beta}, E={e_bg})")
+        f = self.f_mod_hz
+        lam = ambiguity_range_m(f)
+        dirs = laser_directions(self.spot_angle_deg, self.azimuth_deg)
+        k_phase = np.pi / 2.0 * np.arange(4)
+        points = np.zeros((4, 3))
+        sigma = np.zeros(4)
+        true_range = np.full(4, np.inf)
+        sig_e = np.zeros(4)
+        bg_e = np.zeros(4)
+        sig_shot = np.zeros(4)
+        for j, d in enumerate(dirs):
+            hit, r, refl, cos_inc = _sample_at(scene, d)
+            n_s, n_b = self.expected_counts(r, refl, cos_inc, beta, e_bg)
+            phi = np.mod(4.0 * np.pi * f * r / C_M_S, 2.0 * np.pi) if hit else 0.0
+            mean = n_b / 4.0 + n_s / 4.0 * (1.0 + self.demod_contrast * np.cos(phi + k_phase))
+            counts = rng.poisson(mean).astype(np.float64)  # shot noise of signal + background
+            dist, amp, offset = demodulate_4phase(counts, f)
+            if amp > 0:
+                s_phi = np.sqrt(offset / 2.0) / (2.0 * amp)  # phase noise, rad
+            else:
+                s_phi = np.inf
+            s_shot = C_M_S / (4.0 * np.pi * f) * s_phi
+            if s_phi * self.min_phase_snr > 1.0:
+                warnings.warn(
+                    f"itof: laser {j} has no valid return (phase SNR {1 / s_phi:.2g} < "
+                    f"{self.min_phase_snr:g}{', spot misses the object' if not hit else ''}); sigma = inf",
+                    stacklevel=2,
+                )
+                sigma[j] = np.inf
+            else:
+                # electronics floor on the averaged range, then wrap into [0, c/2f)
+                dist = float(np.mod(dist + rng.normal(0.0, self.sigma_floor_m), lam))
+                sigma[j] = float(np.hypot(s_shot, self.sigma_floor_m))
+            points[j] = dist * d
+            true_range[j], sig_e[j], bg_e[j], sig_shot[j] = r, n_s, n_b, s_shot
+        info = {
+            "ambiguity_range_m": lam,
+            "frames": self.frames,
+            "sigma_floor_m": float(self.sigma_floor_m),
+            "valid_spots": int(np.isfinite(sigma).sum()),
+            "signal_electrons_mean": float(np.mean(sig_e)),
+            "background_electrons_mean": float(np.mean(bg_e)),
+            "sigma_shot_max_m": float(np.max(sig_shot)),
+            "sigma_mean_m": float(np.mean(sigma[np.isfinite(sigma)])) if np.isfinite(sigma).any() else float("inf"),
+        }
+        return ItofSample(points_m=points, sigma_m=sigma, info=info)

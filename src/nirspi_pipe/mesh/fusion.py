@@ -1,0 +1,550 @@
+"""Fusion ``itof``: SFS depth + four iToF points → a metric, filtered point cloud (Algs. A3/A4).
+
+Steps (see docs/mesh.md for the derivations and the departures from the paper):
+
+0. **Despiking.** SFS pixels that stand out of their 3×3 median by more than ``despike_k``
+   robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
+1. **Regions and metric scaling (Alg. A3).** The image is split into four angular sectors around
+   the principal point, each centred on one iToF spot (with the default laser azimuth of 45°
+   these are the image quadrants). The relative SFS depth ``z_r`` becomes metric depth
+   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: one global scale ``s`` and offset ``t`` plus one
+   offset correction ``δ_k`` per region, blended across region borders by weights ``w_k`` that
+   sum to one. ``(s, t, δ)`` is the weighted least-squares fit to the iToF anchors (weights
+   ``1/σ_k²``) regularised by two documented priors: ``s ≈ s₀ = Z̄/f`` (SFS depth in pixel-pitch
+   units at the anchors' mean depth, relative tolerance ``scale_prior_rel``) and ``δ_k ≈ 0``
+   (tolerance ``region_offset_prior_mm``). Without the scale prior, four anchors at the same SFS
+   depth (a sphere hit symmetrically) cannot fix the scale; the priors keep the problem
+   well-posed and fall back gracefully when spots miss.
+2. **Back-projection** of every valid pixel with the pinhole camera, and triangulation of the
+   pixel grid (two triangles per 2×2 block of valid pixels; triangles whose longest edge exceeds
+   ``max_edge_factor`` × the median are dropped: they bridge SFS outliers or depth jumps).
+3. **Semi-even points on each triangle (Alg. A4, Eqs. 13–15).** ``V0`` is the triangle's vertex
+   nearest its region's iToF point; ``v1, v2`` are the *unit* vectors from ``V0`` to the other two
+   vertices (Eq. 13 as printed divides by ``sqrt(|V·V_ref|)``, which is not a length: we
+   normalise properly); ``α = arccos(v1·v2)`` (Eq. 14); points ``P = V0 + v1·d·x + v2·(d/sin α)·y``
+   with ``d·x < |V0V1|`` and ``(d/sin α)·y < |V0V2|·(1 − d·x/|V0V1|)`` (Eq. 15): rows ``d`` apart.
+   ``sin α`` is floored at ``sin(min_angle_deg)`` (α → 0 makes ``d/sin α`` blow up: a sliver
+   then gets only its vertex rows).
+4. **Voxel merging**: points are averaged per cubic voxel of side ``voxel_mm`` (default
+   ``d_pitch``).
+5. **Filtering**: statistical outlier removal (mean distance to the ``knn`` nearest neighbours
+   more than ``outlier_std`` standard deviations above the mean), then one implicit step of the
+   heat equation on the kNN graph: ``(D + t·(D − W))·x' = D·x`` — the backward-Euler step
+   ``(I + t·L_rw)·x' = x`` of ``∂x/∂τ = −L_rw x`` with the random-walk Laplacian
+   ``L_rw = I − D⁻¹W`` and heat-kernel weights ``W_ij = exp(−|p_i − p_j|²/h²)`` (``h`` = mean
+   neighbour distance). ``t = time_step`` is dimensionless, in units of one neighbour-averaging
+   step: a graph eigenmode with eigenvalue ``λ ∈ [0, 2]`` is damped by ``1/(1 + tλ)``; the step is
+   unconditionally stable (implicit), so ``t`` sets the smoothing only. By default the filter
+   acts on the range along each camera ray (``diffuse: range``) so the silhouette of the open
+   2.5D patch does not shrink; ``diffuse: xyz`` smooths all three coordinates (paper [40]).
+6. **Normals** by PCA over the ``knn`` neighbours, oriented towards the camera.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
+from scipy.spatial import cKDTree
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.types import Camera, DepthMap, ItofSample, PointCloud
+
+__all__ = [
+    "ItofFusion",
+    "fit_metric_depth",
+    "region_weights",
+    "grid_triangles",
+    "semi_even_points",
+    "voxel_merge",
+    "remove_outliers",
+    "heat_diffusion",
+    "pca_normals",
+    "back_project",
+    "despike",
+]
+
+_MAX_POINTS = 5_000_000  # guard on Alg. A4's output (d_pitch far below the triangle size)
+
+
+def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.ndarray:
+    """Valid-pixel mask without the spikes of a depth map ``(n, n)`` (any unit).
+
+    A pixel is a spike when it differs from the median of its valid 3×3 neighbours by more than
+    ``k`` robust standard deviations (1.4826 × the median absolute residual over the map), with
+    the deviation floored at ``0.1·unit`` (``unit``: one pixel pitch in the map's depth unit) so
+    that a noise-free surface keeps its curvature. Linear slopes leave no residual.
+    """
+    n0, n1 = depth.shape
+    pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
+    win = np.lib.stride_tricks.sliding_window_view(pad, (3, 3)).reshape(n0, n1, 9)
+    srt = np.sort(win, axis=-1)  # NaN sort last
+    cnt = np.isfinite(win).sum(axis=-1)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[..., None], axis=-1)[..., 0]
+    med = np.where(cnt > 0, 0.5 * (lo + hi), np.nan)  # median of the valid neighbours
+    res = np.where(valid, depth - med, np.nan)
+    good = np.isfinite(res)
+    if not good.any():
+        return valid
+    sigma = max(1.4826 * float(np.median(np.abs(res[good]))), 0.1 * unit)
+    return valid & ~(np.abs(np.nan_to_num(res)) > k * sigma)
+
+
+def back_project(depth_m: np.ndarray, camera: Camera) -> np.ndarray:
+    """Camera-frame points ``(n, n, 3)`` in metres of a z-depth map ``(n, n)`` (metres)."""
+    x, y = camera.pixel_coords()
+    return np.stack([x[..., 0] * depth_m, y[..., 0] * depth_m, depth_m], axis=-1)
+
+
+def project_px(points_m: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous pixel indices ``(row, col)`` of camera-frame points ``(..., 3)`` (metres);
+    integer values are pixel centres."""
+    p = np.asarray(points_m, dtype=np.float64)
+    n, f = camera.resolution, camera.focal_px
+    col = p[..., 0] / p[..., 2] * f + n / 2.0 - 0.5
+    row = -p[..., 1] / p[..., 2] * f + n / 2.0 - 0.5
+    return row, col
+
+
+def region_weights(
+    angles_deg: np.ndarray, anchor_angles_deg: np.ndarray, blend_deg: float
+) -> np.ndarray:
+    """Blending weights ``(…, k)`` of the angular regions centred on ``anchor_angles_deg``.
+
+    A pixel at polar angle ``ψ`` (degrees, about the principal point) belongs to the region of
+    the nearest anchor angle. With ``blend_deg = b > 0`` the weights ramp linearly over a band of
+    ``b`` degrees centred on each border (45° from the anchors when they are 90° apart), so the
+    per-region offsets do not leave steps; ``b = 0`` gives hard regions (the paper). Weights are
+    non-negative and sum to 1.
+    """
+    a = np.asarray(angles_deg, dtype=np.float64)[..., None]
+    delta = np.abs((a - np.asarray(anchor_angles_deg)[None, :] + 180.0) % 360.0 - 180.0)
+    nearest = np.argmin(delta, axis=-1)
+    hard = np.zeros(delta.shape)
+    np.put_along_axis(hard, nearest[..., None], 1.0, axis=-1)
+    if blend_deg <= 0:
+        return hard
+    half = 180.0 / len(anchor_angles_deg)  # 45° for four anchors
+    w = np.clip((half + 0.5 * blend_deg - delta) / blend_deg, 0.0, 1.0)
+    s = w.sum(axis=-1, keepdims=True)
+    return np.where(s > 0, w / np.where(s > 0, s, 1.0), hard)
+
+
+def fit_metric_depth(
+    zr: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    region: np.ndarray,
+    n_regions: int,
+    s0: float,
+    scale_prior_rel: float | None,
+    region_prior_m: float,
+) -> tuple[float, float, np.ndarray]:
+    """Fit ``z ≈ s·zr + t + δ[region]`` to the anchors (weighted least squares with priors).
+
+    Args:
+        zr: ``(k,)`` relative SFS depth at the anchors.
+        z: ``(k,)`` iToF z-depth of the anchors, metres.
+        sigma: ``(k,)`` anchor standard deviations, metres (finite, > 0).
+        region: ``(k,)`` region index of each anchor.
+        n_regions: number of regions (offsets ``δ``).
+        s0: prior scale (metres per relative unit).
+        scale_prior_rel: relative standard deviation of the scale prior; None = no prior.
+        region_prior_m: standard deviation of the per-region offsets, metres; 0 = no offsets.
+
+    Returns:
+        ``(s, t, δ)``: scale (m per unit), offset (m) and ``(n_regions,)`` offsets (m).
+
+    Raises:
+        NirspiError: when the anchors cannot determine the unknowns (e.g. no anchor, or anchors
+            at equal SFS depth without a scale prior).
+    """
+    k = len(z)
+    if k == 0:
+        raise NirspiError("fusion: no valid iToF anchor on the SFS depth map; cannot make it metric")
+    use_regions = region_prior_m > 0
+    ncols = 2 + (n_regions if use_regions else 0)
+    rows, rhs = [], []
+    for i in range(k):
+        row = np.zeros(ncols)
+        row[0], row[1] = zr[i], 1.0
+        if use_regions:
+            row[2 + int(region[i])] = 1.0
+        rows.append(row / sigma[i])
+        rhs.append(z[i] / sigma[i])
+    if scale_prior_rel is not None:
+        row = np.zeros(ncols)
+        tol = scale_prior_rel * abs(s0)
+        row[0] = 1.0 / tol
+        rows.append(row)
+        rhs.append(s0 / tol)
+    if use_regions:
+        for j in range(n_regions):
+            row = np.zeros(ncols)
+            row[2 + j] = 1.0 / region_prior_m
+            rows.append(row)
+            rhs.append(0.0)
+    a, b = np.array(rows), np.array(rhs)
+    theta, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
+    if rank < ncols:
+        raise NirspiError(
+            f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
+            "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
+        )
+    delta = theta[2:] if use_regions else np.zeros(n_regions)
+    return float(theta[0]), float(theta[1]), np.asarray(delta, dtype=np.float64)
+
+
+def grid_triangles(valid: np.ndarray) -> np.ndarray:
+    """Triangles ``(f, 3)`` of flat pixel indices over the valid pixels of an ``(h, w)`` grid:
+    two per 2×2 block, kept when all three corners are valid (counter-clockwise seen from the
+    camera)."""
+    h, w = valid.shape
+    idx = np.arange(h * w).reshape(h, w)
+    a, b = idx[:-1, :-1], idx[:-1, 1:]  # top-left, top-right
+    c, d = idx[1:, :-1], idx[1:, 1:]  # bottom-left, bottom-right
+    va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
+    t1 = np.stack([a, c, b], axis=-1)[va & vc & vb]
+    t2 = np.stack([b, c, d], axis=-1)[vb & vc & vd]
+    return np.concatenate([t1, t2]).reshape(-1, 3)
+
+
+def semi_even_points(
+    tri: np.ndarray, ref: np.ndarray, d_pitch_m: float, min_angle_deg: float = 1.0
+) -> np.ndarray:
+    """Alg. A4: semi-even points at pitch ``d`` on each triangle (Eqs. 13–15), metres.
+
+    Args:
+        tri: ``(f, 3, 3)`` triangle vertices, metres.
+        ref: ``(f, 3)`` reference point of each triangle (its region's iToF point); ``V0`` is
+            the vertex nearest to it.
+        d_pitch_m: point pitch ``d``, metres (> 0).
+        min_angle_deg: floor of α in Eq. (15) (``d/sin α`` guard), degrees.
+
+    Returns:
+        ``(p, 3)`` points: the lattice ``V0 + v1·d·x + v2·(d/sin α)·y`` inside each triangle
+        (always including ``V0``). Degenerate triangles (a zero edge) give ``V0`` only.
+    """
+    tri = np.asarray(tri, dtype=np.float64)
+    if len(tri) == 0:
+        return np.zeros((0, 3))
+    first = np.argmin(np.linalg.norm(tri - ref[:, None, :], axis=-1), axis=1)
+    order = (first[:, None] + np.arange(3)[None, :]) % 3
+    tri = np.take_along_axis(tri, order[..., None], axis=1)
+    v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    l1, l2 = np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1)
+    ok = (l1 > 0) & (l2 > 0)
+    safe1, safe2 = np.where(ok, l1, 1.0), np.where(ok, l2, 1.0)
+    u1, u2 = e1 / safe1[:, None], e2 / safe2[:, None]  # Eq. (13), unit vectors
+    cos_a = np.clip(np.einsum("ij,ij->i", u1, u2), -1.0, 1.0)
+    sin_a = np.sqrt(1.0 - cos_a**2)  # sin(arccos(·)), Eq. (14)
+    d1 = d_pitch_m
+    d2 = d_pitch_m / np.maximum(sin_a, np.sin(np.deg2rad(min_angle_deg)))  # Eq. (15), α guarded
+    nx = np.where(ok, np.ceil(safe1 / d1), 1).astype(np.int64)
+    ny = np.where(ok, np.ceil(safe2 / d2), 1).astype(np.int64)
+    counts = nx * ny
+    total = int(counts.sum())
+    if total > _MAX_POINTS:
+        raise ConfigError("d_pitch_mm", d_pitch_m * 1e3, f"a pitch giving <= {_MAX_POINTS} points (got {total})")
+    t_idx = np.repeat(np.arange(len(tri)), counts)
+    start = np.repeat(np.cumsum(counts) - counts, counts)
+    local = np.arange(total) - start
+    x = local // ny[t_idx]
+    y = local % ny[t_idx]
+    s = d1 * x / safe1[t_idx]
+    keep = (y == 0) | (d2[t_idx] * y < safe2[t_idx] * (1.0 - s))  # Eq. (15) bounds
+    keep &= ok[t_idx] | ((x == 0) & (y == 0))
+    t_idx, x, y = t_idx[keep], x[keep], y[keep]
+    return (
+        v0[t_idx]
+        + u1[t_idx] * (d1 * x)[:, None]
+        + u2[t_idx] * (d2[t_idx] * y)[:, None]
+    )
+
+
+def voxel_merge(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Average the points ``(p, 3)`` (metres) falling in each cubic voxel of side ``voxel_m``."""
+    if len(points) == 0:
+        return points.reshape(0, 3)
+    q = np.floor(points / voxel_m).astype(np.int64)
+    q -= q.min(axis=0)
+    dims = q.max(axis=0) + 1
+    key = (q[:, 0] * dims[1] + q[:, 1]) * dims[2] + q[:, 2]
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    out = np.stack([np.bincount(inv, weights=points[:, i]) for i in range(3)], axis=1)
+    return out / cnt[:, None]
+
+
+def remove_outliers(points: np.ndarray, knn: int, n_std: float) -> np.ndarray:
+    """Boolean mask ``(p,)`` of the points kept by statistical outlier removal (Rusu et al.
+    2008): drop points whose mean distance to their ``knn`` neighbours exceeds the mean of that
+    quantity by more than ``n_std`` standard deviations."""
+    p = len(points)
+    if p <= knn + 1:
+        return np.ones(p, dtype=bool)
+    dist, _ = cKDTree(points).query(points, k=knn + 1)
+    mean_d = dist[:, 1:].mean(axis=1)
+    return mean_d <= mean_d.mean() + n_std * mean_d.std()
+
+
+def _knn_graph(points: np.ndarray, knn: int) -> sparse.csr_matrix:
+    """Symmetric heat-kernel weight matrix of the kNN graph, ``exp(−d²/h²)``, ``h`` = mean
+    neighbour distance."""
+    p = len(points)
+    k = min(knn, p - 1)
+    dist, idx = cKDTree(points).query(points, k=k + 1)
+    dist, idx = dist[:, 1:], idx[:, 1:]
+    h = float(dist.mean()) if dist.size and dist.mean() > 0 else 1.0
+    w = np.exp(-((dist / h) ** 2))
+    rows = np.repeat(np.arange(p), k)
+    mat = sparse.csr_matrix((w.ravel(), (rows, idx.ravel())), shape=(p, p))
+    return mat.maximum(mat.T).tocsr()
+
+
+def heat_diffusion(values: np.ndarray, points: np.ndarray, knn: int, time_step: float) -> np.ndarray:
+    """One implicit heat-equation step of ``values`` ``(p,)`` or ``(p, c)`` on the kNN graph of
+    ``points`` ``(p, 3)``: solves ``(D + t(D − W)) x' = D x`` (backward Euler of
+    ``∂x/∂τ = −(I − D⁻¹W)x``), unconditionally stable; ``t = time_step`` is dimensionless.
+    Units of ``values`` are kept."""
+    p = len(points)
+    if time_step == 0 or p < 3:
+        return np.array(values, dtype=np.float64, copy=True)
+    w = _knn_graph(points, knn)
+    deg = np.asarray(w.sum(axis=1)).ravel()
+    deg = np.maximum(deg, 1e-12)  # isolated point: stays put
+    d = sparse.diags(deg)
+    a = ((1.0 + time_step) * d - time_step * w).tocsc()
+    rhs = deg[:, None] * np.asarray(values, dtype=np.float64).reshape(p, -1)
+    out = spsolve(a, rhs)
+    return np.asarray(out).reshape(np.shape(values))
+
+
+def pca_normals(points: np.ndarray, knn: int) -> np.ndarray:
+    """Unit normals ``(p, 3)`` by PCA of the ``knn`` nearest neighbours, oriented towards the
+    camera at the origin (``n · p < 0``)."""
+    p = len(points)
+    if p < 3:
+        return np.tile([0.0, 0.0, -1.0], (p, 1))
+    k = min(knn, p)
+    _, idx = cKDTree(points).query(points, k=k)
+    nb = points[idx]  # (p, k, 3)
+    c = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("pki,pkj->pij", c, c)
+    _, vec = np.linalg.eigh(cov)
+    n = vec[:, :, 0]
+    n *= np.where(np.einsum("ij,ij->i", n, points) > 0, -1.0, 1.0)[:, None]
+    return n
+
+
+@dataclass(frozen=True)
+class ItofFusion:
+    """Fusion ``itof``: Algorithms A3/A4 with voxel merging and a heat-diffusion filter.
+
+    Attributes:
+        d_pitch_mm: point pitch of Alg. A4, mm (paper: 5 mm).
+        voxel_mm: voxel side for merging, mm; null = ``d_pitch_mm``.
+        min_angle_deg: floor on α in Eq. (15) (guard of ``d/sin α``), degrees.
+        scale_prior_rel: relative tolerance of the prior scale ``Z̄/f`` (SFS in pixel-pitch
+            units); null = fit the scale from the anchors alone (needs anchors at different SFS
+            depths).
+        region_offset_prior_mm: tolerance of each region's offset correction, mm; 0 = one global
+            offset (no per-region anchoring).
+        blend_deg: width of the band over which neighbouring regions' offsets blend, degrees
+            (0 = hard quadrants as in the paper).
+        anchor_radius_px: an iToF spot off the SFS mask is matched to the nearest valid pixel
+            within this radius (pixels), else it is not used.
+        despike_k: drop SFS pixels farther than this many robust standard deviations from the
+            median of their 3×3 neighbours (SFS outliers) before anything else; null = off.
+        max_edge_factor: drop grid triangles whose longest edge exceeds this × the median.
+        knn: neighbours for the outlier test, the diffusion graph and the normals.
+        outlier_std: statistical outlier threshold in standard deviations; null = off.
+        time_step: dimensionless implicit heat-diffusion step ``t`` (0 = no smoothing).
+        diffuse: ``range`` (along camera rays; keeps the silhouette) or ``xyz``.
+    """
+
+    d_pitch_mm: float = 5.0
+    voxel_mm: float | None = None
+    min_angle_deg: float = 1.0
+    scale_prior_rel: float | None = 0.2
+    region_offset_prior_mm: float = 5.0
+    blend_deg: float = 30.0
+    anchor_radius_px: float = 2.0
+    despike_k: float | None = 4.0
+    max_edge_factor: float = 4.0
+    knn: int = 8
+    outlier_std: float | None = 2.5
+    time_step: float = 1.0
+    diffuse: str = "range"
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.d_pitch_mm) and self.d_pitch_mm > 0):
+            raise ConfigError("d_pitch_mm", self.d_pitch_mm, "a pitch in mm > 0")
+        if self.voxel_mm is not None and not (np.isfinite(self.voxel_mm) and self.voxel_mm > 0):
+            raise ConfigError("voxel_mm", self.voxel_mm, "a voxel size in mm > 0, or null for d_pitch_mm")
+        if not 0.0 < self.min_angle_deg < 90.0:
+            raise ConfigError("min_angle_deg", self.min_angle_deg, "degrees in (0, 90)")
+        if self.scale_prior_rel is not None and not (np.isfinite(self.scale_prior_rel) and self.scale_prior_rel > 0):
+            raise ConfigError("scale_prior_rel", self.scale_prior_rel, "a relative tolerance > 0, or null")
+        if not (np.isfinite(self.region_offset_prior_mm) and self.region_offset_prior_mm >= 0):
+            raise ConfigError("region_offset_prior_mm", self.region_offset_prior_mm, "mm >= 0")
+        if not 0.0 <= self.blend_deg <= 90.0:
+            raise ConfigError("blend_deg", self.blend_deg, "degrees in [0, 90]")
+        if not self.anchor_radius_px >= 0:
+            raise ConfigError("anchor_radius_px", self.anchor_radius_px, "pixels >= 0")
+        if self.despike_k is not None and not self.despike_k > 0:
+            raise ConfigError("despike_k", self.despike_k, "standard deviations > 0, or null")
+        if not self.max_edge_factor > 1:
+            raise ConfigError("max_edge_factor", self.max_edge_factor, "a factor > 1")
+        if int(self.knn) != self.knn or not 3 <= self.knn <= 64:
+            raise ConfigError("knn", self.knn, "an integer from 3 to 64")
+        if self.outlier_std is not None and not self.outlier_std > 0:
+            raise ConfigError("outlier_std", self.outlier_std, "standard deviations > 0, or null")
+        if not (np.isfinite(self.time_step) and self.time_step >= 0):
+            raise ConfigError("time_step", self.time_step, "a dimensionless step >= 0")
+        if self.diffuse not in ("range", "xyz"):
+            raise ConfigError("diffuse", self.diffuse, "range or xyz")
+
+    # -- Alg. A3: anchors and metric depth ---------------------------------------------------
+    def _anchor_values(
+        self, zr_map: np.ndarray, valid: np.ndarray, itof: ItofSample, camera: Camera
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per anchor: ``(used, zr, z_m, sigma_m)``; unusable anchors are warned about."""
+        pts = np.asarray(itof.points_m, dtype=np.float64)
+        sig = np.asarray(itof.sigma_m, dtype=np.float64)
+        n = camera.resolution
+        used = np.zeros(len(pts), dtype=bool)
+        zr = np.zeros(len(pts))
+        rr, cc = np.nonzero(valid)
+        for k, (p, s) in enumerate(zip(pts, sig)):
+            if not (np.all(np.isfinite(p)) and p[2] > 0 and np.isfinite(s) and s > 0):
+                warnings.warn(f"fusion: iToF spot {k} has no valid range (sigma={s}); not used", stacklevel=3)
+                continue
+            row, col = project_px(p, camera)
+            r0, c0 = int(np.floor(row)), int(np.floor(col))
+            if 0 <= r0 < n - 1 and 0 <= c0 < n - 1 and valid[r0 : r0 + 2, c0 : c0 + 2].all():
+                fr, fc = row - r0, col - c0
+                b = zr_map[r0 : r0 + 2, c0 : c0 + 2]
+                zr[k] = b[0, 0] * (1 - fr) * (1 - fc) + b[0, 1] * (1 - fr) * fc + b[1, 0] * fr * (1 - fc) + b[1, 1] * fr * fc
+                used[k] = True
+                continue
+            if len(rr):
+                d2 = (rr - row) ** 2 + (cc - col) ** 2
+                j = int(np.argmin(d2))
+                if d2[j] <= self.anchor_radius_px**2:
+                    zr[k], used[k] = zr_map[rr[j], cc[j]], True
+                    continue
+            warnings.warn(f"fusion: iToF spot {k} falls outside the SFS depth mask; not used", stacklevel=3)
+        return used, zr, pts[:, 2], sig
+
+    def metric_depth(
+        self, depth: DepthMap, itof: ItofSample, camera: Camera
+    ) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Alg. A3: the metric z-depth map ``(n, n)`` (metres, valid where the returned mask is
+        True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used}``."""
+        zr_map = np.asarray(depth.depth_m, dtype=np.float64)
+        n = camera.resolution
+        if zr_map.shape != (n, n) or np.shape(depth.mask) != (n, n):
+            raise NirspiError(f"fusion: depth map {zr_map.shape} does not match the camera ({n}x{n})")
+        valid = np.asarray(depth.mask, dtype=bool) & np.isfinite(zr_map)
+        bad = int((np.asarray(depth.mask, dtype=bool) & ~np.isfinite(zr_map)).sum())
+        if bad:
+            warnings.warn(f"fusion: {bad} masked SFS pixels are not finite; dropped", stacklevel=3)
+        if not valid.any():
+            raise NirspiError("fusion: the SFS depth map has no valid pixel (empty mask)")
+        spikes = 0
+        if self.despike_k is not None:
+            unit = 1.0 if not depth.metric else float(np.median(zr_map[valid])) / camera.focal_px
+            kept = despike(zr_map, valid, self.despike_k, unit)
+            spikes, valid = int(valid.sum() - kept.sum()), kept
+        used, zr, z, sig = self._anchor_values(zr_map, valid, itof, camera)
+        pts = np.asarray(itof.points_m, dtype=np.float64)
+        c = n / 2.0 - 0.5
+        row_a, col_a = project_px(np.where(np.isfinite(pts), pts, 0.0) + [0, 0, 1e-12], camera)
+        anchor_ang = np.degrees(np.arctan2(-(row_a - c), col_a - c))
+        region = np.arange(len(pts))
+        s0 = 1.0
+        if not depth.metric:
+            zbar = float(np.average(z[used], weights=1.0 / sig[used] ** 2)) if used.any() else 1.0
+            s0 = zbar / camera.focal_px  # metres per pixel pitch at the anchors' depth
+        s, t, delta = fit_metric_depth(
+            zr[used], z[used], sig[used], region[used], len(pts), s0,
+            self.scale_prior_rel, self.region_offset_prior_mm * 1e-3,
+        )
+        if s <= 0:
+            warnings.warn(f"fusion: fitted depth scale {s:.3g} <= 0 (SFS depth inverted?)", stacklevel=3)
+        rows, cols = np.mgrid[0:n, 0:n]
+        pix_ang = np.degrees(np.arctan2(-(rows - c), cols - c))
+        w = region_weights(pix_ang, anchor_ang, self.blend_deg)
+        z_m = s * zr_map + t + np.einsum("ijk,k->ij", w, delta)
+        valid &= np.isfinite(z_m) & (z_m > 0)
+        if not valid.any():
+            raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
+        fit = {
+            "scale": s,
+            "scale_prior": s0,
+            "offset_m": t,
+            "region_offsets_m": [float(v) for v in delta],
+            "anchors_used": int(used.sum()),
+            "spikes_removed": spikes,
+        }
+        return np.where(valid, z_m, np.inf), valid, fit
+
+    # -- the whole fusion ----------------------------------------------------------------------
+    def fuse(self, depth: DepthMap, itof: ItofSample | None, camera: Camera) -> PointCloud:
+        """Fuse the SFS ``depth`` with the iToF points into a metric point cloud (metres)."""
+        if itof is None:
+            raise ConfigError("itof", None, "an itof stage (fusion=itof anchors SFS depth on the iToF points)")
+        z_m, valid, fit = self.metric_depth(depth, itof, camera)
+        n = camera.resolution
+        xyz = back_project(np.where(valid, z_m, 0.0), camera).reshape(-1, 3)
+        faces = grid_triangles(valid)
+        if len(faces):
+            tri = xyz[faces]
+            edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=-1).max(axis=1)
+            faces = faces[edges <= self.max_edge_factor * np.median(edges)]
+        if len(faces) == 0:
+            raise NirspiError("fusion: no triangle between valid SFS pixels (mask too sparse)")
+        # region of each triangle: the anchor (iToF point) its first vertex is blended most to
+        pts = np.asarray(itof.points_m, dtype=np.float64)
+        c = n / 2.0 - 0.5
+        fr, fc = np.divmod(faces[:, 0], n)
+        row_a, col_a = project_px(np.where(np.isfinite(pts), pts, 0.0) + [0, 0, 1e-12], camera)
+        anchor_ang = np.degrees(np.arctan2(-(row_a - c), col_a - c))
+        tri_ang = np.degrees(np.arctan2(-(fr - c), fc - c))
+        region = np.argmax(region_weights(tri_ang, anchor_ang, 0.0), axis=-1)
+        ref = np.where(np.isfinite(pts), pts, 0.0)[region]
+        dense = semi_even_points(xyz[faces], ref, self.d_pitch_mm * 1e-3, self.min_angle_deg)  # Alg. A4
+        verts = xyz[np.unique(faces)]
+        voxel = (self.voxel_mm if self.voxel_mm is not None else self.d_pitch_mm) * 1e-3
+        merged = voxel_merge(np.concatenate([verts, dense]), voxel)
+        keep = (
+            remove_outliers(merged, self.knn, self.outlier_std)
+            if self.outlier_std is not None
+            else np.ones(len(merged), dtype=bool)
+        )
+        cloud = merged[keep]
+        if self.diffuse == "range":
+            r = np.linalg.norm(cloud, axis=1)
+            r2 = heat_diffusion(r, cloud, self.knn, self.time_step)
+            cloud = cloud / r[:, None] * r2[:, None]
+        else:
+            cloud = heat_diffusion(cloud, cloud, self.knn, self.time_step)
+        if not np.all(np.isfinite(cloud)):
+            raise NirspiError("fusion: non-finite points after filtering")
+        normals = pca_normals(cloud, self.knn)
+        info = {
+            **fit,
+            "pixels": int(valid.sum()),
+            "triangles": int(len(faces)),
+            "points_a4": int(len(dense)),
+            "points_voxel": int(len(merged)),
+            "outliers_removed": int((~keep).sum()),
+            "points": int(len(cloud)),
+            "voxel_m": voxel,
+            "time_step": float(self.time_step),
+        }
+        return PointCloud(points_m=cloud, normals=normals, info=info)

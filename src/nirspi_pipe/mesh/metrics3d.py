@@ -1,0 +1,231 @@
+"""Metrics ``full``: the 2D image metrics plus the 3D metrics of §7 (Eqs. 16–17, skewness) and
+surface distances.
+
+* ``depth_rmse_sfs_mm``: Eq. (16) between the true z-depth and the SFS depth made metric with the
+  fusion's global scale and offset (``cloud.info``: ``scale``, ``offset_m``) — the paper's
+  RMSE of Alg. A2 — over the pixels where both exist.
+* ``depth_rmse_fused_mm``: Eq. (16) between the true z-depth and the fused cloud (output of
+  Alg. A3), interpolated on the same pixels (linear over the Delaunay triangulation of the
+  points' image positions); ``depth_pixels`` counts the pixels compared.
+* ``improvement_pct``: Eq. (17), ``(RMSE_A2 − RMSE_A3) / RMSE_A2 × 100``. The paper's
+  denominator is named ``RMSE_SfS``; SFS *is* Alg. A2, so it is the same number. Positive =
+  fusion helped. Omitted (with a warning) when ``RMSE_A2 = 0``.
+* ``skewness_*``: equiangle skewness ``max((θmax − 60°)/120°, (60° − θmin)/60°)`` of the final
+  mesh's triangles: mean, 95th percentile and the share in each ANSYS band (excellent < 0.25 ≤
+  good < 0.5 ≤ fair < 0.75 ≤ poor < 0.9 ≤ very poor < 1, degenerate = 1);
+  ``skewness_sfs_mean`` is the same for the pixel-grid mesh of the metric SFS depth.
+* ``chamfer_mm`` / ``hausdorff_mm``: symmetric chamfer (mean of the two mean nearest-neighbour
+  distances) and Hausdorff distance between the final mesh and the ground-truth surface (the
+  true depth map back-projected and triangulated, sampled at its vertices and face centroids);
+  the mesh is sampled uniformly at ``sample_spacing_mm`` (default: the true pixel pitch at the scene distance, ~1.1 mm for
+  the default sphere at 64²), so sampling adds a floor of about a third of that spacing.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.mesh.fusion import back_project, grid_triangles
+from nirspi_pipe.metrics import ImageMetrics, rmse
+from nirspi_pipe.stages import Products
+from nirspi_pipe.types import Camera
+
+__all__ = [
+    "Metrics3D",
+    "equiangle_skewness",
+    "skewness_summary",
+    "improvement_rate",
+    "surface_distances",
+    "sample_surface",
+    "SKEWNESS_BANDS",
+]
+
+#: ANSYS equiangle-skewness bands: name, lower bound (inclusive), upper bound (exclusive).
+SKEWNESS_BANDS = (
+    ("excellent", 0.0, 0.25),
+    ("good", 0.25, 0.5),
+    ("fair", 0.5, 0.75),
+    ("poor", 0.75, 0.9),
+    ("very_poor", 0.9, 1.0),
+)
+_DEGENERATE = 1.0 - 1e-9
+
+
+def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Equiangle skewness ``(f,)`` in [0, 1] of triangles: ``max((θmax − 60)/120, (60 − θmin)/60)``
+    with angles in degrees; 0 = equilateral, 1 = degenerate (a zero angle, or a zero-length edge)."""
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    if len(v) == 0:
+        return np.zeros(0)
+    e = [v[:, (i + 1) % 3] - v[:, i] for i in range(3)]  # edges
+    lengths = np.stack([np.linalg.norm(x, axis=1) for x in e], axis=1)
+    angles = np.zeros((len(v), 3))
+    for i in range(3):
+        a, b = -e[(i + 2) % 3], e[i]  # the two edges leaving vertex i
+        na, nb = lengths[:, (i + 2) % 3], lengths[:, i]
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-300)
+        angles[:, i] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    skew = np.maximum((angles.max(axis=1) - 60.0) / 120.0, (60.0 - angles.min(axis=1)) / 60.0)
+    degenerate = lengths.min(axis=1) <= 1e-12 * np.maximum(lengths.max(axis=1), 1e-300)
+    return np.clip(np.where(degenerate, 1.0, skew), 0.0, 1.0)
+
+
+def skewness_summary(skew: np.ndarray, prefix: str = "skewness") -> dict[str, float]:
+    """Mean, 95th percentile and the share (0–1) of triangles in each ANSYS band."""
+    if len(skew) == 0:
+        return {}
+    out = {f"{prefix}_mean": float(np.mean(skew)), f"{prefix}_p95": float(np.percentile(skew, 95))}
+    for name, lo, hi in SKEWNESS_BANDS:
+        out[f"{prefix}_share_{name}"] = float(np.mean((skew >= lo) & (skew < hi) & (skew < _DEGENERATE)))
+    out[f"{prefix}_share_degenerate"] = float(np.mean(skew >= _DEGENERATE))
+    return out
+
+
+def improvement_rate(rmse_before: float, rmse_after: float) -> float:
+    """Eq. (17): ``(RMSE_before − RMSE_after) / RMSE_before × 100`` (percent; > 0 = better).
+    Raises ValueError when ``rmse_before`` is not > 0 (the rate is undefined)."""
+    if not rmse_before > 0:
+        raise ValueError(f"improvement rate undefined for RMSE_before = {rmse_before}")
+    return (rmse_before - rmse_after) / rmse_before * 100.0
+
+
+def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, rng: np.random.Generator,
+                   max_samples: int = 200_000) -> np.ndarray:
+    """Points on a triangle mesh (metres): the vertices used by its faces plus area-uniform random
+    points, about one per ``spacing_m²`` of area (at most ``max_samples``)."""
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return np.zeros((0, 3))
+    v = np.asarray(vertices, dtype=np.float64)
+    used = v[np.unique(f)]
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    total = float(area.sum())
+    count = int(min(max_samples, np.ceil(total / spacing_m**2))) if total > 0 else 0
+    if count == 0:
+        return used
+    which = rng.choice(len(f), size=count, p=area / total)
+    r1, r2 = np.sqrt(rng.random(count)), rng.random(count)
+    t = tri[which]
+    pts = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
+    return np.concatenate([used, pts])
+
+
+def surface_distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Symmetric chamfer distance (mean of the two directed mean distances) and Hausdorff
+    distance between point sets ``a`` and ``b`` ``(p, 3)``, in their units."""
+    da, _ = cKDTree(b).query(a, k=1)
+    db, _ = cKDTree(a).query(b, k=1)
+    return 0.5 * (float(da.mean()) + float(db.mean())), max(float(da.max()), float(db.max()))
+
+
+def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
+    """z-depth ``(n, n)`` (metres) of a cloud at each pixel centre, linear over the Delaunay
+    triangulation of the points' normalised image coordinates; NaN outside their hull."""
+    from scipy.spatial import Delaunay, QhullError
+
+    x, y = camera.pixel_coords()
+    n = camera.resolution
+    p = points[points[:, 2] > 0]
+    if len(p) < 3:
+        return np.full((n, n), np.nan)
+    uv = p[:, :2] / p[:, 2:3]
+    try:
+        tri = Delaunay(uv)
+    except QhullError:
+        return np.full((n, n), np.nan)
+    q = np.column_stack([x[..., 0].ravel(), y[..., 0].ravel()])
+    simplex = tri.find_simplex(q)
+    inside = simplex >= 0
+    t = tri.transform[simplex[inside]]  # affine maps to barycentric coordinates
+    b = np.einsum("ijk,ik->ij", t[:, :2], q[inside] - t[:, 2])
+    bary = np.column_stack([b, 1.0 - b.sum(axis=1)])
+    out = np.full(n * n, np.nan)
+    out[inside] = np.einsum("ij,ij->i", bary, p[tri.simplices[simplex[inside]], 2])
+    return out.reshape(n, n)
+
+
+@dataclass(frozen=True)
+class Metrics3D:
+    """Metrics ``full``: SSIM/PSNR/RMSE of the 2D image plus the 3D metrics (module docstring).
+
+    Attributes:
+        names: the 2D image metrics (subset of ``ssim``, ``psnr``, ``rmse``).
+        clip: clip the 2D reconstruction to [0, 1] before scoring.
+        sample_spacing_mm: surface sampling for chamfer/Hausdorff, mm; null = the true pixel
+            pitch at the scene distance.
+    """
+
+    names: tuple[str, ...] = field(default=("ssim", "psnr", "rmse"))
+    clip: bool = False
+    sample_spacing_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        ImageMetrics(tuple(self.names), self.clip)  # validates names
+        if self.sample_spacing_mm is not None and not self.sample_spacing_mm > 0:
+            raise ConfigError("sample_spacing_mm", self.sample_spacing_mm, "a spacing in mm > 0, or null")
+
+    def compute(self, products: Products) -> dict[str, float]:
+        """All metrics that the run's products allow (3D ones need truth, depth, cloud, mesh)."""
+        out = ImageMetrics(tuple(self.names), self.clip).compute(products)
+        truth = products.truth
+        if truth is None:
+            return out
+        cam = truth.camera
+        tmask = truth.mask & np.isfinite(truth.depth_m)
+        depth, cloud, mesh = products.depth, products.cloud, products.mesh
+        z_sfs = None
+        if depth is not None and (depth.metric or (cloud is not None and "scale" in cloud.info)):
+            zr = np.asarray(depth.depth_m, dtype=np.float64)
+            if depth.metric:
+                z_sfs = zr
+            else:
+                z_sfs = float(cloud.info["scale"]) * zr + float(cloud.info["offset_m"])  # type: ignore[union-attr]
+            z_sfs = np.where(np.asarray(depth.mask, dtype=bool) & np.isfinite(z_sfs), z_sfs, np.nan)
+            sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
+            faces = grid_triangles(sfs_valid)
+            if len(faces):
+                verts = back_project(np.where(sfs_valid, z_sfs, 0.0), cam).reshape(-1, 3)
+                out.update(
+                    {k: v for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
+                     if k in ("skewness_sfs_mean", "skewness_sfs_p95")}
+                )
+        if z_sfs is not None and cloud is not None:
+            z_fused = _interpolate_depth(np.asarray(cloud.points_m), cam)
+            both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused)
+            if both.any():
+                before = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16)
+                after = rmse(z_fused[both], truth.depth_m[both])
+                out.update(depth_rmse_sfs_mm=before * 1e3, depth_rmse_fused_mm=after * 1e3,
+                           depth_pixels=float(both.sum()))
+                if before > 0:
+                    out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
+                else:
+                    warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=2)
+            else:
+                warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=2)
+        if mesh is not None and len(mesh.faces):
+            out.update(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
+            if tmask.any():
+                pitch = truth.distance_m / cam.focal_px
+                spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
+                rng = np.random.default_rng(0)  # fixed: a metric must not vary between runs
+                t_verts = back_project(np.where(tmask, truth.depth_m, 0.0), cam).reshape(-1, 3)
+                t_faces = grid_triangles(tmask)
+                # the truth grid is already sampled at the pixel pitch: its vertices and face
+                # centroids are enough (and deterministic)
+                truth_pts = (
+                    np.concatenate([t_verts[np.unique(t_faces)], t_verts[t_faces].mean(axis=1)])
+                    if len(t_faces) else t_verts[tmask.ravel()]
+                )
+                mesh_pts = sample_surface(mesh.vertices_m, mesh.faces, spacing, rng)
+                chamfer, hausdorff = surface_distances(mesh_pts, truth_pts)
+                out.update(chamfer_mm=chamfer * 1e3, hausdorff_mm=hausdorff * 1e3)
+        elif mesh is not None:
+            warnings.warn("metrics: the mesh has no face; no skewness or surface distance", stacklevel=2)
+        return out

@@ -1,0 +1,376 @@
+"""Surface ``power_crust``: the power crust of Amenta, Choi & Kolluri (2001) on scipy's Qhull.
+
+1. **Poles.** The Voronoi diagram of the samples is the dual of their Delaunay tetrahedralisation
+   (``scipy.spatial.Delaunay``, Qhull): its vertices are the tetrahedra's circumcentres. Eight
+   box corners far outside the samples are added so every sample's Voronoi cell is bounded. For
+   each sample ``s`` the positive pole ``p+`` is its cell's vertex farthest from ``s``; the
+   negative pole ``p−`` is the farthest vertex with ``(p− − s)·(p+ − s) < 0``. Each pole carries
+   its polar ball, radius ``r = |p − s|`` (the circumradius: the ball is empty of samples).
+2. **Power diagram by lifting.** The poles with weights ``r²`` are lifted to
+   ``(p, |p|² − r²)`` in 4D; the lower convex hull (``scipy.spatial.ConvexHull``, Qhull, joggled)
+   projects to the regular triangulation, the dual of the power diagram. Its tetrahedra's
+   power centres (``|c − p_i|² − r_i²`` equal for the four poles) are the power-diagram
+   vertices; an edge ``(a, b)`` of the triangulation is dual to the power-diagram face between
+   the cells of ``a`` and ``b``, the polygon of the power centres of the tetrahedra around it.
+3. **Labelling** poles inner or outer, then the **power crust** is the set of faces between an
+   inner and an outer pole's cells (fan-triangulated, oriented outwards).
+
+   * ``amenta`` (closed, well-sampled surfaces): the paper's greedy labelling. Poles on the
+     convex hull of all poles start outer; a priority queue then labels the most certain pole
+     first: the two poles of one sample get opposite labels with certainty ``−cos∠(p+ s p−)``;
+     poles whose balls intersect deeply get the same label with certainty
+     ``(r₁² + r₂² − |c₁ − c₂|²)/(2 r₁ r₂)`` (the cosine of the balls' intersection angle).
+   * ``view`` (a 2.5D patch seen from the camera at the origin, the pipeline's case): a cloud
+     from one depth map has no inside of its own; the one closed surface it defines is the
+     boundary of the space behind the visible surface within the silhouette (the one-view
+     visual hull carved by the depth). A pole is *inner* when it projects inside the sampled
+     silhouette and lies farther from the camera than the nearest sample in projection, and
+     *outer* otherwise (in front of the surface or outside the silhouette).
+
+With ``closed: false`` (default) faces with a vertex farther than ``trim_factor`` × the median
+sample spacing from every sample are removed: the data says nothing about the back of the
+object, so the mesh is the visible sheet; ``closed: true`` keeps the whole power crust (for
+``view``: the visible surface, the silhouette walls and a back cap at the bounding box).
+"""
+
+from __future__ import annotations
+
+import heapq
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.types import Mesh, PointCloud
+
+__all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
+
+
+def circumcentres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Power centres ``(t, 3)`` of tetrahedra ``(t, 4, 3)`` with vertex weights ``(t, 4)``
+    (``None`` = circumcentres), and a ``(t,)`` bool flag of the non-degenerate ones.
+
+    The centre ``c`` solves ``2(p_i − p_0)·c = |p_i|² − w_i − |p_0|² + w_0`` for i = 1..3.
+    """
+    p0 = tets[:, 0]
+    a = 2.0 * (tets[:, 1:] - p0[:, None, :])
+    lift = np.einsum("tij,tij->ti", tets, tets)
+    if weights is not None:
+        lift = lift - weights
+    b = lift[:, 1:] - lift[:, :1]
+    det = np.linalg.det(a)
+    scale = np.max(np.abs(a), axis=(1, 2)) ** 3
+    ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
+    c = np.zeros((len(tets), 3))
+    if ok.any():
+        c[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+    return c, ok
+
+
+def _group_first(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per distinct key, the position of the largest value: ``(unique_keys, positions)``."""
+    order = np.lexsort((-values, keys))
+    uk, first = np.unique(keys[order], return_index=True)
+    return uk, order[first]
+
+
+def compute_poles(samples: np.ndarray, box_factor: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Poles of the samples ``(n, 3)`` (metres).
+
+    Returns ``(poles (m, 3), radii (m,), owner (m,))``: each sample contributes its positive pole
+    and, when it exists, its negative pole; ``owner`` is the sample index of each pole, positive
+    poles first (``poles[:n]``, in sample order).
+    """
+    s = np.asarray(samples, dtype=np.float64)
+    n = len(s)
+    if n < 5:
+        raise NirspiError(f"power crust: needs at least 5 points, got {n}")
+    lo, hi = s.min(axis=0), s.max(axis=0)
+    centre, ext = 0.5 * (lo + hi), max(float(np.max(hi - lo)), 1e-9)
+    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], dtype=np.float64)
+    pts = np.vstack([s, centre + box_factor * ext * corners])
+    try:
+        tri = Delaunay(pts, qhull_options="Qbb Qc Q12 QJ")
+    except QhullError as exc:
+        raise NirspiError(f"power crust: Delaunay failed ({str(exc).splitlines()[0]})") from None
+    cc, ok = circumcentres(pts[tri.simplices])
+    rad = np.linalg.norm(cc - pts[tri.simplices[:, 0]], axis=1)
+    ok &= rad < 50.0 * box_factor * ext  # slivers: circumcentre at "infinity"
+    tet = np.repeat(np.arange(len(cc)), 4)
+    v = tri.simplices.ravel()
+    sel = (v < n) & ok[tet]
+    tet, v = tet[sel], v[sel]
+    dist = np.linalg.norm(cc[tet] - s[v], axis=1)
+    owners, pos = _group_first(v, dist)
+    if len(owners) != n:
+        raise NirspiError("power crust: some samples have no Voronoi vertex (duplicate points?)")
+    plus = cc[tet[pos]]
+    dirp = plus - s
+    side = np.einsum("ij,ij->i", cc[tet] - s[v], dirp[v])
+    neg = side < 0
+    own_n, pos_n = _group_first(v[neg], dist[neg])
+    minus = cc[tet[neg][pos_n]]
+    poles = np.vstack([plus, minus])
+    owner = np.concatenate([np.arange(n), own_n])
+    radii = np.linalg.norm(poles - s[owner], axis=1)
+    return poles, radii, owner
+
+
+def _label_view(poles: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    """Inner (True) / outer labels by visibility from the camera at the origin (see module)."""
+    sz = np.maximum(samples[:, 2], 1e-12)
+    uv = samples[:, :2] / sz[:, None]
+    tree = cKDTree(uv)
+    d_nn, _ = tree.query(uv, k=2)
+    rho = 1.5 * float(np.median(d_nn[:, 1]))
+    inner = np.zeros(len(poles), dtype=bool)
+    front = poles[:, 2] > 0
+    puv = poles[front, :2] / poles[front, 2:3]
+    d, j = tree.query(puv, k=1)
+    behind = np.linalg.norm(poles[front], axis=1) > np.linalg.norm(samples[j], axis=1)
+    inner[front] = (d <= rho) & behind
+    return inner
+
+
+def _label_amenta(
+    poles: np.ndarray, radii: np.ndarray, pairs: np.ndarray, samples: np.ndarray, edges: np.ndarray
+) -> np.ndarray:
+    """Inner (True) / outer labels by Amenta et al.'s priority-queue propagation. ``pairs`` is
+    ``(q, 3)``: the two pole indices of each sample that has both, and the sample index."""
+    m = len(poles)
+    nbr: list[list[tuple[int, float, bool]]] = [[] for _ in range(m)]  # (other, certainty, same?)
+    for a, b, o in pairs:
+        if a == b:
+            continue
+        u, w = poles[a] - samples[o], poles[b] - samples[o]
+        cos = float(u @ w / max(np.linalg.norm(u) * np.linalg.norm(w), 1e-300))
+        nbr[a].append((int(b), -cos, False))
+        nbr[b].append((int(a), -cos, False))
+    if len(edges):
+        a, b = edges[:, 0], edges[:, 1]
+        d2 = np.sum((poles[a] - poles[b]) ** 2, axis=1)
+        cos = (radii[a] ** 2 + radii[b] ** 2 - d2) / np.maximum(2 * radii[a] * radii[b], 1e-300)
+        for i, j, c in zip(a[cos > 0], b[cos > 0], cos[cos > 0]):
+            nbr[i].append((int(j), float(c), True))
+            nbr[j].append((int(i), float(c), True))
+    label = np.full(m, -1, dtype=np.int8)  # 1 inner, 0 outer
+    p_in, p_out = np.zeros(m), np.zeros(m)
+    heap: list[tuple[float, int]] = []
+    try:
+        hull = ConvexHull(poles, qhull_options="QJ").vertices
+    except QhullError:
+        hull = np.array([int(np.argmax(radii))])
+    for h in hull:
+        p_out[h] = 2.0  # certain
+        heapq.heappush(heap, (-2.0, int(h)))
+    for i in range(m):
+        heapq.heappush(heap, (0.0, i))
+    while heap:
+        negp, i = heapq.heappop(heap)
+        if label[i] >= 0 or -negp < max(p_in[i], p_out[i]) - 1e-15:
+            continue  # stale entry
+        lab = 1 if p_in[i] > p_out[i] else 0
+        label[i] = lab
+        for j, c, same in nbr[i]:
+            if label[j] >= 0:
+                continue
+            to_in = (lab == 1) == same
+            if to_in and c > p_in[j]:
+                p_in[j] = c
+            elif not to_in and c > p_out[j]:
+                p_out[j] = c
+            else:
+                continue
+            heapq.heappush(heap, (-max(p_in[j], p_out[j]), j))
+    return label == 1
+
+
+def power_crust(
+    samples: np.ndarray, labelling: str = "view", box_factor: float = 3.0, weld_factor: float = 0.25
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Power crust of ``samples`` ``(n, 3)`` (metres).
+
+    Power-diagram vertices closer than ``weld_factor`` × the median sample spacing are welded,
+    and each power face (a polygon) is triangulated around its centroid.
+
+    Returns ``(vertices (v, 3) metres, faces (f, 3), info)``; faces are oriented from the inner
+    to the outer pole (outward normals).
+    """
+    s = np.asarray(samples, dtype=np.float64)
+    poles, radii, owner = compute_poles(s, box_factor)
+    # merge coincident poles (e.g. all inner poles of an exact sphere sit at its centre): they
+    # would make the regular triangulation degenerate
+    n = len(s)
+    tol = 1e-9 * max(float(np.ptp(s, axis=0).max()), 1e-12)
+    _, first, inv = np.unique(np.round(poles / tol).astype(np.int64), axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    merged_r = np.zeros(len(first))
+    np.maximum.at(merged_r, inv, radii)
+    poles, radii = poles[first], merged_r
+    n_minus = len(owner) - n
+    pairs = np.column_stack([inv[owner[n:]], inv[n:], owner[n:]]) if n_minus else np.zeros((0, 3), np.int64)
+    # a tiny deterministic joggle (1e-7 of the extent) of the poles, used consistently for the
+    # hull and the power centres, avoids degenerate (flat) regular tetrahedra
+    ext = max(float(np.ptp(s, axis=0).max()), 1e-12)
+    poles = poles + np.random.default_rng(0).normal(0.0, 1e-7 * ext, poles.shape)
+    lifted = np.column_stack([poles, np.sum(poles**2, axis=1) - radii**2])
+    try:
+        hull = ConvexHull(lifted, qhull_options="Qt")
+    except QhullError as exc:
+        raise NirspiError(f"power crust: power diagram failed ({str(exc).splitlines()[0]})") from None
+    lower = hull.equations[:, 3] < 0
+    tets = hull.simplices[lower]  # regular triangulation of the poles
+    centres, ok = circumcentres(poles[tets], (radii**2)[tets])
+    tets, centres = tets[ok], centres[ok]
+    # the six edges of each tetrahedron, with the two other vertices (the ring around the edge)
+    edge_sel = np.array([(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)])
+    e = tets[:, edge_sel]  # (t, 6, 4)
+    a, b = np.minimum(e[..., 0], e[..., 1]).ravel(), np.maximum(e[..., 0], e[..., 1]).ravel()
+    tet_id = np.repeat(np.arange(len(tets)), 6)
+    if labelling == "view":
+        inner = _label_view(poles, s)
+    else:
+        edges = np.unique(np.column_stack([a, b]), axis=0)
+        inner = _label_amenta(poles, radii, pairs, s, edges)
+    mixed = inner[a] != inner[b]
+    a, b, tet_id = a[mixed], b[mixed], tet_id[mixed]
+    others = e.reshape(-1, 4)[mixed][:, 2:]
+    m = len(poles)
+    key = a.astype(np.int64) * m + b
+    # keep the edges whose ring of tetrahedra is closed (each ring vertex seen exactly twice)
+    ring_key = np.concatenate([key, key]) * m + np.concatenate([others[:, 0], others[:, 1]])
+    uk, cnt = np.unique(ring_key, return_counts=True)
+    bad_edges = np.unique(uk[cnt != 2] // m)
+    closed = ~np.isin(key, bad_edges)
+    a, b, tet_id, key = a[closed], b[closed], tet_id[closed], key[closed]
+    if len(key) == 0:
+        raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
+    # order each ring by angle around its edge
+    pa, pb = poles[a], poles[b]
+    axis = pb - pa
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    ref = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(axis, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.cross(axis, u)
+    # around the polygon's own centroid: the line through the two poles need not pierce it
+    _, ginv = np.unique(key, return_inverse=True)
+    gsum = np.zeros((ginv.max() + 1, 3))
+    np.add.at(gsum, ginv, centres[tet_id])
+    gmean = gsum / np.bincount(ginv)[:, None]
+    rel = centres[tet_id] - gmean[ginv]
+    ang = np.arctan2(np.einsum("ij,ij->i", rel, w), np.einsum("ij,ij->i", rel, u))
+    order = np.lexsort((ang, key))
+    key, tet_id, a, b = key[order], tet_id[order], a[order], b[order]
+    # weld power vertices closer than weld_factor x the sample spacing (co-spherical poles give
+    # several tetrahedra with one power centre; near-coincident ones make sliver triangles)
+    spacing = float(np.median(cKDTree(s).query(s, k=2)[0][:, 1]))
+    wtol = max(weld_factor * spacing, 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12))
+    ids = np.unique(tet_id)
+    close = cKDTree(centres[ids]).query_pairs(wtol, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(len(ids), len(ids)))
+    n_cl, cl = connected_components(graph, directed=False)
+    vpos = np.zeros((n_cl, 3))
+    np.add.at(vpos, cl, centres[ids])
+    vpos /= np.bincount(cl, minlength=n_cl)[:, None]
+    vid = cl[np.searchsorted(ids, tet_id)]
+    # drop repeated vertices along each ring (cyclic), then polygons with < 3 vertices
+    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    grp = np.repeat(np.arange(len(start)), size)
+    prev = np.arange(len(key)) - 1
+    prev[start] = start + size - 1
+    keep = vid != vid[prev]
+    keep[start[size == 1]] = True
+    key, vid, a, b = key[keep], vid[keep], a[keep], b[keep]
+    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    ok = size >= 3
+    grp = np.repeat(np.arange(len(start)), size)
+    sel = ok[grp]
+    # triangulate each polygon around its centroid (a hexagon gives six equilateral triangles;
+    # a fan from one vertex would give slivers)
+    nxt = np.arange(len(key)) + 1
+    last = start + size - 1
+    nxt[last] = start
+    cen = np.zeros((len(start), 3))
+    np.add.at(cen, grp, vpos[vid])
+    cen /= size[:, None]
+    verts = np.vstack([vpos, cen])
+    faces = np.column_stack([n_cl + grp, vid, vid[nxt]])[sel]
+    # orient outwards: normal along (outer pole − inner pole)
+    ea, eb = a[sel], b[sel]
+    out_dir = np.where(inner[ea][:, None], poles[eb] - poles[ea], poles[ea] - poles[eb])
+    nrm = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    flip = np.einsum("ij,ij->i", nrm, out_dir) < 0
+    faces[flip] = faces[flip][:, [0, 2, 1]]
+    used, faces = np.unique(faces, return_inverse=True)
+    faces = faces.reshape(-1, 3)
+    info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(ok.sum())}
+    return verts[used], faces, info
+
+
+def trim_to_samples(
+    vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, factor: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the faces whose three vertices lie within ``factor`` × the median sample spacing of
+    some sample; drop unused vertices. Metres in, metres out."""
+    tree = cKDTree(samples)
+    spacing = float(np.median(tree.query(samples, k=2)[0][:, 1]))
+    d, _ = tree.query(vertices, k=1)
+    near = d <= factor * spacing
+    keep = near[faces].all(axis=1)
+    faces = faces[keep]
+    if len(faces) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    used, inv = np.unique(faces, return_inverse=True)
+    return vertices[used], inv.reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class PowerCrust:
+    """Surface ``power_crust`` (Amenta, Choi & Kolluri 2001) on scipy.spatial's Qhull.
+
+    Attributes:
+        labelling: ``view`` (one-sided depth data, camera at the origin) or ``amenta``
+            (closed, well-sampled point sets).
+        closed: keep the whole closed power crust (True) or only the part near the samples.
+        trim_factor: with ``closed: false``, the distance to the nearest sample, in median sample
+            spacings, beyond which a face is dropped.
+        box_factor: half-size of the bounding box added to bound the Voronoi cells, in units of
+            the samples' extent.
+        weld_factor: power-diagram vertices closer than this × the median sample spacing are
+            merged (removes the slivers of near-degenerate power faces); 0 = exact coincidences only.
+    """
+
+    labelling: str = "view"
+    closed: bool = False
+    trim_factor: float = 1.5
+    box_factor: float = 3.0
+    weld_factor: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.weld_factor < 1.0:
+            raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
+        if self.labelling not in ("view", "amenta"):
+            raise ConfigError("labelling", self.labelling, "view or amenta")
+        if not self.trim_factor > 0:
+            raise ConfigError("trim_factor", self.trim_factor, "a factor > 0")
+        if not self.box_factor >= 1.5:
+            raise ConfigError("box_factor", self.box_factor, "a factor >= 1.5")
+
+    def reconstruct(self, cloud: PointCloud) -> Mesh:
+        """Power-crust mesh of ``cloud.points_m`` (metres)."""
+        pts = np.asarray(cloud.points_m, dtype=np.float64)
+        if not np.all(np.isfinite(pts)):
+            raise NirspiError("power crust: the point cloud has non-finite points")
+        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor)
+        info["faces_closed"] = int(len(faces))
+        if not self.closed:
+            verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
+            if len(faces) == 0:
+                warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
+        info["faces"] = int(len(faces))
+        return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)

@@ -1,0 +1,89 @@
+"""3D metrics: equiangle skewness, Eq. (17), surface distances, Metrics3D on a 3D run."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.mesh.metrics3d import (
+    Metrics3D,
+    equiangle_skewness,
+    improvement_rate,
+    skewness_summary,
+    surface_distances,
+)
+
+
+def test_skewness_reference_triangles():
+    eq = np.array([[0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0]])
+    t306090 = np.array([[0, 0, 0], [np.sqrt(3), 0, 0], [0, 1, 0]])
+    collinear = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]])
+    point = np.zeros((3, 3))
+    for v, expected in ((eq, 0.0), (t306090, 0.5), (collinear, 1.0), (point, 1.0)):
+        assert equiangle_skewness(v, np.array([[0, 1, 2]]))[0] == pytest.approx(expected, abs=1e-9)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=9, max_size=9))
+def test_skewness_in_unit_interval(coords):
+    s = equiangle_skewness(np.array(coords).reshape(3, 3), np.array([[0, 1, 2]]))
+    assert np.all(np.isfinite(s)) and 0.0 <= s[0] <= 1.0
+
+
+def test_bands_partition():
+    s = np.array([0.0, 0.1, 0.3, 0.6, 0.8, 0.95, 1.0])
+    out = skewness_summary(s)
+    shares = [v for k, v in out.items() if "_share_" in k]
+    assert sum(shares) == pytest.approx(1.0)
+    assert out["skewness_share_degenerate"] == pytest.approx(1 / 7)
+    assert out["skewness_share_excellent"] == pytest.approx(2 / 7)
+
+
+def test_improvement_rate_sign():
+    assert improvement_rate(2.0, 1.0) == pytest.approx(50.0)
+    assert improvement_rate(1.0, 1.5) == pytest.approx(-50.0)
+    with pytest.raises(ValueError):
+        improvement_rate(0.0, 1.0)
+
+
+def test_surface_distances():
+    a = np.random.default_rng(0).random((50, 3))
+    assert surface_distances(a, a) == (0.0, 0.0)
+    c, h = surface_distances(a, a + [0, 0, 0.1])
+    assert c == pytest.approx(0.1, rel=0.05) and h >= c
+
+
+def test_bad_names():
+    with pytest.raises(ConfigError):
+        Metrics3D(names=("nope",))
+
+
+def test_metrics3d_on_a_3d_run():
+    from nirspi_pipe.itof.cw4 import ContinuousWave4
+    from nirspi_pipe.mesh.fusion import ItofFusion
+    from nirspi_pipe.mesh.powercrust import PowerCrust
+    from nirspi_pipe.mesh.standin import degraded_depth
+    from nirspi_pipe.scene.objects import Sphere
+    from nirspi_pipe.stages import Products
+    from nirspi_pipe.types import Acquisition, Camera, Image2D
+
+    scene = Sphere().render(Camera(64))
+    acq = Acquisition(n=64, indices=np.arange(1), y_pos=np.zeros(1), truth=scene)
+    rng = np.random.default_rng(0)
+    depth = degraded_depth(scene, rng, noise_px=1.0, outlier_fraction=0.05)
+    itof = ContinuousWave4(averaging_s=500.0).measure(scene, acq, rng)
+    cloud = ItofFusion().fuse(depth, itof, scene.camera)
+    mesh = PowerCrust().reconstruct(cloud)
+    m = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance), None, depth, itof, cloud, mesh))
+    for key in ("depth_rmse_sfs_mm", "depth_rmse_fused_mm", "improvement_pct", "skewness_mean",
+                "skewness_p95", "chamfer_mm", "hausdorff_mm", "skewness_sfs_mean"):
+        assert np.isfinite(m[key]), key
+    assert m["improvement_pct"] > 20  # outliers and noise removed
+    assert m["chamfer_mm"] < 1.5 and m["hausdorff_mm"] >= m["chamfer_mm"]
+    assert m["depth_pixels"] > 1000
+    # a 2D-only run gets the image metrics only
+    only2d = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance)))
+    assert set(only2d) == {"ssim", "psnr", "rmse"}

@@ -1,0 +1,100 @@
+"""Surfaces: power crust (Amenta et al. 2001, both labellings) and screened Poisson."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.mesh.powercrust import PowerCrust, compute_poles, power_crust
+from nirspi_pipe.types import PointCloud
+
+CENTRE, R = np.array([0.0, 0.0, 0.2]), 0.025
+
+
+def fibonacci_sphere(n: int, noise: float = 0.0, seed: int = 0) -> np.ndarray:
+    i = np.arange(n) + 0.5
+    phi, th = np.arccos(1 - 2 * i / n), np.pi * (1 + 5**0.5) * i
+    u = np.column_stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)])
+    r = R + np.random.default_rng(seed).normal(0, noise, n)
+    return CENTRE + u * r[:, None]
+
+
+def edge_counts(faces: np.ndarray) -> np.ndarray:
+    e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(e, axis=0, return_counts=True)[1]
+
+
+def test_poles_of_sphere_samples():
+    s = fibonacci_sphere(200)
+    poles, radii, owner = compute_poles(s)
+    inner = np.linalg.norm(poles - CENTRE, axis=1) < 0.5 * R
+    # every sample has one pole at the centre (the medial axis of a sphere) and one outside
+    assert np.bincount(owner[inner], minlength=200).tolist() == [1] * 200
+    assert np.allclose(radii[inner], R, rtol=1e-6)
+
+
+@pytest.mark.parametrize("noise", [0.0, 1e-4])
+def test_power_crust_of_sphere_is_close_and_closed(noise):
+    s = fibonacci_sphere(300, noise)
+    v, f, info = power_crust(s, "amenta")
+    d = np.abs(np.linalg.norm(v - CENTRE, axis=1) - R)
+    assert d.max() < 1.5e-3 and d.mean() < 0.3e-3  # sample spacing is ~2.6 mm
+    counts = edge_counts(f)
+    assert np.mean(counts == 2) > 0.99  # (nearly) watertight
+    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    assert np.mean(np.einsum("ij,ij->i", n, v[f].mean(axis=1) - CENTRE) > 0) > 0.99  # outwards
+    # covers the whole sphere: every sample is near the crust's surface
+    from scipy.spatial import cKDTree
+
+    from nirspi_pipe.mesh.metrics3d import sample_surface
+
+    surf = sample_surface(v, f, 2e-4, np.random.default_rng(0))
+    assert cKDTree(surf).query(s)[0].max() < 1e-3
+
+
+def test_view_labelling_on_a_visible_cap():
+    s = fibonacci_sphere(800)
+    cap = s[s[:, 2] < CENTRE[2] - 0.005]  # the part a camera at the origin sees
+    mesh = PowerCrust().reconstruct(PointCloud(cap))
+    d = np.abs(np.linalg.norm(mesh.vertices_m - CENTRE, axis=1) - R)
+    # sample spacing ~1.8 mm; the sheet is on the sphere, only its rim bends away a little
+    assert len(mesh.faces) > len(cap)
+    assert np.median(d) < 0.2e-3 and np.percentile(d, 95) < 1e-3 and d.max() < 3e-3
+    closed = PowerCrust(closed=True).reconstruct(PointCloud(cap))
+    assert len(closed.faces) >= len(mesh.faces)
+
+
+def test_too_few_points_and_bad_config():
+    with pytest.raises(NirspiError, match="at least 5"):
+        PowerCrust().reconstruct(PointCloud(np.zeros((3, 3))))
+    with pytest.raises(NirspiError, match="non-finite"):
+        PowerCrust().reconstruct(PointCloud(np.full((10, 3), np.nan)))
+    with pytest.raises(ConfigError, match="labelling"):
+        PowerCrust(labelling="nope")
+
+
+def test_coplanar_points_do_not_crash():
+    g = np.stack(np.meshgrid(np.arange(8), np.arange(8)), -1).reshape(-1, 2) * 0.005
+    plane = np.column_stack([g, np.full(len(g), 0.2)])
+    try:
+        mesh = PowerCrust().reconstruct(PointCloud(plane))
+    except NirspiError:
+        return  # a clear error is acceptable for a flat sheet of exactly coplanar points
+    assert np.all(np.isfinite(mesh.vertices_m))
+
+
+def test_poisson_on_a_cap():
+    from nirspi_pipe.mesh.poisson import ScreenedPoisson
+
+    s = fibonacci_sphere(600)
+    cap = s[s[:, 2] < CENTRE[2] - 0.005]
+    normals = (cap - CENTRE) / R
+    mesh = ScreenedPoisson().reconstruct(PointCloud(cap, normals=normals))
+    d = np.abs(np.linalg.norm(mesh.vertices_m - CENTRE, axis=1) - R)
+    assert len(mesh.faces) > 100 and np.median(d) < 0.2e-3 and np.percentile(d, 90) < 1.5e-3 and d.max() < 4e-3  # rim extrapolates
+    # without normals pymeshlab estimates them, oriented towards the camera
+    mesh2 = ScreenedPoisson().reconstruct(PointCloud(cap))
+    assert len(mesh2.faces) > 100
+    with pytest.raises(ConfigError, match="depth"):
+        ScreenedPoisson(depth=2)
