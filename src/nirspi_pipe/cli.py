@@ -49,12 +49,14 @@ def _summary(record: dict[str, Any], out_dir: Path) -> str:
         lines.append(f"  FAILED: {record['meta']['error']}")
     m = record.get("metrics", {})
     if m:
-        parts = []
-        for name, fmt in (("ssim", "SSIM {:.4f}"), ("psnr", "PSNR {:.2f} dB"), ("rmse", "RMSE {:.4g}")):
-            if name in m:
-                parts.append(fmt.format(m[name]))
-        parts += [f"{k} {v:.4g}" for k, v in m.items() if k not in ("ssim", "psnr", "rmse")]
-        lines.append("  " + "  ".join(parts))
+        shown = (
+            ("ssim", "SSIM {:.4f}"), ("psnr", "PSNR {:.2f} dB"), ("rmse", "RMSE {:.4g}"),
+            ("depth_rmse_fused_mm", "depth RMSE {:.3g} mm"), ("improvement_pct", "improvement {:.1f} %"),
+            ("skewness_mean", "skewness {:.3f}"), ("chamfer_mm", "chamfer {:.3g} mm"),
+        )
+        parts = [fmt.format(m[name]) for name, fmt in shown if name in m]
+        rest = len(m) - len(parts)
+        lines.append("  " + "  ".join(parts) + (f"  (+{rest} more in record.json)" if rest > 0 else ""))
     t = record.get("timings_ms", {})
     if t:
         stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
