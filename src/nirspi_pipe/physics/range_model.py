@@ -18,7 +18,8 @@ every R, so the floor is fixed and ``z_max ∝ √R`` (Table 2: 22.4 : 35 : 44).
 solves ``z e^{βz} = z_max(β = 0)``, so one β reproduces the fog row.
 
 Instead of the paper's fixed steps of Z_max/10, :func:`max_distance_m` scans a fine logarithmic
-grid for the first crossing and refines it with Brent's method (to 1 µm).
+grid for the first crossing and refines it by bisection (to 1 nm; scipy.optimize is not
+imported because its import alone costs more than a simulation).
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ from importlib import resources
 from typing import Any
 
 import numpy as np
-from scipy.optimize import brentq
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
@@ -37,6 +37,7 @@ from nirspi_pipe.physics.detector import Photodiode
 from nirspi_pipe.physics.fog import backscatter, koschmieder_radiance
 
 __all__ = [
+    "bisect",
     "signal_electrons",
     "reading_noise_electrons",
     "snr",
@@ -49,6 +50,26 @@ __all__ = [
 #: The two Table 2 cells the two free constants are calibrated on: (row, R).
 #: The no-fog cell fixes the read-noise floor, the fog cell fixes the droplet number density.
 CALIBRATION_CELLS = (("theory_no_fog", 0.5), ("theory_fog", 0.2))
+
+
+def bisect(fn: Any, lo: float, hi: float, xtol: float = 1e-9) -> float:
+    """Root of ``fn`` in ``[lo, hi]`` by bisection (``fn(lo)`` and ``fn(hi)`` of opposite signs,
+    or a zero at an end)."""
+    f_lo = fn(lo)
+    if f_lo == 0:
+        return float(lo)
+    for _ in range(200):
+        if hi - lo <= xtol * max(1.0, abs(lo)):
+            break
+        mid = 0.5 * (lo + hi)
+        f_mid = fn(mid)
+        if f_mid == 0:
+            return float(mid)
+        if (f_mid > 0) == (f_lo > 0):
+            lo, f_lo = mid, f_mid
+        else:
+            hi = mid
+    return float(0.5 * (lo + hi))
 
 
 def signal_electrons(z_m: Any, reflectance: float, budget: PhotonBudget, beta_per_m: float = 0.0) -> np.ndarray:
@@ -133,7 +154,7 @@ def max_distance_m(
     if below.size == 0:
         return float(z_max_m)
     i = int(below[0])
-    return float(brentq(excess, grid[i - 1], grid[i], xtol=1e-9, rtol=1e-12))
+    return bisect(excess, float(grid[i - 1]), float(grid[i]), xtol=1e-9)
 
 
 def paper_table2() -> dict[str, dict[float, float]]:
@@ -152,7 +173,7 @@ def calibrate(detector: Photodiode | None = None, fog: Any = None) -> dict[str, 
     1. The read-noise floor ``read_noise_e``: with everything else at its default, the no-fog
        distance of R = 0.5 must be 35 cm. Solved in closed form from the noise at that distance.
     2. The droplet number density: the fog distance of R = 0.2 must be 18 cm. β is found by
-       Brent's method, then ``N = β / (π r² Q_ext)`` (Eq. 6) with Q_ext from Mie.
+       bisection, then ``N = β / (π r² Q_ext)`` (Eq. 6) with Q_ext from Mie.
 
     Every other Table 2 cell is then a prediction. Returns ``read_noise_e``, ``beta_per_m`` and
     ``number_density_per_cm3``; conf/detector/ingaas.yaml and conf/fog/chamber.yaml hold these
@@ -181,7 +202,7 @@ def calibrate(detector: Photodiode | None = None, fog: Any = None) -> dict[str, 
     def miss(beta: float) -> float:
         return max_distance_m(r1, det, beta_per_m=beta, **cond) - z1
 
-    beta = float(brentq(miss, 0.0, 100.0, xtol=1e-10))
+    beta = bisect(miss, 0.0, 100.0, xtol=1e-12)
     r = 0.5 * fog.diameter_m
     n_per_m3 = beta / (np.pi * r * r * fog.mie.q_ext)
     return {"read_noise_e": read, "beta_per_m": beta, "number_density_per_cm3": n_per_m3 * 1e-6}

@@ -30,11 +30,13 @@ def ornstein_uhlenbeck(times_s: np.ndarray, std: float, tau_s: float, rng: np.ra
     a = np.exp(-np.diff(ts) / tau_s)
     z = rng.standard_normal(ts.size)
     innov = std * np.sqrt(np.maximum(1.0 - a * a, 0.0)) * z[1:]
-    if a.size and np.allclose(a, a[0], rtol=1e-12, atol=0.0):  # uniform steps: one IIR filter
-        from scipy.signal import lfilter
-
-        drive = np.concatenate([[std * z[0]], innov])
-        x = lfilter([1.0], [1.0, -a[0]], drive)
+    if a.size and np.allclose(a, a[0], rtol=1e-12, atol=0.0):
+        # uniform steps: x_i = Σ_j a^{i−j} drive_j, by a log-step (Hillis–Steele) scan
+        x = np.concatenate([[std * z[0]], innov])
+        shift, coef = 1, float(a[0])
+        while shift < x.size and coef > 0.0:
+            x[shift:] = x[shift:] + coef * x[:-shift].copy()
+            shift, coef = 2 * shift, coef * coef
     else:
         x = np.empty(ts.size)
         x[0] = std * z[0]
