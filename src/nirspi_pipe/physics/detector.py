@@ -20,6 +20,7 @@ Readings are returned in ADC counts (DN); ``electrons_per_count`` converts back.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,8 +114,14 @@ class Photodiode:
     physical = True
 
     def __post_init__(self) -> None:
-        if isinstance(self.budget, dict):  # plain config without _target_
-            object.__setattr__(self, "budget", PhotonBudget(**self.budget))
+        if isinstance(self.budget, Mapping):  # a config (``_recursive_: false``): build it here
+            params = {str(k): v for k, v in self.budget.items() if not str(k).startswith("_")}
+            try:
+                object.__setattr__(self, "budget", PhotonBudget(**params))
+            except ConfigError as exc:
+                raise ConfigError(f"budget.{exc.key}", exc.value, exc.allowed) from None
+            except TypeError as exc:
+                raise ConfigError("budget", params, f"PhotonBudget keys ({exc})") from None
         if not isinstance(self.budget, PhotonBudget):
             raise ConfigError("budget", self.budget, "a PhotonBudget (Eqs. 10–11)")
         if not np.isfinite(self.dark_current_na) or not 0 <= self.dark_current_na <= 1e6:

@@ -124,6 +124,36 @@ def _is_active(effect: Any) -> bool:
     return effect is not None and bool(getattr(effect, "active", True))
 
 
+class _GroupConfigError(ConfigError):
+    """A ConfigError whose key is already absolute (``fog.number_density_per_cm3``): the
+    effects are config groups of their own, although the source builds them."""
+
+    def under(self, prefix: str) -> ConfigError:
+        return self
+
+
+_GroupConfigError.__name__ = "ConfigError"  # the CLI reports ConfigErrors as one line by this name
+
+
+def _build_effect(group: str, node: Any) -> Any:
+    """Instantiate an effect config (``_target_``) of config group ``group``; its errors name
+    ``group.<key>`` (what the user typed), not ``source.<group>.<key>``."""
+    from collections.abc import Mapping
+
+    from omegaconf import DictConfig, OmegaConf
+
+    from nirspi_pipe.pipeline import build
+
+    if isinstance(node, DictConfig):
+        node = OmegaConf.to_container(node, resolve=True)
+    if not isinstance(node, Mapping) or "_target_" not in node:
+        raise _GroupConfigError(group, node, f"a {group} config with a _target_ (conf/{group}/*.yaml), or null")
+    try:
+        return build(OmegaConf.create(dict(node)), group)
+    except ConfigError as exc:
+        raise _GroupConfigError(exc.key, exc.value, exc.allowed, exc.unknown_key) from None
+
+
 @dataclass(frozen=True)
 class Simulator:
     """Simulated single-pixel camera, composed of the configured effects (module docstring).
@@ -134,10 +164,14 @@ class Simulator:
         pattern_rate_hz: patterns shown per second; each ±1 measurement takes two.
         dark_readings: LEDs-off reference readings taken before the patterns (physical
             detectors only), for the background/dark level of the measured signal.
-        fog: a fog model (:mod:`nirspi_pipe.physics.fog`) or None.
-        illumination: a :class:`~nirspi_pipe.physics.light.Background` or None.
+        fog: a fog model (:mod:`nirspi_pipe.physics.fog`), its config (``_target_``), or None.
+        illumination: a :class:`~nirspi_pipe.physics.light.Background`, its config, or None.
         detector: :class:`~nirspi_pipe.physics.detector.IdealDetector` (default) or
-            :class:`~nirspi_pipe.physics.detector.Photodiode`.
+            :class:`~nirspi_pipe.physics.detector.Photodiode`, or its config.
+
+    From Hydra, the three come as configs (``_recursive_: false`` in conf/source/simulator.yaml)
+    and are built here, so that a bad value is reported under its own group
+    (``fog.number_density_per_cm3``).
     """
 
     noise_rel: float = 0.0
@@ -160,8 +194,8 @@ class Simulator:
             raise ConfigError("dark_readings", self.dark_readings, "an integer from 0 to 100000")
         for key in ("fog", "illumination", "detector"):
             value = getattr(self, key)
-            if isinstance(value, dict):
-                raise ConfigError(key, value, f"a {key} config with a _target_ (conf/{key}/*.yaml), or null")
+            if value is not None and not hasattr(value, "__dataclass_fields__"):
+                object.__setattr__(self, key, _build_effect(key, value))
         if self.fog is not None and not hasattr(self.fog, "extinction_per_m"):
             raise ConfigError("fog", self.fog, "a fog model exposing extinction_per_m")
         det = self.detector if self.detector is not None else IdealDetector()
