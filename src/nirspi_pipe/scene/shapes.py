@@ -18,6 +18,7 @@ rotated by ``Rx·Ry·Rz`` about its centre), and renders through
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -327,7 +328,9 @@ def _load_mesh_file(path: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np
     import pyvista as pv
 
     try:
-        mesh = pv.read(str(file))
+        with warnings.catch_warnings():  # VTK readers warn, then return an empty mesh: checked below
+            warnings.simplefilter("ignore")
+            mesh = pv.read(str(file))
     except Exception as exc:  # unreadable or unknown format
         raise ConfigError("path", path, f"a readable mesh file .ply/.stl/.obj ({type(exc).__name__})") from None
     if not isinstance(mesh, pv.PolyData):

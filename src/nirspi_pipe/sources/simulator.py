@@ -196,7 +196,7 @@ class Simulator:
             value = getattr(self, key)
             if value is not None and not hasattr(value, "__dataclass_fields__"):
                 object.__setattr__(self, key, _build_effect(key, value))
-        if self.fog is not None and not hasattr(self.fog, "extinction_per_m"):
+        if self.fog is not None and not hasattr(type(self.fog), "extinction_per_m"):  # no Mie here
             raise ConfigError("fog", self.fog, "a fog model exposing extinction_per_m")
         det = self.detector if self.detector is not None else IdealDetector()
         if not hasattr(det, "physical"):
