@@ -88,17 +88,23 @@ def modulated_split(
         pos = np.zeros(idx.size)
         neg = np.zeros(idx.size)
         term = base.astype(np.float64)
+        w_pos = np.ones(idx.size)  # (−c)^j, updated in place
+        w_neg = np.ones(idx.size)
         j = 0
         while True:
             f = fwht2(term).ravel()[idx]
             s = float(term.sum())
-            pos += (-c_pos) ** j * 0.5 * (s + f)
-            neg += (-c_neg) ** j * 0.5 * (s - f)
+            pos += w_pos * (s + f)
+            neg += w_neg * (s - f)
             bound = amp ** (j + 1) / math.factorial(j + 1) * math.exp(amp)
             if bound < tol or j >= 60:
                 break
             j += 1
             term = term * dx / j
+            w_pos *= -c_pos
+            w_neg *= -c_neg
+        pos *= 0.5
+        neg *= 0.5
         return pos * np.exp(-c_pos * x0), neg * np.exp(-c_neg * x0)
     both = np.concatenate([c_pos, c_neg])
     levels = np.linspace(both.min(), both.max(), 65)
