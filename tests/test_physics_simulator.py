@@ -230,3 +230,31 @@ def test_hard_cases_stay_finite_and_in_range(beta, distance_mm, klux, refl, fluc
     else:
         assert (acq.y_pos >= -1e-9).all()
     assert 0 <= acq.derived["saturated_patterns"] <= 2 * n * n + sim.dark_readings
+
+
+def test_zero_signal_is_finite():
+    scene = Plane(reflectance=0.0).render(Camera(8))
+    for det in (IdealDetector(), Photodiode()):
+        acq = Simulator(detector=det).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+        assert acq.derived["signal_photons_per_pattern"] == 0.0
+        assert acq.derived["snr_db"] == -200.0
+        assert np.isfinite(_reconstruct(acq)).all()
+        assert all(np.isfinite(v) for v in acq.derived.values())
+
+
+def test_full_saturation_is_counted():
+    scene = Plane(distance_mm=1.0, reflectance=1.0).render(Camera(8))
+    sim = Simulator(illumination=Background(klux=100.0), detector=Photodiode())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        acq = sim.acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+    assert acq.derived["saturated_patterns"] == 2 * 64 + sim.dark_readings
+    assert acq.derived["saturated_fraction"] == 1.0
+    assert np.all(acq.y_pos == 2**16 - 1) and np.allclose(acq.coefficients(), 0.0)
+
+
+def test_enabling_one_effect_does_not_change_another_effects_noise(sphere16):
+    idx = np.arange(256)
+    a = Simulator(detector=Photodiode()).acquire(sphere16, idx, 16, np.random.default_rng(5))
+    b = Simulator(detector=Photodiode(), illumination=Background(klux=1e-9)).acquire(sphere16, idx, 16, np.random.default_rng(5))
+    assert np.array_equal(a.y_pos, b.y_pos)  # the detector's stream is its own

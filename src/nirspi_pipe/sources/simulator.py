@@ -126,6 +126,15 @@ def modulated_split(
     return interp(c_pos, 1.0), interp(c_neg, -1.0)
 
 
+def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
+    """``k`` independent child generators (one per effect) without drawing from ``rng``, so an
+    effect switched on does not change another's noise."""
+    if hasattr(rng, "spawn"):  # numpy >= 1.25
+        return rng.spawn(k)
+    seq = rng.bit_generator.seed_seq  # type: ignore[attr-defined]
+    return [np.random.default_rng(s) for s in seq.spawn(k)]
+
+
 def _is_active(effect: Any) -> bool:
     return effect is not None and bool(getattr(effect, "active", True))
 
@@ -253,7 +262,7 @@ class Simulator:
         t_neg = t_pos + period
         derived: dict[str, Any] = {}
         info: dict[str, Any] = {"patterns_measured": m, "patterns_shown": 2 * m + n_dark, "effects": ",".join(self.effects)}
-        streams = rng.spawn(3) if (physical or fog is not None or bg is not None) else None
+        streams = _spawn(rng, 3) if (physical or fog is not None or bg is not None) else None
 
         z_nom = float(scene.distance_m)
         ref = float(budget.white_electrons(z_nom)) / (n * n)  # e⁻ per unit radiance per pixel, z_nom, clear air
