@@ -1,0 +1,121 @@
+"""Photon budget at the photodiode (Eqs. 10–11).
+
+Eq. (10) counts the photons the photodiode collects in one integration:
+
+``E(N) = R τ_lens QE T_int A_pix λ / (h c f#²) · [E_sun + Φ / (π z² tan α_FOV)]``
+
+We use it in the standard radiometric form (camera equation), which keeps its factors and makes
+the units consistent (docs/physics.md lists the departures):
+
+* active light: the LED array (``led_count`` LEDs of ``led_power_mw`` each, at ``wavelength_nm``)
+  spreads its power over the disc of half-angle α_FOV, so the irradiance on a target at range z
+  is ``E_obj = P / (π (z tan α)²)`` (the paper writes ``π z² tan α``, which is not an area).
+* a Lambertian target of reflectance R has radiance ``R E_obj / π``; the lens (transmittance
+  τ, f-number f#) puts ``E_img = π L τ / (4 f#²) = R E_obj τ / (4 f#²)`` on the photodiode (the
+  paper's ``1/f#²`` without the 4).
+* photoelectrons: ``N = E_img · A_pix · FF · T_int · QE · λ / (h c)`` (the fill factor FF is
+  listed in the paper's symbols but missing from its Eq. 10).
+* background light (Eq. 11's ``E_sun``): the ambient in-band photon irradiance on the scene,
+  reflected the same way (``E_img = ρ E_amb τ / (4 f#²)``), with a band-averaged QE. Eq. (11)'s
+  ``L(z) A_pix / R_pd`` has no consistent units and is not used.
+
+Table 1's values are the defaults (A_pix = 235 µm², FF = 0.38, T_int = 150 µs, α_FOV = 10°).
+The paper does not give the LED power, the lens or the QE; the defaults here are stated
+assumptions: 64 LEDs × 1 mW (an 8 × 8 array of 1550 nm LEDs such as Thorlabs LED1550E),
+f/1.4, τ = 0.9, QE = 0.8 (≈ 1 A/W responsivity of InGaAs at 1550 nm).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.physics.light import C_LIGHT, H_PLANCK
+
+__all__ = ["PhotonBudget"]
+
+
+@dataclass(frozen=True)
+class PhotonBudget:
+    """Photon budget of the NIR-SPI camera (Eqs. 10–11); Table 1 values are the defaults.
+
+    Attributes:
+        led_count: LEDs in the illumination array (8 × 8 = 64); also the number of resolvable
+            patches used by the range model (Alg. A1).
+        led_power_mw: optical power per LED, mW.
+        wavelength_nm: LED wavelength, nm.
+        fov_half_deg: α_FOV, half angle of the illuminated cone, degrees (Table 1: 10°).
+        lens_transmittance: τ_lens in (0, 1].
+        quantum_efficiency: QE in (0, 1].
+        t_int_us: integration time per pattern, µs (Table 1: 150 µs).
+        a_pix_um2: photosensitive area, µm² (Table 1: 235 µm²).
+        fill_factor: FF in (0, 1] (Table 1: 0.38).
+        f_number: f# of the receiving lens.
+    """
+
+    led_count: int = 64
+    led_power_mw: float = 1.0
+    wavelength_nm: float = 1550.0
+    fov_half_deg: float = 10.0
+    lens_transmittance: float = 0.9
+    quantum_efficiency: float = 0.8
+    t_int_us: float = 150.0
+    a_pix_um2: float = 235.0
+    fill_factor: float = 0.38
+    f_number: float = 1.4
+
+    def __post_init__(self) -> None:
+        if int(self.led_count) != self.led_count or not 1 <= self.led_count <= 1_000_000:
+            raise ConfigError("led_count", self.led_count, "an integer number of LEDs >= 1")
+        positive = {
+            "led_power_mw": (0.0, 1e6),
+            "wavelength_nm": (200.0, 20000.0),
+            "fov_half_deg": (0.0, 85.0),
+            "t_int_us": (0.0, 1e9),
+            "a_pix_um2": (0.0, 1e12),
+            "f_number": (0.3, 100.0),
+        }
+        for key, (lo, hi) in positive.items():
+            v = getattr(self, key)
+            if not np.isfinite(v) or not lo < v <= hi:
+                raise ConfigError(key, v, f"a value in ({lo:g}, {hi:g}]")
+        for key in ("lens_transmittance", "quantum_efficiency", "fill_factor"):
+            v = getattr(self, key)
+            if not np.isfinite(v) or not 0.0 < v <= 1.0:
+                raise ConfigError(key, v, "a fraction in (0, 1]")
+
+    @property
+    def led_power_w(self) -> float:
+        """Total optical power of the array, W."""
+        return self.led_count * self.led_power_mw * 1e-3
+
+    @property
+    def collection_m2_s(self) -> float:
+        """``τ A_pix FF T_int QE / (4 f#²)``: image-plane collection (m² s, per unit scene
+        irradiance × reflectance) shared by the active and background terms of Eq. (10)."""
+        return (
+            self.lens_transmittance * self.a_pix_um2 * 1e-12 * self.fill_factor * self.t_int_us * 1e-6
+            * self.quantum_efficiency / (4.0 * self.f_number**2)
+        )
+
+    def white_electrons(self, range_m: float | np.ndarray) -> np.ndarray:
+        """Photoelectrons per integration from a white (R = 1) Lambertian target that fills the
+        field of view at ``range_m`` metres, all LEDs on, clear air  # Eq. (10), active term.
+
+        Infinite range gives 0; ranges are floored at 1 µm to stay finite.
+        """
+        z = np.maximum(np.asarray(range_m, dtype=np.float64), 1e-6)
+        tan_a = np.tan(np.deg2rad(self.fov_half_deg))
+        e_obj = self.led_power_w / (np.pi * (z * tan_a) ** 2)  # W/m² on the target
+        photon_energy = H_PLANCK * C_LIGHT / (self.wavelength_nm * 1e-9)
+        with np.errstate(over="ignore"):
+            out = e_obj * self.collection_m2_s / photon_energy
+        return np.where(np.isfinite(z), out, 0.0)
+
+    def ambient_electrons(self, photon_irradiance: float, reflectance: float | np.ndarray) -> np.ndarray:
+        """Photoelectrons per integration from ambient light of ``photon_irradiance`` (photons
+        s⁻¹ m⁻² in band) on a Lambertian scene of ``reflectance`` filling the view
+        # Eqs. (10)–(11), background term."""
+        return np.asarray(reflectance, dtype=np.float64) * photon_irradiance * self.collection_m2_s

@@ -1,0 +1,167 @@
+"""Background light: illuminance in kLux → irradiance and photon flux in the detector's band.
+
+The conversion (docs/physics.md, "Background light"):
+
+1. The background light is assumed to have a solar-like spectrum, a blackbody at
+   ``spectrum_temperature_k`` (5778 K, the Sun's effective temperature; no atmospheric
+   absorption bands, which makes the near-infrared estimate slightly high for real sunlight).
+2. Illuminance is ``E_v = 683 lm/W · ∫ V(λ) E_e(λ) dλ`` with the CIE photopic luminosity function
+   V(λ) (Gaussian approximation ``1.019 exp(−285.4 (λ/µm − 0.559)²)``). For 5778 K this gives a
+   luminous efficacy of ≈ 93 lm/W of total irradiance, so 100 kLux ≈ 1.08 kW/m² (direct
+   sunlight, as expected).
+3. The irradiance the detector can see is the part of the spectrum inside ``band_nm``. The
+   default is a 100 nm band-pass around the 1550 nm LED line (1500–1600 nm): the paper names no
+   filter, but without one the InGaAs photodiode (800–1700 nm) would see ~20× more sunlight
+   and saturate below 15 kLux. ``band_nm: [800, 1700]`` models the bare photodiode.
+4. The photon flux in the band is ``∫ E_e(λ) λ/(hc) dλ`` over the same spectrum.
+
+How that irradiance becomes photoelectrons at the photodiode (a Lambertian scene seen through
+the lens, Eqs. 10–11) is in :mod:`nirspi_pipe.physics.budget`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from nirspi_pipe.errors import ConfigError
+
+__all__ = [
+    "H_PLANCK",
+    "C_LIGHT",
+    "K_BOLTZMANN",
+    "planck_spectral_irradiance",
+    "photopic_luminosity",
+    "luminous_efficacy_lm_per_w",
+    "band_fraction",
+    "klux_to_irradiance_w_m2",
+    "klux_to_photon_irradiance",
+    "Background",
+]
+
+H_PLANCK = 6.62607015e-34  # J s
+C_LIGHT = 299792458.0  # m/s
+K_BOLTZMANN = 1.380649e-23  # J/K
+_KM = 683.0  # lm/W, maximum luminous efficacy
+
+
+def planck_spectral_irradiance(wavelength_m: np.ndarray, temperature_k: float) -> np.ndarray:
+    """Blackbody spectral shape ``2hc²/λ⁵ / (exp(hc/λkT) − 1)`` (W m⁻³ sr⁻¹; only its shape is
+    used, the scale is set by the illuminance)."""
+    lam = np.asarray(wavelength_m, dtype=np.float64)
+    x = H_PLANCK * C_LIGHT / (lam * K_BOLTZMANN * temperature_k)
+    return 2 * H_PLANCK * C_LIGHT**2 / lam**5 / np.expm1(np.minimum(x, 700.0))
+
+
+def photopic_luminosity(wavelength_m: np.ndarray) -> np.ndarray:
+    """CIE photopic luminosity function V(λ), Gaussian approximation (peak 1 at 555–559 nm)."""
+    um = np.asarray(wavelength_m, dtype=np.float64) * 1e6
+    return 1.019 * np.exp(-285.4 * (um - 0.559) ** 2)
+
+
+def _grid(lo_m: float, hi_m: float, n: int = 4001) -> np.ndarray:
+    return np.linspace(lo_m, hi_m, n)
+
+
+@lru_cache(maxsize=64)
+def luminous_efficacy_lm_per_w(temperature_k: float = 5778.0) -> float:
+    """Luminous efficacy (lm per W of total irradiance) of a blackbody spectrum."""
+    lam = _grid(100e-9, 100e-6, 200001)
+    spec = planck_spectral_irradiance(lam, temperature_k)
+    total = np.trapezoid(spec, lam)
+    lum = _KM * np.trapezoid(spec * photopic_luminosity(lam), lam)
+    return float(lum / total)
+
+
+@lru_cache(maxsize=64)
+def band_fraction(band_nm: tuple[float, float], temperature_k: float = 5778.0) -> tuple[float, float]:
+    """Fraction of a blackbody's total irradiance inside ``band_nm`` (dimensionless), and the
+    photon flux per watt of *total* irradiance inside the band (photons s⁻¹ W⁻¹)."""
+    lam_all = _grid(100e-9, 100e-6, 200001)
+    total = np.trapezoid(planck_spectral_irradiance(lam_all, temperature_k), lam_all)
+    lam = _grid(band_nm[0] * 1e-9, band_nm[1] * 1e-9)
+    spec = planck_spectral_irradiance(lam, temperature_k)
+    frac = np.trapezoid(spec, lam) / total
+    photons_per_w = np.trapezoid(spec * lam / (H_PLANCK * C_LIGHT), lam) / total
+    return float(frac), float(photons_per_w)
+
+
+def klux_to_irradiance_w_m2(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0) -> float:
+    """Irradiance (W/m²) inside ``band_nm`` of a solar-like illuminance of ``klux`` kilolux."""
+    total = klux * 1e3 / luminous_efficacy_lm_per_w(temperature_k)
+    return total * band_fraction(tuple(band_nm), temperature_k)[0]
+
+
+def klux_to_photon_irradiance(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0) -> float:
+    """Photon irradiance (photons s⁻¹ m⁻²) inside ``band_nm`` of ``klux`` kilolux of solar-like light."""
+    total = klux * 1e3 / luminous_efficacy_lm_per_w(temperature_k)
+    return total * band_fraction(tuple(band_nm), temperature_k)[1]
+
+
+@dataclass(frozen=True)
+class Background:
+    """Background (ambient) light on the scene: ``illumination=none|klux``.
+
+    Attributes:
+        klux: illuminance on the scene, kLux, in [0, 100] (0 = dark).
+        band_nm: detector band ``[lo, hi]`` in nm (see the module docstring).
+        spectrum_temperature_k: blackbody temperature of the assumed spectrum, K.
+        surround_reflectance: Lambertian reflectance of what the camera sees around the object
+            (the chamber walls), in [0, 1].
+        drift_rel_per_s: linear drift of the level, relative per second (time-varying).
+        flicker_rel, flicker_hz: sinusoidal flicker amplitude (relative) and frequency (Hz).
+        wander_rel, wander_time_s: random slow fluctuation (Ornstein–Uhlenbeck, seeded):
+            relative standard deviation and correlation time.
+    """
+
+    klux: float = 0.0
+    band_nm: tuple[float, float] = (1500.0, 1600.0)
+    spectrum_temperature_k: float = 5778.0
+    surround_reflectance: float = 0.2
+    drift_rel_per_s: float = 0.0
+    flicker_rel: float = 0.0
+    flicker_hz: float = 100.0
+    wander_rel: float = 0.0
+    wander_time_s: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not np.isfinite(self.klux) or not 0.0 <= self.klux <= 100.0:
+            raise ConfigError("klux", self.klux, "an illuminance in kLux in [0, 100]")
+        band = tuple(float(b) for b in self.band_nm)
+        if len(band) != 2 or not 200.0 <= band[0] < band[1] <= 20000.0:
+            raise ConfigError("band_nm", self.band_nm, "[lo, hi] in nm with 200 <= lo < hi <= 20000")
+        object.__setattr__(self, "band_nm", band)
+        if not 1000.0 <= self.spectrum_temperature_k <= 20000.0:
+            raise ConfigError("spectrum_temperature_k", self.spectrum_temperature_k, "a temperature in K in [1000, 20000]")
+        if not 0.0 <= self.surround_reflectance <= 1.0:
+            raise ConfigError("surround_reflectance", self.surround_reflectance, "a reflectance in [0, 1]")
+        for key in ("drift_rel_per_s", "flicker_rel", "wander_rel"):
+            v = getattr(self, key)
+            if not np.isfinite(v) or abs(v) > 10.0 or (key != "drift_rel_per_s" and v < 0):
+                raise ConfigError(key, v, "a relative amount in [0, 10] (drift: [-10, 10] per s)")
+        if not np.isfinite(self.flicker_hz) or self.flicker_hz < 0:
+            raise ConfigError("flicker_hz", self.flicker_hz, "a frequency in Hz >= 0")
+        if not np.isfinite(self.wander_time_s) or self.wander_time_s <= 0:
+            raise ConfigError("wander_time_s", self.wander_time_s, "a correlation time in s > 0")
+
+    @property
+    def active(self) -> bool:
+        """False at 0 kLux: the simulator then does not build this effect."""
+        return self.klux > 0.0
+
+    @property
+    def time_varying(self) -> bool:
+        """Whether the level changes during the acquisition."""
+        return bool(self.drift_rel_per_s or self.flicker_rel or self.wander_rel)
+
+    @property
+    def irradiance_w_m2(self) -> float:
+        """In-band irradiance on the scene, W/m²."""
+        return klux_to_irradiance_w_m2(self.klux, self.band_nm, self.spectrum_temperature_k)
+
+    @property
+    def photon_irradiance(self) -> float:
+        """In-band photon irradiance on the scene, photons s⁻¹ m⁻²."""
+        return klux_to_photon_irradiance(self.klux, self.band_nm, self.spectrum_temperature_k)
