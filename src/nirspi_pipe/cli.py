@@ -19,7 +19,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.errors import ConfigError, NirspiError
 
 __all__ = ["run", "collect", "execute_job"]
 
@@ -89,7 +89,7 @@ def execute_job(
         "info": {},
         "meta": {
             "config_hash": config_hash(config),
-            "seed": cfg.get("seed"),
+            "seed": _seed_or_none(cfg),
             **provenance((os.getcwd(),)),
             "status": "failed",
             "error": None,
@@ -105,7 +105,7 @@ def execute_job(
         output = run_pipeline(cfg)
     except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
         record["meta"]["error"] = _one_line(exc)
-        record["meta"]["error_type"] = type(exc).__name__
+        record["meta"]["error_type"] = "ConfigError" if isinstance(exc, ConfigError) else type(exc).__name__
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "error.txt").write_text(traceback.format_exc())
     else:
@@ -144,6 +144,15 @@ def execute_job(
             write_mesh_outputs(out_dir, p)  # mesh.ply and mesh.png (mesh beside the truth)
     write_record(out_dir, record)
     return record
+
+
+def _seed_or_none(cfg: Any) -> int | None:
+    from nirspi_pipe.pipeline import effective_seed
+
+    try:
+        return effective_seed(cfg)
+    except Exception:  # noqa: BLE001 - an invalid seed is reported by the run itself
+        return None
 
 
 def _hydra_task(cfg: Any) -> None:

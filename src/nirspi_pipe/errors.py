@@ -15,11 +15,15 @@ class ConfigError(NirspiError, ValueError):
     """A configuration value is out of range.
 
     ``key`` is the config key relative to the object that raised it (``resolution``); the
-    pipeline prefixes the group it was building (``camera.resolution``) with :meth:`under`.
+    pipeline prefixes the group it was building (``camera.resolution``) with :meth:`under`,
+    unless ``absolute`` says the key is already a full path (``fog.number_density_per_cm3``).
     """
 
-    def __init__(self, key: str, value: Any, allowed: str, unknown_key: bool = False) -> None:
+    def __init__(
+        self, key: str, value: Any, allowed: str, unknown_key: bool = False, absolute: bool = False
+    ) -> None:
         self.key, self.value, self.allowed, self.unknown_key = key, value, allowed, unknown_key
+        self.absolute = absolute  # key is already the full config path: never prefix it
         if unknown_key:
             super().__init__(f"{key} is not a key; allowed keys: {allowed}")
         else:
@@ -27,6 +31,6 @@ class ConfigError(NirspiError, ValueError):
 
     def under(self, prefix: str) -> ConfigError:
         """The same error with its key prefixed by ``prefix`` (``scene`` → ``scene.distance_mm``)."""
-        if not prefix or self.key.startswith(prefix + "."):
+        if not prefix or self.absolute or self.key.startswith(prefix + "."):
             return self
         return ConfigError(f"{prefix}.{self.key}", self.value, self.allowed, self.unknown_key)

@@ -139,15 +139,28 @@ def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
     return {k: dict(v.info) for k, v in pairs.items() if v is not None and v.info}
 
 
+def effective_seed(cfg: DictConfig) -> int:
+    """The run's seed: ``cfg.seed``, or when it is null a seed derived from the hash of the
+    resolved config (so every job of a sweep gets its own, reproducible noise)."""
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.records import config_hash
+
+    seed = cfg.get("seed", 0)
+    if seed is None:
+        return int(config_hash(OmegaConf.to_container(cfg, resolve=True))[:8], 16)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError("seed", seed, "an integer >= 0, or null (derived from the config)")
+    return seed
+
+
 def run_pipeline(cfg: DictConfig) -> RunOutput:
     """Run one configuration end to end and return its products, metrics and timings (ms).
 
     Raises :class:`ConfigError` / :class:`NirspiError` for bad configuration or input; other
     exceptions are bugs or numerical failures and propagate unchanged.
     """
-    seed = int(cfg.get("seed", 0))
-    if seed < 0:
-        raise ConfigError("seed", seed, "an integer >= 0")
+    seed = effective_seed(cfg)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
@@ -195,11 +208,13 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
             metrics = clock.call("metrics", stages["metrics"].compute, products)
     timings = dict(clock.ms)
     timings["total"] = float(sum(v for k, v in clock.ms.items() if k != "build"))
+    info = _stage_info(products)
+    info.setdefault("run", {})["seed"] = seed
     return RunOutput(
         products=products,
         metrics={k: float(v) for k, v in metrics.items()},
         timings_ms=timings,
         derived={k: v for k, v in acq.derived.items()},
-        info=_stage_info(products),
+        info=info,
         warnings=[f"{w.category.__name__}: {w.message}" for w in caught],
     )

@@ -40,9 +40,17 @@ SWEEP_FILE = "sweep.json"
 
 def job_key(job_cfg: Any) -> str:
     """The folder key of a composed job config: the hash of its resolved non-hydra part."""
+    from omegaconf.errors import InterpolationResolutionError
+
     plain = OmegaConf.to_container(job_cfg, resolve=False)
     plain.pop("hydra", None)
-    resolved = OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+    try:
+        resolved = OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+    except InterpolationResolutionError as exc:
+        raise ValueError(
+            "a job config interpolates ${hydra:...} outside the hydra node, so it cannot be keyed "
+            f"before it runs ({exc.full_key}); for per-job seeds use seed=null"
+        ) from None
     return config_hash(resolved)
 
 

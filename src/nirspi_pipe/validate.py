@@ -106,7 +106,7 @@ def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore
     for key in keys:
         parent, _, leaf = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else cfg
-        if isinstance(node, DictConfig) and leaf not in node:
+        if isinstance(node, DictConfig) and leaf not in node.keys():  # keys() keeps ??? values
             where = parent or "the top level"
             known = ", ".join(sorted(str(k) for k in node if str(k) != "_target_"))
             return f"{key} is not a key of {where}; allowed keys: {known} (or +{key}=... to add one)"

@@ -139,17 +139,6 @@ def _is_active(effect: Any) -> bool:
     return effect is not None and bool(getattr(effect, "active", True))
 
 
-class _GroupConfigError(ConfigError):
-    """A ConfigError whose key is already absolute (``fog.number_density_per_cm3``): the
-    effects are config groups of their own, although the source builds them."""
-
-    def under(self, prefix: str) -> ConfigError:
-        return self
-
-
-_GroupConfigError.__name__ = "ConfigError"  # the CLI reports ConfigErrors as one line by this name
-
-
 def _build_effect(group: str, node: Any) -> Any:
     """Instantiate an effect config (``_target_``) of config group ``group``; its errors name
     ``group.<key>`` (what the user typed), not ``source.<group>.<key>``."""
@@ -162,11 +151,14 @@ def _build_effect(group: str, node: Any) -> Any:
     if isinstance(node, DictConfig):
         node = OmegaConf.to_container(node, resolve=True)
     if not isinstance(node, Mapping) or "_target_" not in node:
-        raise _GroupConfigError(group, node, f"a {group} config with a _target_ (conf/{group}/*.yaml), or null")
+        raise ConfigError(
+            group, node, f"a {group} config with a _target_ (conf/{group}/*.yaml), or null", absolute=True
+        )
     try:
         return build(OmegaConf.create(dict(node)), group)
     except ConfigError as exc:
-        raise _GroupConfigError(exc.key, exc.value, exc.allowed, exc.unknown_key) from None
+        # the effects are config groups of their own, although the source builds them
+        raise ConfigError(exc.key, exc.value, exc.allowed, exc.unknown_key, absolute=True) from None
 
 
 @dataclass(frozen=True)
