@@ -3,9 +3,11 @@
 From a sweep over solver × scan × ratio × resolution × scene, each configuration (solver, scan,
 ratio, resolution) is summarised over the scenes: mean PSNR (dB), mean SSIM and the median
 solver time (``timings_ms.solver``, ms). A configuration is on the *Pareto front* of its
-resolution when no other configuration at that resolution is at least as fast and at least as
+(resolution, ratio) when no other configuration there is at least as fast and at least as
 accurate, and strictly better in one. Fronts are per resolution because the PSNR of a 32² and
-a 256² image are scores of different problems.
+a 256² image score different problems, and per ratio because the ratio is the acquisition
+budget (measurement time), fixed before reconstruction starts: the front says what accuracy
+each extra millisecond of computing buys from the same measurements.
 
 Writes ``pareto.csv`` (one row per configuration, flags ``front_psnr``/``front_ssim``),
 ``pareto.md`` (each front as steps: what each gain in PSNR costs in time) and ``pareto.png``
@@ -81,13 +83,14 @@ def front_steps(table: pd.DataFrame, metric: str = "psnr_db") -> pd.DataFrame:
     """The PSNR front of each resolution as steps: gain in the metric and the time factor paid
     for it from the previous front point."""
     rows = []
-    for res, group in table[table[f"front_{metric.split('_')[0]}"]].groupby("resolution"):
+    for (res, ratio), group in table[table[f"front_{metric.split('_')[0]}"]].groupby(["resolution", "ratio"]):
         g = group.sort_values("time_ms")
         prev = None
         for _, r in g.iterrows():
             row = {
                 "resolution": res,
-                "config": f"{r['solver']} / {r['scan']} / {r['ratio']:.0%}",
+                "ratio": ratio,
+                "config": f"{r['solver']} / {r['scan']}",
                 "time_ms": r["time_ms"],
                 metric: r[metric],
                 "gain": np.nan if prev is None else r[metric] - prev[metric],
@@ -115,27 +118,34 @@ def _plot(table: pd.DataFrame, path: Path) -> None:
 
     solvers = sorted(table["solver"].unique())
     resolutions = sorted(table["resolution"].unique())
+    ratios = sorted(table["ratio"].unique())
     colours = {s: plt.cm.tab10(i % 10) for i, s in enumerate(solvers)}
     markers = dict(zip(resolutions, "os^Dv<>p"))
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
-    for ax, metric, flag, label in (
-        (axes[0], "psnr_db", "front_psnr", "PSNR (dB), mean over scenes"),
-        (axes[1], "ssim", "front_ssim", "SSIM, mean over scenes"),
-    ):
-        for (solver, res), g in table.groupby(["solver", "resolution"]):
-            ax.scatter(g["time_ms"], g[metric], s=14, alpha=0.55, color=colours[solver], marker=markers[res])
-        for res in resolutions:
-            f = table[(table["resolution"] == res) & table[flag]].sort_values("time_ms")
-            ax.step(f["time_ms"], f[metric], where="post", color="black", lw=1.0)
-            ax.scatter(f["time_ms"], f[metric], s=40, facecolors="none", edgecolors="black", marker=markers[res])
-        ax.set_xscale("log")
-        ax.set_xlabel("reconstruction time (ms, median over scenes)")
-        ax.set_ylabel(label)
-        ax.grid(True, which="both", alpha=0.3)
+    fig, axes = plt.subplots(2, len(ratios), figsize=(3.4 * len(ratios), 6.4), squeeze=False)
+    for col, ratio in enumerate(ratios):
+        at = table[table["ratio"] == ratio]
+        for row, (metric, flag, label) in enumerate(
+            (("psnr_db", "front_psnr", "PSNR (dB)"), ("ssim", "front_ssim", "SSIM"))
+        ):
+            ax = axes[row, col]
+            for (solver, res), g in at.groupby(["solver", "resolution"]):
+                ax.scatter(g["time_ms"], g[metric], s=14, alpha=0.6, color=colours[solver], marker=markers[res])
+            for res in resolutions:
+                f = at[(at["resolution"] == res) & at[flag]].sort_values("time_ms")
+                ax.step(f["time_ms"], f[metric], where="post", color="black", lw=0.9)
+                ax.scatter(f["time_ms"], f[metric], s=42, facecolors="none", edgecolors="black", marker=markers[res])
+            ax.set_xscale("log")
+            ax.grid(True, which="both", alpha=0.3)
+            if row == 0:
+                ax.set_title(f"{ratio:.0%} of the patterns", fontsize=9)
+            if row == 1:
+                ax.set_xlabel("solver time (ms)")
+            if col == 0:
+                ax.set_ylabel(f"{label}, mean over scenes")
     handles = [plt.Line2D([], [], ls="", marker="o", color=colours[s], label=s) for s in solvers]
     handles += [plt.Line2D([], [], ls="", marker=markers[r], color="gray", label=f"{r}²") for r in resolutions]
-    handles.append(plt.Line2D([], [], color="black", label="Pareto front (per resolution)"))
-    axes[1].legend(handles=handles, fontsize=7, loc="lower right")
+    handles.append(plt.Line2D([], [], color="black", label="Pareto front"))
+    axes[1, -1].legend(handles=handles, fontsize=7, loc="lower right")
     fig.suptitle("Accuracy costs time: solver × scan × ratio × resolution", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -147,7 +157,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     table = summarise(frame)
     table["front_psnr"] = False
     table["front_ssim"] = False
-    for _, idx in table.groupby("resolution").groups.items():
+    for _, idx in table.groupby(["resolution", "ratio"]).groups.items():
         sub = table.loc[idx]
         table.loc[idx, "front_psnr"] = pareto_front(sub["time_ms"].to_numpy(), sub["psnr_db"].to_numpy())
         table.loc[idx, "front_ssim"] = pareto_front(sub["time_ms"].to_numpy(), sub["ssim"].to_numpy())
@@ -157,8 +167,9 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     text = [
         "# Pareto: accuracy against reconstruction time",
         "",
-        "Per resolution, the configurations no other beats on both PSNR and time. `gain` is the",
-        "PSNR (dB) bought by a step along the front and `time_factor` what it costs (× time).",
+        "Per resolution and sampling ratio, the configurations no other beats on both PSNR and",
+        "solver time. `gain` is the PSNR (dB) bought by a step along the front and `time_factor`",
+        "what it costs (× solver time).",
         "",
         _markdown(steps) if len(steps) else "(no successful runs)",
         "",
