@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.patterns.hadamard import ifwht
+from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
 from nirspi_pipe.types import Acquisition, Image2D
 
 __all__ = ["FWHTSolver", "zero_filled_inverse"]
@@ -35,14 +34,7 @@ class FWHTSolver:
     """
 
     def solve(self, acquisition: Acquisition) -> Image2D:
-        if acquisition.patterns is not None:
-            raise NirspiError(
-                "solver=fwht needs a Hadamard acquisition; this one has explicit patterns "
-                "(use solver=lstsq or solver=fista_tv)"
-            )
-        coeffs = acquisition.coefficients()
-        if not np.all(np.isfinite(coeffs)):
-            warnings.warn("fwht: non-finite measurements were replaced by 0", stacklevel=2)
-            coeffs = np.nan_to_num(coeffs, nan=0.0, posinf=0.0, neginf=0.0)
+        require_hadamard(acquisition, "fwht")
+        coeffs = checked_coefficients(acquisition, "fwht")
         image = zero_filled_inverse(acquisition.n, acquisition.indices, coeffs)
         return Image2D(image, info={"iterations": 1, "stop_reason": "direct"})

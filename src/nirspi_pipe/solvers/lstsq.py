@@ -1,0 +1,73 @@
+"""Solver ``lstsq``: the minimum-norm least-squares image, by LSQR on a linear operator."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.linalg import lsqr
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.solvers.common import checked_coefficients, measurement_operator
+from nirspi_pipe.types import Acquisition, Image2D
+
+__all__ = ["LstsqSolver", "LSQR_STOP"]
+
+#: scipy's LSQR ``istop`` codes, as stop reasons for the record.
+LSQR_STOP = {
+    0: "zero_solution",  # b = 0: x = 0 is exact
+    1: "consistent",  # A x ≈ b within atol/btol
+    2: "least_squares",  # a least-squares solution within atol
+    3: "ill_conditioned",  # cond(A) > conlim
+    4: "consistent_eps",  # A x ≈ b to machine precision
+    5: "least_squares_eps",
+    6: "ill_conditioned_eps",
+    7: "max_iter",
+}
+
+
+@dataclass(frozen=True)
+class LstsqSolver:
+    """Solver ``lstsq``: ``argmin ‖x‖ subject to minimising ‖A x − y‖`` (``damp = 0``).
+
+    LSQR (scipy) started from ``x = 0`` stays in the row space of ``A``, so it converges to the
+    minimum-norm least-squares solution. On the Hadamard path ``A`` is the fast subsampled
+    transform (rows orthogonal, ``A Aᵀ = N·I``): LSQR stops after one iteration at the
+    zero-filled inverse, which *is* the minimum-norm solution. With explicit patterns (any
+    ``(m, N)`` matrix, e.g. a recorded acquisition) it works on that matrix as an operator.
+
+    Attributes:
+        atol, btol: LSQR stopping tolerances (relative).
+        iter_lim: LSQR iteration limit; null = ``2 · N``.
+        damp: Tikhonov damping (0 = plain minimum-norm least squares), in the units of ``A``.
+    """
+
+    atol: float = 1e-10
+    btol: float = 1e-10
+    iter_lim: int | None = None
+    damp: float = 0.0
+
+    def __post_init__(self) -> None:
+        for key in ("atol", "btol"):
+            v = getattr(self, key)
+            if not (np.isfinite(v) and 0 <= v < 1):
+                raise ConfigError(key, v, "a tolerance in [0, 1)")
+        if self.iter_lim is not None and (not isinstance(self.iter_lim, (int, np.integer)) or self.iter_lim < 1):
+            raise ConfigError("iter_lim", self.iter_lim, "an integer >= 1, or null")
+        if not (np.isfinite(self.damp) and self.damp >= 0):
+            raise ConfigError("damp", self.damp, "a damping >= 0")
+
+    def solve(self, acquisition: Acquisition) -> Image2D:
+        y = checked_coefficients(acquisition, "lstsq")
+        op = measurement_operator(acquisition)
+        limit = self.iter_lim if self.iter_lim is not None else 2 * acquisition.n_pixels
+        x, istop, itn, r1norm = lsqr(
+            op, y, damp=self.damp, atol=self.atol, btol=self.btol, iter_lim=limit
+        )[:4]
+        ny = float(np.linalg.norm(y))
+        info = {
+            "iterations": int(itn),
+            "stop_reason": LSQR_STOP.get(int(istop), f"istop_{istop}"),
+            "relative_residual": float(r1norm / ny) if ny > 0 else float(r1norm),
+        }
+        return Image2D(np.asarray(x, dtype=np.float64).reshape(acquisition.n, acquisition.n), info=info)
