@@ -128,15 +128,17 @@ def _stored_member(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np
 def _read_npz(path: Path, where: str) -> dict[str, np.ndarray]:
     """All arrays of an NPZ, loaded without pickle; each failure names its key."""
     try:
-        npz = np.load(path, allow_pickle=False)
+        fh = open(path, "rb")  # opened here so that it is closed even when np.load fails
     except FileNotFoundError:
         raise _fail("path", "file does not exist", where) from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-        raise NirspiError(f"{where}: not a readable NPZ file ({type(exc).__name__}: {exc})") from None
-    if not isinstance(npz, np.lib.npyio.NpzFile):
-        raise NirspiError(f"{where}: a single .npy array, not an NPZ archive of named arrays")
     out: dict[str, np.ndarray] = {}
-    with npz:
+    with fh:
+        try:
+            npz = np.load(fh, allow_pickle=False)
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+            raise NirspiError(f"{where}: not a readable NPZ file ({type(exc).__name__}: {exc})") from None
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise NirspiError(f"{where}: a single .npy array, not an NPZ archive of named arrays")
         for key in npz.files:
             try:
                 member = npz.zip.getinfo(f"{key}.npy") if f"{key}.npy" in npz.zip.namelist() else None
