@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hydra import compose, initialize_config_module
 
 from nirspi_pipe.cli import execute_job
@@ -293,3 +295,38 @@ def test_cli_on_a_file_from_another_tool(tmp_path: Path) -> None:
     assert bad.returncode == 1
     lines = [ln for ln in bad.stderr.splitlines() if ln.startswith("nirspi-run: error")]
     assert len(lines) == 1 and "key 'measurements'" in lines[0] and "dtype int64" in lines[0]
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    log_n=st.integers(min_value=1, max_value=4),
+    frac=st.floats(min_value=0.05, max_value=1.0),
+    levels=st.sampled_from([(0.0, 1.0), (0.0, 255.0), (-1.0, 1.0), (2.0, 5.0)]),
+    split=st.booleans(),
+    corrupt=st.booleans(),
+    seed=st.integers(min_value=0, max_value=2**16),
+)
+def test_match_hadamard_property(log_n: int, frac: float, levels, split: bool, corrupt: bool, seed: int) -> None:
+    """Any subset of Hadamard patterns, in any order, at any two levels, split or signed, is
+    recognised with the right indices; one flipped pixel anywhere is never recognised."""
+    n = 2**log_n
+    rng = np.random.default_rng(seed)
+    m = max(1, int(frac * n * n))
+    k = rng.permutation(n * n)[:m]
+    pm = hadamard_rows(n, k) * rng.choice([-1.0, 1.0], size=(m, 1))
+    lo, hi = levels
+    rows = np.concatenate([pm, -pm]) if split else pm
+    rows = rows[rng.permutation(len(rows))]
+    if corrupt:
+        r, c = rng.integers(len(rows)), rng.integers(n * n)
+        rows[r, c] *= -1
+    mat = lo + (hi - lo) * (1 + rows) / 2
+    match = match_hadamard(mat)
+    if corrupt:
+        assert not match.hadamard
+    elif np.all(mat == 0):  # an all-dark pattern measures nothing
+        assert match.kind == "general"
+    elif split or lo == -hi or np.all(mat == mat.flat[0]):  # constant: DC rows, read as signed
+        assert match.hadamard and sorted(match.indices.tolist()) == sorted(k.tolist())
+    else:
+        assert not match.hadamard and match.kind == "binary"

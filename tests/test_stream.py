@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from hydra import compose, initialize_config_module
 
 from nirspi_pipe.cli import execute_job
@@ -104,29 +106,28 @@ def test_refused_request_and_closed_port() -> None:
 def test_emulator_console_script_and_nirspi_run(tmp_path: Path) -> None:
     bindir = Path(sys.executable).parent
     env = {**os.environ, "MPLBACKEND": "Agg"}
-    emu = subprocess.Popen(
+    with subprocess.Popen(
         [str(bindir / "nirspi-device-emulator"), "--resolution", "16", "--background", "3", "--lifetime-s", "60"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-    )
-    try:
-        hello = json.loads(emu.stdout.readline())
-        assert hello["host"] == "127.0.0.1" and hello["n"] == 16
-        out = tmp_path / "run"
-        run = subprocess.run(
-            [str(bindir / "nirspi-run"), "source=stream", f"source.port={hello['port']}", "camera.resolution=16",
-             f"hydra.run.dir={out}"],
-            capture_output=True, text=True, env=env, timeout=300,
-        )
-        assert run.returncode == 0, run.stderr
-        assert emu.wait(timeout=30) == 0  # served its one connection and stopped by itself
-        with np.load(out / "arrays.npz") as arrs:
-            assert np.abs(arrs["reconstruction"] - sphere(16)).max() < 1e-9
-        rec = json.loads((out / "record.json").read_text())
-        assert rec["info"]["source"]["frames"] == 256
-    finally:
-        if emu.poll() is None:
-            emu.kill()
-            emu.wait()
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
+    ) as emu:
+        try:
+            hello = json.loads(emu.stdout.readline())
+            assert hello["host"] == "127.0.0.1" and hello["n"] == 16
+            out = tmp_path / "run"
+            run = subprocess.run(
+                [str(bindir / "nirspi-run"), "source=stream", f"source.port={hello['port']}", "camera.resolution=16",
+                 f"hydra.run.dir={out}"],
+                capture_output=True, text=True, env=env, timeout=300,
+            )
+            assert run.returncode == 0, run.stderr
+            assert emu.wait(timeout=30) == 0  # served its one connection and stopped by itself
+            with np.load(out / "arrays.npz") as arrs:
+                assert np.abs(arrs["reconstruction"] - sphere(16)).max() < 1e-9
+            rec = json.loads((out / "record.json").read_text())
+            assert rec["info"]["source"]["frames"] == 256
+        finally:
+            if emu.poll() is None:  # a failed assertion: do not wait for its lifetime
+                emu.kill()
 
 
 # --- converter ---------------------------------------------------------------------------------
@@ -181,3 +182,37 @@ def test_convert_column_major_mat_file_through_the_cli(tmp_path: Path) -> None:
     bad = subprocess.run([str(exe), str(src), "-o", str(out), "--patterns", "P", "--pos", "nope", "--neg", "yn"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "key 'nope'" in bad.stderr
+
+
+def test_differential_device() -> None:
+    n = 8
+    img = sphere(n)
+    emu = Emulator(img, background=4.0, differential=True)
+    port, thread = emu.serve_in_thread(connections=1, lifetime_s=30)
+    acq = Stream(port=port, timeout_s=5).acquire(None, np.arange(n * n), n, np.random.default_rng(0))
+    thread.join(timeout=10)
+    assert acq.y_neg is None and acq.info["differential"]
+    assert np.allclose(acq.coefficients(), fwht2(img).ravel())
+
+
+@settings(max_examples=25, deadline=None)
+@given(cut=st.integers(min_value=0, max_value=10_000))
+def test_any_truncation_is_a_one_line_stream_error(cut: int) -> None:
+    """A byte stream cut anywhere (header, frames, end marker) never yields an acquisition."""
+    import io
+
+    from nirspi_pipe.device.protocol import FRAME_DTYPE, encode_end, write_json_line
+    from nirspi_pipe.sources.stream import receive_acquisition
+
+    n, idx = 4, np.arange(16)
+    buf = io.BytesIO()
+    write_json_line(buf, {"protocol": "nirspi-stream/1", "n": n, "count": 16, "frame_bytes": 36, "gain": 1.0})
+    frames = np.zeros(16, dtype=FRAME_DTYPE)
+    frames["seq"], frames["index"], frames["t_s"] = np.arange(16), idx, np.arange(16.0)
+    buf.write(frames.tobytes() + encode_end(16))
+    data = buf.getvalue()
+    cut = cut % len(data)
+    with pytest.raises(StreamError) as err:
+        receive_acquisition(io.BytesIO(data[:cut]), idx, n, "test")
+    assert err.value.field in ("header", "frames", "end") and "\n" not in str(err.value)
+    assert receive_acquisition(io.BytesIO(data), idx, n, "test").y_pos.size == 16

@@ -68,6 +68,8 @@ class Emulator:
         noise_rel: Gaussian noise per reading relative to the mean half-pattern reading.
         pattern_rate_hz: patterns per second (timestamps; the emulator does not wait).
         seed: seed of the noise generator (one stream per connection, in order).
+        differential: send ``y_pos − y_neg`` in ``y_pos`` and NaN in ``y_neg`` (a device that
+            subtracts the halves itself).
         fault: one of :data:`FAULTS`.
         io_timeout_s: socket timeout per read/write, seconds.
         device: name sent in the header.
@@ -79,6 +81,7 @@ class Emulator:
     noise_rel: float = 0.0
     pattern_rate_hz: float = 1000.0
     seed: int = 0
+    differential: bool = False
     fault: str = "none"
     io_timeout_s: float = 10.0
     device: str = "nirspi-device-emulator"
@@ -171,6 +174,8 @@ class Emulator:
         frames["index"] = indices
         frames["t_s"] = np.arange(count) * (2.0 / self.pattern_rate_hz)
         frames["y_pos"], frames["y_neg"] = y_pos, y_neg
+        if self.differential:
+            frames["y_pos"], frames["y_neg"] = y_pos - y_neg, np.nan
         header: dict[str, Any] = {
             "protocol": PROTOCOL, "n": self.n, "count": count, "frame_bytes": FRAME_DTYPE.itemsize,
             "gain": self.gain, "units": "relative", "device": self.device,
@@ -212,6 +217,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--background", type=float, default=0.0, help="constant reading added to both halves")
     p.add_argument("--noise-rel", type=float, default=0.0)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--differential", action="store_true", help="send pos − neg, NaN for neg")
     p.add_argument("--connections", type=int, default=1, help="acquisitions to serve before exiting")
     p.add_argument("--lifetime-s", type=float, default=60.0, help="exit after this many seconds anyway")
     p.add_argument("--fault", choices=FAULTS, default="none", help="inject a protocol error (tests)")
@@ -224,7 +230,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
         raise SystemExit(2) from None
     emu = Emulator(radiance, gain=ns.gain, background=ns.background, noise_rel=ns.noise_rel,
-                   seed=ns.seed, fault=ns.fault)
+                   seed=ns.seed, differential=ns.differential, fault=ns.fault)
     port = emu.bind(ns.port)
     print(json.dumps({"host": LOOPBACK, "port": port, "n": emu.n, "scene": ns.scene}), flush=True)
     served = emu.serve(ns.connections, ns.lifetime_s)

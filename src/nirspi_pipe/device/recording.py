@@ -398,6 +398,8 @@ def match_hadamard(patterns: np.ndarray) -> HadamardMatch:
     m, big_n = patterns.shape
     n = int(round(np.sqrt(big_n)))
     low, high = patterns.min(), patterns.max()
+    if high == low != 0:  # every row the constant a = |a|·sign(a)·h_0: signed DC rows
+        low, high = -abs(high), abs(high)
     if not high > low:
         return HadamardMatch("general")
     plus = patterns == high
