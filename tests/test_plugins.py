@@ -16,7 +16,16 @@ import pytest
 
 from nirspi_pipe import plugins
 
-PIP_FLAGS = ["--no-deps", "--no-build-isolation", "--no-index", "-q"]
+def _pip_flags() -> list[str]:
+    """Offline and fast (no build isolation) when this venv can build a wheel itself; otherwise
+    let pip fetch setuptools into an isolated build environment."""
+    import importlib.util
+
+    offline = importlib.util.find_spec("setuptools") is not None and importlib.util.find_spec("wheel") is not None
+    return ["--no-deps", "-q", *(["--no-build-isolation", "--no-index"] if offline else [])]
+
+
+PIP_FLAGS = _pip_flags()
 
 
 def _write_module(root: Path, name: str, body: str) -> None:
@@ -52,25 +61,27 @@ def test_failing_plugins_are_named_and_skipped(fake_entry_points, caplog: pytest
     _write_module(root, f"raises_{tag}", "raise ImportError('missing dependency foo')\n")
     _write_module(root, f"badret_{tag}", "def register():\n    return 42\n")
     _write_module(root, f"nofolder_{tag}", "def register():\n    return 'pkg://does_not_exist_xyz'\n")
+    _write_module(root, f"exits_{tag}", "import sys\nsys.exit(3)\n")
     eps += [
         _ep("good", f"good_{tag}"),
         _ep("raises", f"raises_{tag}"),
         _ep("missing", f"no_such_module_{tag}"),
         _ep("badret", f"badret_{tag}:register"),
         _ep("nofolder", f"nofolder_{tag}:register"),
+        _ep("exits", f"exits_{tag}"),
     ]
     report = plugins.discover(refresh=True)
     assert [p.name for p in report.plugins] == ["good"]
     assert report.plugins[0].options == {"solver": [f"good_{tag}"]}
     failed = {f.name: f.error for f in report.failures}
-    assert set(failed) == {"raises", "missing", "badret", "nofolder"}
+    assert set(failed) == {"raises", "missing", "badret", "nofolder", "exits"}
     assert "missing dependency foo" in failed["raises"]
     assert "ModuleNotFoundError" in failed["missing"]
     assert "int" in failed["badret"]
     assert all("\n" not in e for e in failed.values())
     # one warning line per failure, naming the plugin
     warned = [r.getMessage() for r in caplog.records if r.name == "nirspi_pipe.plugins"]
-    assert len(warned) == 4 and all(any(f"'{n}'" in w for w in warned) for n in failed)
+    assert len(warned) == 5 and all(any(f"'{n}'" in w for w in warned) for n in failed)
     listing = plugins.format_report(report)
     assert f"solver: good_{tag}" in listing and "raises  FAILED" in listing
 

@@ -234,7 +234,7 @@ def discover(refresh: bool = False) -> PluginReport:
         seen.add(ep.name)
         try:
             plugins.append(_load_one(ep, builtin))
-        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the run
+        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a broken plugin must not break the run
             failure = PluginFailure(ep.name, ep.value, _one_line(exc))
             failures.append(failure)
             log.warning("plugin %r (%s) failed to load and was skipped: %s", ep.name, ep.value, failure.error)
