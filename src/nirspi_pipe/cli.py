@@ -5,6 +5,9 @@
 ``results.csv`` into the sweep folder. Errors in the configuration are printed as one line that
 names the key and the allowed values, with exit status 2 (set ``NIRSPI_TRACEBACK=1`` to see the
 traceback). In a sweep, a failing job is recorded as failed and the others go on.
+
+``nirspi-run --plugins`` lists the installed plugins (entry-point group ``nirspi_pipe.plugins``),
+the config options each adds, and those that failed to load (see docs/plugins.md).
 """
 
 from __future__ import annotations
@@ -194,6 +197,10 @@ def run(argv: list[str] | None = None) -> None:
     from nirspi_pipe.validate import check_overrides
 
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--plugins" in args:
+        _list_plugins()
+        return
+    _activate_plugins()
     problem = check_overrides(args)
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
@@ -204,6 +211,28 @@ def run(argv: list[str] | None = None) -> None:
     )
     sys.argv = [sys.argv[0], *args]
     main()
+
+
+def _activate_plugins() -> None:
+    """Load installed plugins and put their config folders on Hydra's search path; a plugin
+    that fails to load is named in one warning line on stderr and skipped."""
+    from nirspi_pipe.plugins import activate
+
+    logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # printed here instead
+    for fail in activate().failures:
+        print(
+            f"nirspi-run: warning: plugin {fail.name!r} ({fail.value}) failed to load and was "
+            f"skipped: {fail.error}",
+            file=sys.stderr,
+        )
+
+
+def _list_plugins() -> None:
+    """``nirspi-run --plugins``: list installed plugins, the options they add, and failures."""
+    from nirspi_pipe.plugins import discover, format_report
+
+    logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # failures are listed below
+    print(format_report(discover()))
 
 
 def collect(argv: list[str] | None = None) -> None:

@@ -20,7 +20,9 @@ def _repository():  # type: ignore[no-untyped-def]
     from hydra._internal.utils import create_config_search_path
 
     from nirspi_pipe.cli import CONFIG_MODULE
+    from nirspi_pipe.plugins import activate
 
+    activate()  # plugin config folders join every search path created from here on
     csp = create_config_search_path(f"pkg://{CONFIG_MODULE}")
     csp.append("nirspi-pipe", "pkg://nirspi_pipe.experiments")
     return ConfigRepository(config_search_path=csp)

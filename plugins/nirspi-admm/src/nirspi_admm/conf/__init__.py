@@ -1,0 +1,1 @@
+"""Hydra config folder of the nirspi-admm plugin (``<group>/<option>.yaml``)."""

@@ -1,0 +1,237 @@
+"""``nirspi-device-emulator``: a single-pixel camera on loopback speaking ``nirspi-stream/1``.
+
+It renders a nirspi-pipe scene (any ``scene=`` option, plugins included), measures the
+requested Hadamard patterns in the split convention (noise-free readings from
+:func:`~nirspi_pipe.sources.simulator.split_measure`, plus a constant background on both halves
+and optional Gaussian detector noise) and streams them back frame by frame.
+
+It listens on 127.0.0.1 only, serves at most ``--connections`` acquisitions, and stops by
+itself after ``--lifetime-s`` seconds in any case. ``--fault`` injects protocol errors
+(truncated stream, NaN reading, stalled device, garbled header, wrong sequence) for tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, BinaryIO
+
+import numpy as np
+
+from nirspi_pipe.device.protocol import (
+    FRAME_DTYPE,
+    PROTOCOL,
+    StreamError,
+    encode_end,
+    read_exact,
+    read_json_line,
+    write_json_line,
+)
+from nirspi_pipe.sources.simulator import split_measure
+
+__all__ = ["FAULTS", "Emulator", "render_scene", "main"]
+
+FAULTS = ("none", "truncate", "nan", "stall", "bad-header", "seq", "no-end")
+LOOPBACK = "127.0.0.1"
+
+
+def render_scene(scene: str, resolution: int, overrides: list[str] | None = None) -> np.ndarray:
+    """Relative radiance ``(n, n)`` of nirspi-pipe's ``scene=<scene>`` option at ``resolution``."""
+    from hydra import compose, initialize_config_module
+    from hydra.utils import instantiate
+
+    from nirspi_pipe.plugins import activate
+
+    activate()
+    with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[f"scene={scene}", f"camera.resolution={resolution}", *(overrides or [])],
+        )
+    camera = instantiate(cfg.camera)
+    return instantiate(cfg.scene).render(camera).radiance
+
+
+@dataclass
+class Emulator:
+    """The device side of ``nirspi-stream/1`` for one rendered scene.
+
+    Attributes:
+        radiance: ``(n, n)`` relative radiance of the scene.
+        gain: detector units per unit relative radiance per pixel.
+        background: reading added to both halves of every pattern (ambient light), detector units.
+        noise_rel: Gaussian noise per reading relative to the mean half-pattern reading.
+        pattern_rate_hz: patterns per second (timestamps; the emulator does not wait).
+        seed: seed of the noise generator (one stream per connection, in order).
+        differential: send ``y_pos − y_neg`` in ``y_pos`` and NaN in ``y_neg`` (a device that
+            subtracts the halves itself).
+        fault: one of :data:`FAULTS`.
+        io_timeout_s: socket timeout per read/write, seconds.
+        device: name sent in the header.
+    """
+
+    radiance: np.ndarray
+    gain: float = 1.0
+    background: float = 0.0
+    noise_rel: float = 0.0
+    pattern_rate_hz: float = 1000.0
+    seed: int = 0
+    differential: bool = False
+    fault: str = "none"
+    io_timeout_s: float = 10.0
+    device: str = "nirspi-device-emulator"
+
+    def __post_init__(self) -> None:
+        if self.fault not in FAULTS:
+            raise ValueError(f"fault must be one of {FAULTS}, got {self.fault!r}")
+        self._sock: socket.socket | None = None
+        self._seeds = np.random.SeedSequence(self.seed)
+
+    @property
+    def n(self) -> int:
+        return int(self.radiance.shape[0])
+
+    def bind(self, port: int = 0) -> int:
+        """Listen on 127.0.0.1:``port`` (0 = a free port); returns the port."""
+        self._sock = socket.create_server((LOOPBACK, port))
+        return int(self._sock.getsockname()[1])
+
+    def serve(self, connections: int = 1, lifetime_s: float = 60.0) -> int:
+        """Serve up to ``connections`` acquisitions, stopping after ``lifetime_s`` in any case.
+        Returns the number served. Call :meth:`bind` first."""
+        if self._sock is None:
+            self.bind()
+        assert self._sock is not None
+        deadline = time.monotonic() + lifetime_s
+        served = 0
+        with self._sock:
+            while served < connections:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._sock.settimeout(min(left, 1.0))
+                try:
+                    conn, _ = self._sock.accept()
+                except socket.timeout:
+                    continue
+                served += 1
+                with conn:
+                    conn.settimeout(self.io_timeout_s)
+                    rng = np.random.default_rng(self._seeds.spawn(1)[0])
+                    try:
+                        with conn.makefile("rwb") as fh:
+                            self.handle(fh, rng)
+                    except (OSError, StreamError):
+                        pass  # the client went away or broke the protocol: next connection
+        return served
+
+    def serve_in_thread(self, connections: int = 1, lifetime_s: float = 60.0) -> tuple[int, threading.Thread]:
+        """Bind a free port and serve from a daemon thread; returns ``(port, thread)``."""
+        port = self.bind(0)
+        thread = threading.Thread(target=self.serve, args=(connections, lifetime_s), daemon=True)
+        thread.start()
+        return port, thread
+
+    def readings(self, indices: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """``(y_pos, y_neg)`` detector readings of the split patterns ``indices``."""
+        y_pos, y_neg = split_measure(self.radiance, indices)
+        sigma = self.noise_rel * 0.5 * float(self.radiance.sum())
+        y_pos = self.gain * y_pos + self.background
+        y_neg = self.gain * y_neg + self.background
+        if sigma > 0:
+            y_pos = y_pos + rng.normal(0.0, self.gain * sigma, y_pos.shape)
+            y_neg = y_neg + rng.normal(0.0, self.gain * sigma, y_neg.shape)
+        return y_pos, y_neg
+
+    def handle(self, fh: BinaryIO, rng: np.random.Generator) -> None:
+        """One acquisition: read the request, send the header, the frames and the end marker."""
+        req = read_json_line(fh, "request")
+        n, count = req.get("n"), req.get("count")
+        problem = None
+        if req.get("protocol") != PROTOCOL:
+            problem = f"protocol must be {PROTOCOL!r}"
+        elif n != self.n:
+            problem = f"this device has {self.n}x{self.n} patterns, not {n}"
+        elif not isinstance(count, int) or not 1 <= count <= self.n * self.n:
+            problem = f"count must be an integer in [1, {self.n * self.n}]"
+        if problem is not None:
+            write_json_line(fh, {"error": problem})
+            fh.flush()
+            return
+        indices = np.frombuffer(read_exact(fh, 8 * count, "indices"), dtype="<i8").astype(np.int64)
+        if indices.min() < 0 or indices.max() >= self.n * self.n:
+            write_json_line(fh, {"error": f"indices must lie in [0, {self.n * self.n})"})
+            fh.flush()
+            return
+        y_pos, y_neg = self.readings(indices, rng)
+        frames = np.zeros(count, dtype=FRAME_DTYPE)
+        frames["seq"] = np.arange(count)
+        frames["index"] = indices
+        frames["t_s"] = np.arange(count) * (2.0 / self.pattern_rate_hz)
+        frames["y_pos"], frames["y_neg"] = y_pos, y_neg
+        if self.differential:
+            frames["y_pos"], frames["y_neg"] = y_pos - y_neg, np.nan
+        header: dict[str, Any] = {
+            "protocol": PROTOCOL, "n": self.n, "count": count, "frame_bytes": FRAME_DTYPE.itemsize,
+            "gain": self.gain, "units": "relative", "device": self.device,
+        }
+        if self.fault == "bad-header":
+            fh.write(b'{"protocol": "nirspi-stream/1", "n": \n')
+            fh.flush()
+            return
+        if self.fault == "nan":
+            frames["y_pos"][count // 2] = np.nan
+        if self.fault == "seq" and count > 2:
+            frames["seq"][[1, 2]] = frames["seq"][[2, 1]]
+        write_json_line(fh, header)
+        payload = frames.tobytes()
+        if self.fault == "truncate":
+            fh.write(payload[: len(payload) // 2])
+            fh.flush()
+            return
+        if self.fault == "stall":
+            fh.write(payload[: len(payload) // 2])
+            fh.flush()
+            time.sleep(self.io_timeout_s)
+            return
+        fh.write(payload)
+        if self.fault != "no-end":
+            fh.write(encode_end(count))
+        fh.flush()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``nirspi-device-emulator``: serve a simulated scene on 127.0.0.1 (prints the port)."""
+    p = argparse.ArgumentParser(prog="nirspi-device-emulator", description=__doc__.split("\n\n")[0])
+    p.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: a free one; printed)")
+    p.add_argument("--scene", default="sphere", help="a nirspi-pipe scene option (default sphere)")
+    p.add_argument("--resolution", type=int, default=64, help="pixels per side (power of two)")
+    p.add_argument("--scene-override", action="append", default=[], metavar="KEY=VALUE",
+                   help="extra Hydra override for the scene, e.g. scene.distance_mm=300")
+    p.add_argument("--gain", type=float, default=1.0)
+    p.add_argument("--background", type=float, default=0.0, help="constant reading added to both halves")
+    p.add_argument("--noise-rel", type=float, default=0.0)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--differential", action="store_true", help="send pos − neg, NaN for neg")
+    p.add_argument("--connections", type=int, default=1, help="acquisitions to serve before exiting")
+    p.add_argument("--lifetime-s", type=float, default=60.0, help="exit after this many seconds anyway")
+    p.add_argument("--fault", choices=FAULTS, default="none", help="inject a protocol error (tests)")
+    ns = p.parse_args(argv)
+    if not 1 <= ns.connections <= 1000 or not 0 < ns.lifetime_s <= 3600:
+        p.error("--connections must be 1-1000 and --lifetime-s in (0, 3600]")
+    try:
+        radiance = render_scene(ns.scene, ns.resolution, ns.scene_override)
+    except Exception as exc:  # noqa: BLE001 - one line for the user
+        print(f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
+        raise SystemExit(2) from None
+    emu = Emulator(radiance, gain=ns.gain, background=ns.background, noise_rel=ns.noise_rel,
+                   seed=ns.seed, differential=ns.differential, fault=ns.fault)
+    port = emu.bind(ns.port)
+    print(json.dumps({"host": LOOPBACK, "port": port, "n": emu.n, "scene": ns.scene}), flush=True)
+    served = emu.serve(ns.connections, ns.lifetime_s)
+    print(f"nirspi-device-emulator: served {served} acquisition(s), exiting", file=sys.stderr)

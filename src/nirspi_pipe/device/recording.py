@@ -1,0 +1,435 @@
+"""Recorded acquisitions: the NPZ file format, its validation, and its conversion to an
+:class:`~nirspi_pipe.types.Acquisition` (with the fast Hadamard path recognised).
+
+The format is described in docs/device.md. In short, an ``.npz`` (``numpy.savez``, compressed
+or not; never pickled objects) with
+
+required
+    ``measurements`` ``(M,)`` float: one detector reading per displayed pattern, in the order
+    they were displayed; and the patterns, in one of two forms:
+
+    * ``patterns`` ``(M, N)`` float (integer or bool accepted): one row per displayed pattern,
+      pixels in row-major order, ``N = n²``; or
+    * a pattern spec: ``basis`` (``"hadamard"``), ``resolution`` (``n``), ``split``
+      (``"differential"``: one ±1 reading per pattern; ``"interleaved"``: pos, neg, pos, neg …;
+      ``"stacked"``: all positive halves, then all negative ones) and either ``indices``
+      (``(m,)`` int flat indices ``k = i·n + j``, see :mod:`nirspi_pipe.patterns.hadamard`)
+      or ``order`` (the name of a nirspi-pipe scan option, ``"basic"`` …) with optional
+      ``ratio`` (default 1).
+optional
+    ``timestamps`` ``(M,)`` seconds; ``dark`` and ``background`` ``(K,)`` readings with the
+    light source off (dark) or off with ambient light on (background); ``itof_raw`` (any
+    shape) raw iToF samples; ``image`` ``(n, n)`` ground-truth relative radiance; ``gain``
+    detector units per unit relative radiance per pixel (default 1); ``fov_deg``; ``units``
+    and ``device`` (strings); ``format_version`` (1).
+
+Every problem raises :class:`RecordingError` with one line naming the key.
+"""
+
+from __future__ import annotations
+
+import warnings
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.patterns.hadamard import is_power_of_two, sylvester
+
+__all__ = [
+    "FORMAT_VERSION",
+    "SPLITS",
+    "RecordingError",
+    "Recording",
+    "HadamardMatch",
+    "load_recording",
+    "validate_recording",
+    "save_recording",
+    "match_hadamard",
+]
+
+FORMAT_VERSION = 1
+SPLITS = ("differential", "interleaved", "stacked")
+_STRING_KEYS = ("basis", "split", "order", "units", "device")
+_SPEC_KEYS = ("basis", "resolution", "split", "indices", "order", "ratio")
+_OPTIONAL = ("timestamps", "dark", "background", "itof_raw", "image", "gain", "fov_deg", "units", "device", "format_version")
+KNOWN_KEYS = frozenset(("measurements", "patterns", *_SPEC_KEYS, *_OPTIONAL))
+
+
+class RecordingError(NirspiError, ValueError):
+    """A recorded acquisition is malformed; the message names the offending key."""
+
+    def __init__(self, key: str, problem: str, where: str = "") -> None:
+        self.key = key
+        prefix = f"{where}: " if where else ""
+        super().__init__(f"{prefix}key '{key}': {problem}")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A validated recording (arrays as stored; nothing converted yet).
+
+    Exactly one of ``patterns`` and ``indices`` is set (the spec's ``order`` is resolved to
+    ``indices`` by :func:`nirspi_pipe.sources.recorded` before this is built).
+    """
+
+    measurements: np.ndarray
+    n: int
+    patterns: np.ndarray | None = None
+    indices: np.ndarray | None = None
+    split: str | None = None
+    timestamps: np.ndarray | None = None
+    dark: np.ndarray | None = None
+    background: np.ndarray | None = None
+    itof_raw: np.ndarray | None = None
+    image: np.ndarray | None = None
+    gain: float = 1.0
+    fov_deg: float | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def _fail(key: str, problem: str, where: str) -> RecordingError:
+    return RecordingError(key, problem, where)
+
+
+def _stored_member(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray | None:
+    """Memory-map an uncompressed ``.npy`` member of an NPZ (no copy, no pickle); None when the
+    member is compressed or not a plain array (the caller falls back to ``np.load``)."""
+    if info.compress_type != zipfile.ZIP_STORED:
+        return None
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset)
+        local = fh.read(30)
+        if len(local) < 30 or local[:4] != b"PK\x03\x04":
+            return None
+        name_len = int.from_bytes(local[26:28], "little")
+        extra_len = int.from_bytes(local[28:30], "little")
+        start = info.header_offset + 30 + name_len + extra_len
+        fh.seek(start)
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            return None
+        if dtype.hasobject:
+            return None  # np.load refuses it below, naming the key
+        offset = fh.tell()
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if offset - start + nbytes != info.file_size or nbytes == 0:
+        return None
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
+
+
+def _read_npz(path: Path, where: str) -> dict[str, np.ndarray]:
+    """All arrays of an NPZ, loaded without pickle; each failure names its key."""
+    try:
+        fh = open(path, "rb")  # opened here so that it is closed even when np.load fails
+    except FileNotFoundError:
+        raise _fail("path", "file does not exist", where) from None
+    out: dict[str, np.ndarray] = {}
+    with fh:
+        try:
+            npz = np.load(fh, allow_pickle=False)
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+            raise NirspiError(f"{where}: not a readable NPZ file ({type(exc).__name__}: {exc})") from None
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise NirspiError(f"{where}: a single .npy array, not an NPZ archive of named arrays")
+        for key in npz.files:
+            try:
+                member = npz.zip.getinfo(f"{key}.npy") if f"{key}.npy" in npz.zip.namelist() else None
+                mapped = _stored_member(path, npz.zip, member) if member is not None else None
+                out[key] = mapped if mapped is not None else npz[key]
+            except ValueError as exc:
+                if "allow_pickle" in str(exc):
+                    raise _fail(key, "holds pickled Python objects, which are never loaded (store numbers or strings)", where) from None
+                raise _fail(key, f"unreadable ({exc})", where) from None
+            except (zipfile.BadZipFile, EOFError, OSError) as exc:
+                raise _fail(key, f"truncated or corrupt data ({type(exc).__name__}: {exc})", where) from None
+    return out
+
+
+def _string(arrays: dict[str, np.ndarray], key: str, where: str) -> str | None:
+    if key not in arrays:
+        return None
+    a = arrays[key]
+    if a.ndim != 0 or a.dtype.kind not in "US":
+        raise _fail(key, f"expected a string, got {a.dtype} array of shape {a.shape}", where)
+    v = a.item()
+    return v.decode() if isinstance(v, bytes) else str(v)
+
+
+def _scalar(arrays: dict[str, np.ndarray], key: str, where: str, kinds: str = "fiu") -> float | None:
+    if key not in arrays:
+        return None
+    a = arrays[key]
+    if a.size != 1 or a.ndim > 1 or a.dtype.kind not in kinds:
+        raise _fail(key, f"expected a single number, got {a.dtype} array of shape {a.shape}", where)
+    v = float(a.reshape(()).item())
+    if not np.isfinite(v):
+        raise _fail(key, f"must be finite, got {v}", where)
+    return v
+
+
+def _float_array(a: np.ndarray, key: str, where: str, ndim: int | None, kinds: str = "f") -> np.ndarray:
+    if a.dtype.kind not in kinds:
+        allowed = {"f": "float", "fiub": "float, integer or bool"}.get(kinds, kinds)
+        raise _fail(key, f"dtype {a.dtype} is not allowed (expected {allowed})", where)
+    if ndim is not None and a.ndim != ndim:
+        raise _fail(key, f"expected {ndim} dimension(s), got shape {a.shape}", where)
+    out = np.array(a, dtype=np.float64)  # a copy: the file may be memory-mapped
+    bad = ~np.isfinite(out)
+    if bad.any():
+        first = np.unravel_index(int(np.argmax(bad)), out.shape)
+        raise _fail(key, f"{int(bad.sum())} non-finite value(s) (NaN or Inf), first at index {tuple(int(i) for i in first)}", where)
+    return out
+
+
+def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_from_order: Any = None) -> Recording:
+    """Check every key, shape, dtype and value of a recording's arrays and return it.
+
+    ``indices_from_order(order, ratio, n) -> indices`` resolves a spec's ``order`` name (the
+    recorded source passes one that builds nirspi-pipe's scan option); without it, ``order``
+    is refused. Raises :class:`RecordingError` naming the key.
+    """
+    unknown = sorted(set(arrays) - KNOWN_KEYS)
+    if unknown:
+        warnings.warn(f"{where}: ignoring unknown key(s) {', '.join(unknown)}", stacklevel=2)
+    version = _scalar(arrays, "format_version", where, "iu")
+    if version is not None and int(version) > FORMAT_VERSION:
+        raise _fail("format_version", f"{int(version)} is newer than this reader ({FORMAT_VERSION})", where)
+    if "measurements" not in arrays:
+        raise _fail("measurements", "missing (one detector reading per displayed pattern)", where)
+    y = _float_array(arrays["measurements"], "measurements", where, ndim=1)
+    if y.size == 0:
+        raise _fail("measurements", "is empty", where)
+    has_patterns = "patterns" in arrays
+    spec_given = [k for k in _SPEC_KEYS if k in arrays]
+    if has_patterns and spec_given:
+        raise _fail("patterns", f"give either 'patterns' or a pattern spec, not both (also found {', '.join(spec_given)})", where)
+    patterns = indices = None
+    split: str | None = None
+    if has_patterns:
+        patterns = arrays["patterns"]
+        if patterns.dtype.kind not in "fiub":
+            raise _fail("patterns", f"dtype {patterns.dtype} is not allowed (expected float, integer or bool)", where)
+        if patterns.ndim != 2:
+            raise _fail("patterns", f"expected a 2-D (M, N) matrix, got shape {patterns.shape}", where)
+        m, big_n = patterns.shape
+        if m != y.size:
+            raise _fail("patterns", f"has {m} rows but 'measurements' has {y.size} values (one row per reading)", where)
+        n = int(round(np.sqrt(big_n)))
+        if n * n != big_n or not is_power_of_two(n) or n < 2:
+            raise _fail("patterns", f"rows have {big_n} pixels; expected n² pixels with n a power of two ≥ 2", where)
+        # min and max are finite exactly when every value is (NaN propagates); no temporary.
+        if patterns.dtype.kind == "f" and not (np.isfinite(patterns.min()) and np.isfinite(patterns.max())):
+            bad = ~np.isfinite(patterns)
+            raise _fail("patterns", f"{int(bad.sum())} non-finite value(s) (NaN or Inf)", where)
+    else:
+        missing = [k for k in ("basis", "resolution", "split") if k not in arrays]
+        if missing and not spec_given:
+            raise _fail("patterns", "missing: give 'patterns' (M, N) or a pattern spec (basis, resolution, split, indices or order)", where)
+        if missing:
+            raise _fail(missing[0], "missing from the pattern spec (basis, resolution, split, indices or order)", where)
+        basis = _string(arrays, "basis", where)
+        if basis != "hadamard":
+            raise _fail("basis", f"{basis!r} is not supported; allowed: 'hadamard'", where)
+        res = _scalar(arrays, "resolution", where, "iu")
+        n = int(res)  # type: ignore[arg-type]
+        if not is_power_of_two(n) or not 2 <= n <= 4096:
+            raise _fail("resolution", f"{n} is not a power of two from 2 to 4096", where)
+        split = _string(arrays, "split", where)
+        if split not in SPLITS:
+            raise _fail("split", f"{split!r} is not allowed; allowed: {', '.join(SPLITS)}", where)
+        per = 1 if split == "differential" else 2
+        if "indices" in arrays:
+            if "order" in arrays:
+                raise _fail("order", "give either 'indices' or 'order', not both", where)
+            idx = arrays["indices"]
+            if idx.dtype.kind not in "iu" or idx.ndim != 1:
+                raise _fail("indices", f"expected a 1-D integer array, got {idx.dtype} of shape {idx.shape}", where)
+            indices = idx.astype(np.int64)
+        elif "order" in arrays:
+            order = _string(arrays, "order", where)
+            ratio = _scalar(arrays, "ratio", where)
+            ratio = 1.0 if ratio is None else ratio
+            if not 0 < ratio <= 1:
+                raise _fail("ratio", f"{ratio} is not a fraction in (0, 1]", where)
+            if indices_from_order is None:
+                raise _fail("order", "cannot be resolved here; store explicit 'indices'", where)
+            indices = np.asarray(indices_from_order(order, ratio, n), dtype=np.int64)
+        else:
+            raise _fail("indices", "missing from the pattern spec (give 'indices' or 'order')", where)
+        if indices.size == 0:
+            raise _fail("indices", "is empty", where)
+        if indices.min() < 0 or indices.max() >= n * n:
+            raise _fail("indices", f"values must lie in [0, {n * n}) for resolution {n}", where)
+        if np.unique(indices).size != indices.size:
+            raise _fail("indices", "contains repeated pattern indices", where)
+        if y.size != per * indices.size:
+            raise _fail(
+                "measurements",
+                f"has {y.size} values; split={split!r} with {indices.size} patterns needs {per * indices.size}",
+                where,
+            )
+    optional: dict[str, Any] = {}
+    if "timestamps" in arrays:
+        t = _float_array(arrays["timestamps"], "timestamps", where, ndim=1, kinds="fiu")
+        if t.size != y.size:
+            raise _fail("timestamps", f"has {t.size} values, 'measurements' has {y.size}", where)
+        if np.any(np.diff(t) < 0):
+            raise _fail("timestamps", "must not decrease", where)
+        optional["timestamps"] = t
+    for key in ("dark", "background"):
+        if key in arrays:
+            a = _float_array(arrays[key], key, where, ndim=None)
+            if a.size == 0:
+                raise _fail(key, "is empty", where)
+            optional[key] = a.ravel()
+    if "itof_raw" in arrays:
+        optional["itof_raw"] = _float_array(arrays["itof_raw"], "itof_raw", where, ndim=None, kinds="fiu")
+    if "image" in arrays:
+        img = _float_array(arrays["image"], "image", where, ndim=2)
+        if img.shape != (n, n):
+            raise _fail("image", f"shape {img.shape} does not match the {n}x{n} patterns", where)
+        optional["image"] = img
+    gain = _scalar(arrays, "gain", where)
+    if gain is not None and gain <= 0:
+        raise _fail("gain", f"must be > 0, got {gain}", where)
+    fov = _scalar(arrays, "fov_deg", where)
+    if fov is not None and not 0 < fov < 170:
+        raise _fail("fov_deg", f"{fov} is not in (0, 170) degrees", where)
+    meta = {k: v for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
+    return Recording(
+        measurements=y,
+        n=n,
+        patterns=patterns,
+        indices=indices,
+        split=split,
+        gain=1.0 if gain is None else gain,
+        fov_deg=fov,
+        meta=meta,
+        **optional,
+    )
+
+
+def load_recording(path: str | Path, indices_from_order: Any = None) -> Recording:
+    """Load and validate a recording (``np.load(..., allow_pickle=False)``)."""
+    where = f"recording {path}"
+    return validate_recording(_read_npz(Path(path), where), where, indices_from_order)
+
+
+def save_recording(path: str | Path, compressed: bool = False, **arrays: Any) -> Path:
+    """Write a recording after validating it (so a file this writes is always readable).
+
+    Keyword arguments are the format's keys; strings are stored as 0-d unicode arrays. Returns
+    the path written. ``order`` cannot be validated here; store ``indices`` instead.
+    """
+    stored = {k: (np.array(v) if isinstance(v, str) else np.asarray(v)) for k, v in arrays.items() if v is not None}
+    stored.setdefault("format_version", np.array(FORMAT_VERSION))
+    validate_recording(stored, f"save_recording({path})")
+    path = Path(path)
+    (np.savez_compressed if compressed else np.savez)(path, **stored)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+@dataclass(frozen=True)
+class HadamardMatch:
+    """Result of :func:`match_hadamard` on an explicit pattern matrix.
+
+    Attributes:
+        kind: ``"split"`` (complementary pairs), ``"signed"`` (one ±1 row per pattern),
+            ``"binary"`` (two-level rows, neither paired nor signed) or ``"general"``.
+        hadamard: whether the (canonical) rows are 2D Sylvester Hadamard patterns.
+        indices: ``(m,)`` Hadamard flat index of each measured pattern (hadamard only).
+        pos_rows, neg_rows: row numbers of the positive/negative halves (split), or the row of
+            each pattern (signed; ``neg_rows`` None). Ordered by first appearance.
+        signs: ``(m,)`` ±1: row = sign × canonical pattern (signed only).
+        canonical: ``(m, N)`` ±1 canonical patterns (first pixel +1), None when hadamard.
+        low, high: the two levels of a two-level matrix.
+    """
+
+    kind: str
+    hadamard: bool = False
+    indices: np.ndarray | None = None
+    pos_rows: np.ndarray | None = None
+    neg_rows: np.ndarray | None = None
+    signs: np.ndarray | None = None
+    canonical: np.ndarray | None = None
+    low: float = 0.0
+    high: float = 1.0
+
+
+def _hadamard_indices(plus: np.ndarray, n: int, chunk: int = 512) -> np.ndarray | None:
+    """Flat indices ``k`` of rows that are 2D Sylvester patterns, or None when any row is not.
+
+    ``plus`` is ``(m, N)`` bool (True where the canonical ±1 row is +1; its first pixel is +1).
+    Sylvester row ``k`` has ``H[k, x] = (−1)^popcount(k & x)``, so bit ``b`` of ``k`` is read off
+    pixel ``x = 2^b`` (O(m log N)); each row is then compared with the pattern it names, built
+    as the Kronecker product of two rows of ``H_n`` (O(m N) in all, no ``N × N`` matrix).
+    """
+    m, big_n = plus.shape
+    bits = big_n.bit_length() - 1
+    k = np.zeros(m, dtype=np.int64)
+    for b in range(bits):
+        k |= (~plus[:, 1 << b]).astype(np.int64) << b
+    hpos = sylvester(n) > 0
+    i, j = k // n, k % n
+    for s in range(0, m, chunk):
+        sl = slice(s, s + chunk)
+        expected = hpos[i[sl]][:, :, None] == hpos[j[sl]][:, None, :]
+        if not np.array_equal(expected.reshape(-1, big_n), plus[sl]):
+            return None
+    return k
+
+
+def match_hadamard(patterns: np.ndarray) -> HadamardMatch:
+    """Recognise explicit patterns: two-level rows, complementary (split) pairs, and whether
+    they are Hadamard patterns in any order. Cost O(M N) plus a sort of M row hashes.
+
+    A two-level row ``r = low + (high − low)·b`` (``b`` 0/1) is the ±1 pattern ``s = 2b − 1``
+    shown in the split convention; two rows with ``s`` and ``−s`` are a complementary pair and
+    their readings differ by ``(high − low) · Σ s ⊙ O``.
+    """
+    m, big_n = patterns.shape
+    n = int(round(np.sqrt(big_n)))
+    low, high = patterns.min(), patterns.max()
+    if high == low != 0:  # every row the constant a = |a|·sign(a)·h_0: signed DC rows
+        low, high = -abs(high), abs(high)
+    if not high > low:
+        return HadamardMatch("general")
+    plus = patterns == high
+    if np.count_nonzero(plus) + np.count_nonzero(patterns == low) != patterns.size:
+        return HadamardMatch("general")
+    low, high = float(low), float(high)
+    first = plus[:, 0].copy()
+    np.logical_xor(plus, ~first[:, None], out=plus)  # canonical: every row starts with +1
+    packed = np.packbits(plus, axis=1)
+    keys = np.ascontiguousarray(packed).view(np.dtype((np.void, packed.shape[1]))).ravel()
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    rows = np.arange(m)
+    if np.all(counts == 2):
+        pos = np.full(counts.size, -1)
+        neg = np.full(counts.size, -1)
+        pos[inverse[first]] = rows[first]
+        neg[inverse[~first]] = rows[~first]
+        if (pos < 0).any() or (neg < 0).any():
+            return HadamardMatch("binary", low=low, high=high)
+        order = np.argsort(np.minimum(pos, neg), kind="stable")
+        pos, neg = pos[order], neg[order]
+        k = _hadamard_indices(plus[pos], n)
+        if k is not None:
+            return HadamardMatch("split", True, indices=k, pos_rows=pos, neg_rows=neg, low=low, high=high)
+        return HadamardMatch("split", pos_rows=pos, neg_rows=neg, canonical=np.where(plus[pos], 1.0, -1.0), low=low, high=high)
+    if np.all(counts == 1) and low == -high:
+        signs = np.where(first, 1.0, -1.0)
+        k = _hadamard_indices(plus, n)
+        if k is not None:
+            return HadamardMatch("signed", True, indices=k, pos_rows=rows, signs=signs, low=low, high=high)
+        return HadamardMatch("signed", pos_rows=rows, signs=signs, canonical=np.where(plus, 1.0, -1.0), low=low, high=high)
+    return HadamardMatch("binary", low=low, high=high)

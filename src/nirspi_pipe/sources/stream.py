@@ -1,0 +1,142 @@
+"""Source ``stream``: a live acquisition over TCP (protocol ``nirspi-stream/1``, docs/device.md).
+
+The source sends the scan's pattern indices to the device, which displays them in that order
+and streams one frame per ±1 pattern back. ``nirspi-device-emulator`` speaks the device side.
+"""
+
+from __future__ import annotations
+
+import socket
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from nirspi_pipe.device.protocol import (
+    END_MARKER,
+    FRAME_DTYPE,
+    PROTOCOL,
+    StreamError,
+    read_exact,
+    read_json_line,
+    write_json_line,
+)
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.types import Acquisition, Scene
+
+__all__ = ["Stream", "receive_acquisition"]
+
+
+def _header_int(header: dict[str, Any], key: str, where: str) -> int:
+    if key not in header:
+        raise StreamError(key, "missing from the header", where)
+    v = header[key]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise StreamError(key, f"expected an integer, got {v!r}", where)
+    return v
+
+
+def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acquisition:
+    """Read a header, the frames and the end marker from ``fh`` (after the request was sent)
+    and check each against the request. Raises :class:`StreamError` naming the field."""
+    header = read_json_line(fh, "header", where)
+    if "error" in header:
+        raise StreamError("error", f"device refused the request: {header['error']}", where)
+    if header.get("protocol") != PROTOCOL:
+        raise StreamError("protocol", f"expected {PROTOCOL!r}, got {header.get('protocol')!r}", where)
+    if _header_int(header, "n", where) != n:
+        raise StreamError("n", f"device answers for {header['n']}x{header['n']}, requested {n}x{n}", where)
+    count = _header_int(header, "count", where)
+    if count != len(indices):
+        raise StreamError("count", f"device announces {count} frames, {len(indices)} were requested", where)
+    if _header_int(header, "frame_bytes", where) != FRAME_DTYPE.itemsize:
+        raise StreamError("frame_bytes", f"{header['frame_bytes']} != {FRAME_DTYPE.itemsize} (protocol mismatch)", where)
+    gain = header.get("gain", 1.0)
+    if isinstance(gain, bool) or not isinstance(gain, (int, float)) or not np.isfinite(gain) or gain <= 0:
+        raise StreamError("gain", f"expected a number > 0, got {gain!r}", where)
+    raw = read_exact(fh, count * FRAME_DTYPE.itemsize, "frames", where)
+    frames = np.frombuffer(raw, dtype=FRAME_DTYPE)
+    seq = frames["seq"].astype(np.int64)
+    bad = np.flatnonzero(seq != np.arange(count))
+    if bad.size:
+        raise StreamError("seq", f"frame {bad[0]} has seq {seq[bad[0]]} (frames lost or reordered)", where)
+    bad = np.flatnonzero(frames["index"] != indices)
+    if bad.size:
+        raise StreamError("index", f"frame {bad[0]} measured pattern {frames['index'][bad[0]]}, requested {indices[bad[0]]}", where)
+    y_pos = frames["y_pos"].astype(np.float64)
+    y_neg = frames["y_neg"].astype(np.float64)
+    differential = bool(count) and bool(np.all(np.isnan(y_neg)))
+    for name, arr in (("y_pos", y_pos), ("t_s", frames["t_s"])) + (() if differential else (("y_neg", y_neg),)):
+        bad = np.flatnonzero(~np.isfinite(arr))
+        if bad.size:
+            raise StreamError(name, f"{bad.size} non-finite value(s), first in frame {bad[0]}", where)
+    end = read_exact(fh, len(END_MARKER) + 4, "end", where)
+    if end[:4] != END_MARKER:
+        raise StreamError("end", f"expected the end marker {END_MARKER!r}, got {end[:4]!r}", where)
+    (sent,) = struct.unpack("<I", end[4:])
+    if sent != count:
+        raise StreamError("end", f"end marker counts {sent} frames, {count} received", where)
+    return Acquisition(
+        n=n,
+        indices=np.asarray(indices, dtype=np.int64),
+        y_pos=y_pos,
+        y_neg=None if differential else y_neg,
+        gain=float(gain),
+        truth=None,
+        timestamps_s=frames["t_s"].astype(np.float64),
+        derived={},
+        info={
+            "device": str(header.get("device", "?")),
+            "units": str(header.get("units", "")),
+            "frames": int(count),
+            "bytes": int(len(raw)),
+            "differential": differential,
+        },
+    )
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Source ``stream``: measure the scan's patterns with a device over TCP.
+
+    Attributes:
+        host: device address (the emulator listens on 127.0.0.1).
+        port: TCP port of the device (1–65535).
+        timeout_s: seconds to wait for the connection and for each read before giving up.
+    """
+
+    host: str = "127.0.0.1"
+    port: int | None = None
+    timeout_s: float = 10.0
+
+    needs_scene = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.host, str) or not self.host:
+            raise ConfigError("host", self.host, "a host name or IP address")
+        if self.port is None or isinstance(self.port, bool) or not isinstance(self.port, int) or not 1 <= self.port <= 65535:
+            raise ConfigError("port", self.port, "a TCP port 1-65535 (source.port=PORT)")
+        if not (isinstance(self.timeout_s, (int, float)) and np.isfinite(self.timeout_s) and self.timeout_s > 0):
+            raise ConfigError("timeout_s", self.timeout_s, "seconds > 0")
+
+    def acquire(
+        self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator
+    ) -> Acquisition:
+        """Send the pattern ``indices`` and receive one frame per pattern (``scene``, ``rng`` unused)."""
+        where = f"stream {self.host}:{self.port} (timeout_s={self.timeout_s:g})"
+        idx = np.ascontiguousarray(indices, dtype="<i8")
+        try:
+            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
+        except socket.timeout:
+            raise StreamError("connect", f"no answer within {self.timeout_s:g} s (source.timeout_s)", where) from None
+        except OSError as exc:
+            raise StreamError("connect", f"cannot connect ({exc.strerror or exc})", where) from None
+        with sock, sock.makefile("rwb") as fh:
+            try:
+                write_json_line(fh, {"protocol": PROTOCOL, "n": int(n), "count": int(idx.size)})
+                fh.write(idx.tobytes())
+                fh.flush()
+            except OSError as exc:
+                raise StreamError("request", f"sending failed ({exc})", where) from None
+            return receive_acquisition(fh, idx.astype(np.int64), n, where)

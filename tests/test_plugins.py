@@ -1,0 +1,237 @@
+"""Plugin discovery: entry points, config search path, failure isolation, and a real pip-installed
+throwaway plugin run through ``nirspi-run``."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import uuid
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+from nirspi_pipe import plugins
+
+def _pip_flags() -> list[str]:
+    """Offline and fast (no build isolation) when this venv can build a wheel itself; otherwise
+    let pip fetch setuptools into an isolated build environment."""
+    import importlib.util
+
+    offline = importlib.util.find_spec("setuptools") is not None and importlib.util.find_spec("wheel") is not None
+    return ["--no-deps", "-q", *(["--no-build-isolation", "--no-index"] if offline else [])]
+
+
+PIP_FLAGS = _pip_flags()
+
+
+def _write_module(root: Path, name: str, body: str) -> None:
+    (root / f"{name}.py").write_text(textwrap.dedent(body))
+
+
+@pytest.fixture
+def fake_entry_points(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """Install entry points without pip: modules in tmp_path, entry_points() patched."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    eps: list[metadata.EntryPoint] = []
+
+    def entry_points(group: str | None = None, **_: object):
+        return [e for e in eps if group in (None, e.group)]
+
+    monkeypatch.setattr(plugins.metadata, "entry_points", entry_points)
+    yield tmp_path, eps
+    monkeypatch.setattr(plugins, "_REPORT", None)  # forget the fakes
+
+
+def _ep(name: str, value: str) -> metadata.EntryPoint:
+    return metadata.EntryPoint(name=name, value=value, group=plugins.ENTRY_POINT_GROUP)
+
+
+def test_failing_plugins_are_named_and_skipped(fake_entry_points, caplog: pytest.LogCaptureFixture) -> None:
+    root, eps = fake_entry_points
+    tag = uuid.uuid4().hex[:8]
+    conf = root / f"good_{tag}_conf" / "solver"
+    conf.mkdir(parents=True)
+    (conf.parent / "__init__.py").write_text("")
+    (conf / f"good_{tag}.yaml").write_text("_target_: nirspi_pipe.solvers.fwht.FWHTSolver\n")
+    _write_module(root, f"good_{tag}", f"SEARCHPATH = 'pkg://good_{tag}_conf'\n")
+    _write_module(root, f"raises_{tag}", "raise ImportError('missing dependency foo')\n")
+    _write_module(root, f"badret_{tag}", "def register():\n    return 42\n")
+    _write_module(root, f"nofolder_{tag}", "def register():\n    return 'pkg://does_not_exist_xyz'\n")
+    _write_module(root, f"exits_{tag}", "import sys\nsys.exit(3)\n")
+    eps += [
+        _ep("good", f"good_{tag}"),
+        _ep("raises", f"raises_{tag}"),
+        _ep("missing", f"no_such_module_{tag}"),
+        _ep("badret", f"badret_{tag}:register"),
+        _ep("nofolder", f"nofolder_{tag}:register"),
+        _ep("exits", f"exits_{tag}"),
+    ]
+    report = plugins.discover(refresh=True)
+    assert [p.name for p in report.plugins] == ["good"]
+    assert report.plugins[0].options == {"solver": [f"good_{tag}"]}
+    failed = {f.name: f.error for f in report.failures}
+    assert set(failed) == {"raises", "missing", "badret", "nofolder", "exits"}
+    assert "missing dependency foo" in failed["raises"]
+    assert "ModuleNotFoundError" in failed["missing"]
+    assert "int" in failed["badret"]
+    assert all("\n" not in e for e in failed.values())
+    # one warning line per failure, naming the plugin
+    warned = [r.getMessage() for r in caplog.records if r.name == "nirspi_pipe.plugins"]
+    assert len(warned) == 5 and all(any(f"'{n}'" in w for w in warned) for n in failed)
+    listing = plugins.format_report(report)
+    assert f"solver: good_{tag}" in listing and "raises  FAILED" in listing
+
+
+def test_config_store_entries_are_listed(fake_entry_points) -> None:
+    root, eps = fake_entry_points
+    tag = uuid.uuid4().hex[:8]
+    _write_module(
+        root,
+        f"store_{tag}",
+        f"""
+        from dataclasses import dataclass
+        from hydra.core.config_store import ConfigStore
+
+        @dataclass
+        class Conf:
+            _target_: str = "nirspi_pipe.solvers.fwht.FWHTSolver"
+
+        def register():
+            ConfigStore.instance().store(name="stored_{tag}", node=Conf, group="solver")
+        """,
+    )
+    eps.append(_ep("store", f"store_{tag}:register"))
+    report = plugins.discover(refresh=True)
+    assert report.plugins[0].options == {"solver": [f"stored_{tag}"]}
+    assert report.plugins[0].searchpath == ()
+
+
+def test_builtin_option_is_reported_as_shadowed(fake_entry_points) -> None:
+    root, eps = fake_entry_points
+    tag = uuid.uuid4().hex[:8]
+    conf = root / f"shadow_{tag}_conf" / "solver"
+    conf.mkdir(parents=True)
+    (conf.parent / "__init__.py").write_text("")
+    (conf / "fwht.yaml").write_text("_target_: nirspi_pipe.solvers.fwht.FWHTSolver\n")
+    _write_module(root, f"shadow_{tag}", f"SEARCHPATH = ['pkg://shadow_{tag}_conf']\n")
+    eps.append(_ep("shadow", f"shadow_{tag}"))
+    report = plugins.discover(refresh=True)
+    assert report.plugins[0].shadowed == ("solver/fwht",)
+
+
+_PLUGIN_SOLVER = '''
+"""Throwaway nirspi-pipe plugin used by tests/test_plugins.py."""
+from dataclasses import dataclass
+
+import numpy as np
+from hydra.core.config_store import ConfigStore
+
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
+from nirspi_pipe.types import Acquisition, Image2D
+
+
+@dataclass(frozen=True)
+class DoubledSolver:
+    """Zero-filled inverse times ``factor`` (a recognisable, wrong-on-purpose solver)."""
+
+    factor: float = 2.0
+
+    def solve(self, acquisition: Acquisition) -> Image2D:
+        img = zero_filled_inverse(acquisition.n, acquisition.indices, acquisition.coefficients())
+        return Image2D(self.factor * img, info={{"plugin": "throwaway", "factor": self.factor}})
+
+
+@dataclass
+class StoredConf:
+    _target_: str = "{mod}.DoubledSolver"
+    factor: float = 3.0
+
+
+def register():
+    ConfigStore.instance().store(name="{name}_stored", node=StoredConf, group="solver")
+    return "pkg://{mod}.conf"
+'''
+
+
+@pytest.mark.slow
+def test_throwaway_plugin_pip_installed_runs_through_nirspi_run(tmp_path: Path) -> None:
+    tag = uuid.uuid4().hex[:8]
+    name, mod = f"tw{tag}", f"nirspi_tw{tag}"
+    dist = f"nirspi-tw{tag}"
+    pkg = tmp_path / "src" / "pkg"
+    (pkg / mod / "conf" / "solver").mkdir(parents=True)
+    (pkg / mod / "__init__.py").write_text(_PLUGIN_SOLVER.format(mod=mod, name=name))
+    (pkg / mod / "conf" / "__init__.py").write_text("")
+    (pkg / mod / "conf" / "solver" / f"{name}.yaml").write_text(f"_target_: {mod}.DoubledSolver\nfactor: 2.0\n")
+    (pkg / f"{mod}_broken.py").write_text("raise RuntimeError('this plugin is broken on purpose')\n")
+    (tmp_path / "src" / "pyproject.toml").write_text(
+        textwrap.dedent(
+            f"""
+            [build-system]
+            requires = ["setuptools>=61"]
+            build-backend = "setuptools.build_meta"
+
+            [project]
+            name = "{dist}"
+            version = "0.0.1"
+
+            [project.entry-points."nirspi_pipe.plugins"]
+            {name} = "{mod}:register"
+            {name}_broken = "{mod}_broken"
+
+            [tool.setuptools]
+            package-dir = {{"" = "pkg"}}
+            packages = ["{mod}", "{mod}.conf"]
+            py-modules = ["{mod}_broken"]
+
+            [tool.setuptools.package-data]
+            "{mod}.conf" = ["**/*.yaml"]
+            """
+        )
+    )
+    pip = [sys.executable, "-m", "pip"]
+    exe = str(Path(sys.executable).with_name("nirspi-run"))
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    install = subprocess.run([*pip, "install", *PIP_FLAGS, str(tmp_path / "src")], capture_output=True, text=True)
+    assert install.returncode == 0, install.stderr
+    try:
+        listing = subprocess.run([exe, "--plugins"], capture_output=True, text=True, env=env, timeout=120)
+        assert listing.returncode == 0, listing.stderr
+        assert f"solver: {name}, {name}_stored" in listing.stdout
+        assert f"{name}_broken  FAILED" in listing.stdout and "broken on purpose" in listing.stdout
+
+        out = tmp_path / "run"
+        run = subprocess.run(
+            [exe, f"solver={name}", "camera.resolution=16", f"hydra.run.dir={out}"],
+            capture_output=True, text=True, env=env, timeout=300,
+        )
+        assert run.returncode == 0, run.stderr
+        # the broken plugin is named in one warning line and the run goes on
+        warn = [ln for ln in run.stderr.splitlines() if f"{name}_broken" in ln]
+        assert len(warn) == 1 and "skipped" in warn[0]
+        rec = json.loads((out / "record.json").read_text())
+        assert rec["meta"]["status"] == "ok" and rec["info"]["solver"]["plugin"] == "throwaway"
+        # the factor-2 solver doubles the (exact) reconstruction: RMSE = mean radiance
+        assert rec["metrics"]["rmse"] > 0.0
+
+        sweep = tmp_path / "sweep"
+        multi = subprocess.run(
+            [exe, "-m", f"solver={name},{name}_stored", "camera.resolution=16",
+             "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}"],
+            capture_output=True, text=True, env=env, timeout=300,
+        )
+        assert multi.returncode == 0, multi.stderr
+        recs = [json.loads(p.read_text()) for p in sorted(sweep.glob("*/record.json"))]
+        assert [r["meta"]["status"] for r in recs] == ["ok", "ok"]
+        assert sorted(r["info"]["solver"]["factor"] for r in recs) == [2.0, 3.0]
+
+        bad = subprocess.run([exe, f"solver={name}_nope"], capture_output=True, text=True, env=env, timeout=120)
+        assert bad.returncode == 2 and f"{name}, {name}_stored" in bad.stderr
+    finally:
+        subprocess.run([*pip, "uninstall", "-y", "-q", dist], capture_output=True, text=True)
+    gone = subprocess.run([exe, "--plugins"], capture_output=True, text=True, env=env, timeout=120)
+    assert name not in gone.stdout
