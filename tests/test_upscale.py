@@ -305,3 +305,14 @@ def test_cli_bad_scale_is_one_line(tmp_path: Path) -> None:
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "upscale.scale=5" in lines[0]
+
+
+@pytest.mark.slow
+def test_train_command_smoke(tmp_path: Path) -> None:
+    pytest.importorskip("torch")
+    from nirspi_pipe.upscale.train import main
+
+    assert main(["--scales", "3", "--iters", "3", "--variants", "1", "--batch", "4", "--out", str(tmp_path)]) == 0
+    net = load_weights(3, tmp_path / "fsrcnn_x3.npz")
+    assert net.residual and net.meta["iters"] == 3 and net.meta["numpy_vs_torch_max_abs"] < 1e-4
+    assert {r["noise_rel"] for r in net.meta["heldout"]} == {0.0, 1e-3}

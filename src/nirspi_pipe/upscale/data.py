@@ -37,6 +37,7 @@ __all__ = [
     "TRAIN_SEED",
     "HELDOUT_SEED",
     "Pair",
+    "RenderCamera",
     "spi_lowres",
     "texture_hr",
     "random_shapes_hr",
@@ -69,7 +70,7 @@ class Pair:
     noise_rel: float
 
 
-class _RenderCamera(Camera):
+class RenderCamera(Camera):
     """A :class:`Camera` for ground-truth rendering only: any side length (×3 grids are not
     powers of two). The power-of-two rule is for Hadamard patterns, which are not used here."""
 
@@ -161,7 +162,7 @@ def random_shapes_hr(side: int, rng: np.random.Generator) -> np.ndarray:
 def sphere_hr(side: int, distance_mm: float, diameter_mm: float, reflectance: float, fov_deg: float = 20.0) -> np.ndarray:
     """The project's sphere scene rendered at ``side × side`` (any side), radiance in [0, 1]."""
     scene = Sphere(distance_mm=distance_mm, diameter_mm=diameter_mm, reflectance=reflectance, supersample=2)
-    return scene.render(_RenderCamera(resolution=side, fov_deg=fov_deg)).radiance
+    return scene.render(RenderCamera(resolution=side, fov_deg=fov_deg)).radiance
 
 
 def _noise(rng: np.random.Generator, noise_max: float) -> float:

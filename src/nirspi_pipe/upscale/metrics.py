@@ -23,7 +23,7 @@ from nirspi_pipe.metrics import ImageMetrics, psnr, rmse, ssim
 from nirspi_pipe.stages import Products
 from nirspi_pipe.upscale.base import finish
 from nirspi_pipe.upscale.bicubic import bicubic
-from nirspi_pipe.upscale.data import _RenderCamera
+from nirspi_pipe.upscale.data import RenderCamera
 
 __all__ = ["UpscaleMetrics"]
 
@@ -53,7 +53,7 @@ class UpscaleMetrics(ImageMetrics):
         scale = est.shape[0] // n
         if est.shape != (n * scale, n * scale) or scale < 1:
             raise ValueError(f"upscaled image {est.shape} is not an integer multiple of {n}x{n}")
-        fine = self.scene.render(_RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
+        fine = self.scene.render(RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
         funcs = {"ssim": ssim, "psnr": psnr, "rmse": rmse}
         if self.clip:
