@@ -1,0 +1,274 @@
+"""Upscale ``fsrcnn``: FSRCNN (Dong, Loy & Tang, ECCV 2016), inference in numpy.
+
+Architecture (the paper's notation): feature extraction conv 5×5 → ``d`` channels, shrinking
+conv 1×1 → ``s`` channels, ``m`` mapping convs 3×3 ``s → s``, expanding conv 1×1 → ``d``, each
+followed by a per-channel PReLU, then a 9×9 transposed convolution ("deconvolution") with stride
+equal to the upscaling factor, to one channel. The weights are trained by
+``nirspi-train-fsrcnn`` (:mod:`nirspi_pipe.upscale.train`, PyTorch, optional extra ``train``)
+and shipped as small float32 ``.npz`` files in ``nirspi_pipe/upscale/weights/``; this module
+needs only numpy.
+
+Layer conventions are PyTorch's, so trained weights drop in unchanged: a convolution is a
+cross-correlation with zero padding ``k // 2`` (``Conv2d`` weight ``(out, in, k, k)``); the
+deconvolution is ``ConvTranspose2d(d, 1, 9, stride=scale, padding=4, output_padding=scale-1)``
+(weight ``(in, out, k, k)``), which maps ``h × w`` to exactly ``h·scale × w·scale``.
+
+Borders: the network is trained on interior patches with the loss cropped ``border`` low-res
+pixels from the edges, so it never learned what zero padding means. At inference the input is
+mirrored by ``border`` pixels (half-sample symmetric, as ``bicubic`` does) and the output is
+cropped back, so every output pixel is computed the way it was trained.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.types import Image2D
+from nirspi_pipe.upscale.base import as_finite_image, check_scale, finish
+
+__all__ = [
+    "ConvLayer",
+    "FsrcnnWeights",
+    "conv2d",
+    "conv_transpose2d",
+    "prelu",
+    "fsrcnn_forward",
+    "load_weights",
+    "save_weights",
+    "packaged_weights_path",
+    "FSRCNN",
+]
+
+DECONV_KERNEL = 9
+DECONV_PADDING = 4
+
+
+@dataclass(frozen=True)
+class ConvLayer:
+    """One convolution + PReLU: ``w`` ``(out, in, k, k)``, ``b`` ``(out,)``, ``alpha`` ``(out,)``
+    (the negative-side slopes of the per-channel PReLU)."""
+
+    w: np.ndarray
+    b: np.ndarray
+    alpha: np.ndarray
+
+
+@dataclass(frozen=True)
+class FsrcnnWeights:
+    """A trained FSRCNN.
+
+    Attributes:
+        scale: upscaling factor (the deconvolution stride).
+        layers: feature extraction, shrinking, mapping…, expanding (each conv + PReLU).
+        deconv_w: ``(d, 1, 9, 9)`` transposed-convolution weight; ``deconv_b`` ``(1,)`` its bias.
+        residual: when True the network predicts a correction added to :func:`bicubic`
+            (False for the plain FSRCNN of the paper).
+        border: low-resolution pixels mirrored around the input at inference (≥ the receptive
+            radius; the training loss ignored that many pixels at patch edges).
+        meta: training provenance (data, recipe, seed, held-out scores).
+    """
+
+    scale: int
+    layers: tuple[ConvLayer, ...]
+    deconv_w: np.ndarray
+    deconv_b: np.ndarray
+    residual: bool = False
+    border: int = 8
+    meta: dict[str, Any] | None = None
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(d, s, m)`` in the paper's notation."""
+        d = self.layers[0].w.shape[0]
+        s = self.layers[1].w.shape[0] if len(self.layers) > 2 else d
+        return d, s, max(len(self.layers) - 3, 0)
+
+    @property
+    def n_params(self) -> int:
+        """Number of trainable parameters."""
+        n = sum(l.w.size + l.b.size + l.alpha.size for l in self.layers)
+        return int(n + self.deconv_w.size + self.deconv_b.size)
+
+
+def prelu(x: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Per-channel PReLU of ``x`` ``(c, h, w)``: ``x`` where positive, ``alpha[c]·x`` elsewhere."""
+    return np.where(x > 0, x, alpha[:, None, None] * x)
+
+
+def conv2d(x: np.ndarray, w: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """'Same' 2D cross-correlation with zero padding ``k // 2`` (PyTorch ``Conv2d``).
+
+    ``x`` ``(in, h, w)``, ``w`` ``(out, in, k, k)`` with odd ``k``, ``b`` ``(out,)`` → ``(out, h, w)``.
+    Computed as one matrix product over the sliding windows (im2col).
+    """
+    co, ci, k, k2 = w.shape
+    if k != k2 or k % 2 != 1 or x.shape[0] != ci:
+        raise ValueError(f"conv2d: weight {w.shape} does not fit input {x.shape}")
+    if k == 1:
+        out = np.tensordot(w[:, :, 0, 0], x, axes=(1, 0))
+    else:
+        p = k // 2
+        xp = np.pad(x, ((0, 0), (p, p), (p, p)))
+        win = sliding_window_view(xp, (k, k), axis=(1, 2))  # (in, h, w, k, k)
+        out = np.tensordot(w, win, axes=([1, 2, 3], [0, 3, 4]))  # (out, h, w)
+    return out + b[:, None, None]
+
+
+def conv_transpose2d(
+    x: np.ndarray, w: np.ndarray, b: np.ndarray, stride: int, padding: int, output_padding: int
+) -> np.ndarray:
+    """2D transposed convolution (PyTorch ``ConvTranspose2d``).
+
+    ``x`` ``(in, h, w)``, ``w`` ``(in, out, k, k)``, ``b`` ``(out,)``. Input pixel ``(i, j)``
+    adds ``x[:, i, j] · w`` into the output window starting at ``(i·stride − padding,
+    j·stride − padding)``. Output side ``(h − 1)·stride − 2·padding + k + output_padding``.
+    """
+    ci, co, k, _ = w.shape
+    if x.shape[0] != ci:
+        raise ValueError(f"conv_transpose2d: weight {w.shape} does not fit input {x.shape}")
+    _, h, wd = x.shape
+    oh = (h - 1) * stride - 2 * padding + k + output_padding
+    ow = (wd - 1) * stride - 2 * padding + k + output_padding
+    contrib = np.tensordot(w, x, axes=(0, 0))  # (out, k, k, h, w)
+    fh = max((h - 1) * stride + k, padding + oh)
+    fw = max((wd - 1) * stride + k, padding + ow)
+    full = np.zeros((co, fh, fw), dtype=np.result_type(x, w))
+    span_h, span_w = (h - 1) * stride + 1, (wd - 1) * stride + 1
+    for ky in range(k):
+        for kx in range(k):
+            full[:, ky : ky + span_h : stride, kx : kx + span_w : stride] += contrib[:, ky, kx]
+    return full[:, padding : padding + oh, padding : padding + ow] + b[:, None, None]
+
+
+def fsrcnn_forward(image: np.ndarray, weights: FsrcnnWeights) -> np.ndarray:
+    """Run FSRCNN on a 2D image (relative radiance) → ``(h·scale, w·scale)`` float64, unclipped.
+
+    The input is mirrored by ``weights.border`` pixels, the network runs in float32, and the
+    output is cropped back to the image (see the module docstring).
+    """
+    from nirspi_pipe.upscale.bicubic import bicubic
+
+    s, pad = weights.scale, weights.border
+    lr = np.asarray(image, dtype=np.float64)
+    x = np.pad(lr, pad, mode="symmetric").astype(np.float32)[None]
+    for layer in weights.layers:
+        x = prelu(conv2d(x, layer.w, layer.b), layer.alpha)
+    y = conv_transpose2d(x, weights.deconv_w, weights.deconv_b, s, DECONV_PADDING, s - 1)[0]
+    h, w = lr.shape
+    y = y[pad * s : pad * s + h * s, pad * s : pad * s + w * s].astype(np.float64)
+    if weights.residual:
+        y = y + bicubic(lr, s)
+    return y
+
+
+def save_weights(path: str | Path, weights: FsrcnnWeights) -> None:
+    """Write ``weights`` as a compressed float32 ``.npz`` (no pickles; ``meta`` as JSON text)."""
+    arrays: dict[str, np.ndarray] = {}
+    for i, layer in enumerate(weights.layers):
+        arrays[f"conv{i}_w"] = layer.w.astype(np.float32)
+        arrays[f"conv{i}_b"] = layer.b.astype(np.float32)
+        arrays[f"conv{i}_a"] = layer.alpha.astype(np.float32)
+    arrays["deconv_w"] = weights.deconv_w.astype(np.float32)
+    arrays["deconv_b"] = weights.deconv_b.astype(np.float32)
+    arrays["scale"] = np.array(weights.scale, dtype=np.int64)
+    arrays["residual"] = np.array(weights.residual)
+    arrays["border"] = np.array(weights.border, dtype=np.int64)
+    arrays["meta"] = np.array(json.dumps(weights.meta or {}, sort_keys=True))
+    np.savez_compressed(path, **arrays)
+
+
+def _read_weights(path: str | Path) -> FsrcnnWeights:
+    with np.load(path, allow_pickle=False) as z:
+        n = sum(1 for k in z.files if k.startswith("conv") and k.endswith("_w"))
+        layers = tuple(
+            ConvLayer(z[f"conv{i}_w"], z[f"conv{i}_b"], z[f"conv{i}_a"]) for i in range(n)
+        )
+        return FsrcnnWeights(
+            scale=int(z["scale"]),
+            layers=layers,
+            deconv_w=z["deconv_w"],
+            deconv_b=z["deconv_b"],
+            residual=bool(z["residual"]),
+            border=int(z["border"]),
+            meta=json.loads(str(z["meta"])),
+        )
+
+
+@lru_cache(maxsize=8)
+def _load_cached(path: str) -> FsrcnnWeights:
+    return _read_weights(path)
+
+
+def packaged_weights_path(scale: int) -> Path:
+    """Path of the shipped weights for ``scale`` (``nirspi_pipe/upscale/weights/fsrcnn_x{s}.npz``)."""
+    return Path(str(resources.files("nirspi_pipe.upscale") / "weights" / f"fsrcnn_x{int(scale)}.npz"))
+
+
+def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
+    """Load FSRCNN weights: the packaged ones for ``scale``, or the file ``path``.
+
+    Raises :class:`ConfigError` (key ``weights``) when the file is missing, unreadable or trained
+    for another scale.
+    """
+    file = Path(path).expanduser() if path is not None else packaged_weights_path(scale)
+    if not file.is_file():
+        raise ConfigError("weights", str(path) if path else None, f"an existing .npz file ({file} not found)")
+    try:
+        weights = _load_cached(str(file.resolve()))
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is a config problem
+        raise ConfigError("weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({exc})") from None
+    if weights.scale != int(scale):
+        raise ConfigError("weights", str(file), f"weights trained for scale {scale} (this file is ×{weights.scale})")
+    return weights
+
+
+@dataclass(frozen=True)
+class FSRCNN:
+    """Upscale ``fsrcnn``: the paper's CS-SRCNN step, super-resolving the SPI reconstruction.
+
+    Attributes:
+        scale: upscaling factor, 2, 3 or 4.
+        weights: path of an ``.npz`` from ``nirspi-train-fsrcnn``; null uses the packaged
+            ``fsrcnn_x{scale}.npz``.
+        clip: clip the result to the physical range [0, 1].
+    """
+
+    scale: int = 2
+    weights: str | None = None
+    clip: bool = True
+
+    def __post_init__(self) -> None:
+        check_scale(self.scale)
+        load_weights(int(self.scale), self.weights)  # fail at build time, not after the solver
+
+    def upscale(self, image: Image2D) -> Image2D:
+        net = load_weights(int(self.scale), self.weights)
+        x = as_finite_image(image.data, "fsrcnn")
+        y = fsrcnn_forward(x, net)
+        if not np.all(np.isfinite(y)):  # cannot happen with finite weights; never pass NaN on
+            warnings.warn("upscale=fsrcnn: non-finite output replaced by 0", stacklevel=2)
+            y = np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
+        y = finish(y, self.clip)
+        d, s, m = net.shape
+        info = {
+            "model": "fsrcnn",
+            "scale": int(self.scale),
+            "shape": list(y.shape),
+            "weights": Path(self.weights).name if self.weights else f"fsrcnn_x{self.scale}.npz",
+            "d": d,
+            "s": s,
+            "m": m,
+            "residual": net.residual,
+            "n_params": net.n_params,
+        }
+        return Image2D(y, info=info)
