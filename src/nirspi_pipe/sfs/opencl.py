@@ -18,6 +18,102 @@ from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
 __all__ = ["solve_opencl", "opencl_available"]
 
+#: Second-order upwind sweeping (``scheme: second_order``), the same arithmetic in the same order
+#: as :func:`nirspi_pipe.sfs.second_order.update`; the edge slopes are computed on the host by
+#: :func:`nirspi_pipe.sfs.second_order.edge_slopes` so that both back ends use identical inputs.
+_KERNEL2 = r"""
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+#define BIG %(big)r
+#define KNOWN (0.5 * BIG)
+
+inline double zat2(__global const double *z, int i, int j, int R, int C) {
+    return (i >= 0 && i < R && j >= 0 && j < C) ? z[i * C + j] : BIG;
+}
+
+inline double eat2(__global const double *e, int i, int j, int R, int C) {
+    return (i >= 0 && i < R && j >= 0 && j < C) ? e[i * C + j] : 0.0;
+}
+
+/* Upwind data of one axis (step (di, dj)): T, alpha, T1 and the slope F* (second_order.py). */
+inline void axis2(__global const double *z, __global const double *e, int i, int j, int di, int dj,
+                  int R, int C, double f, double *t, double *al, double *t1o, double *fso) {
+    const double m1 = zat2(z, i - di, j - dj, R, C), p1 = zat2(z, i + di, j + dj, R, C);
+    const int left = m1 <= p1;
+    const double t1 = left ? m1 : p1;
+    const double t2 = left ? zat2(z, i - 2 * di, j - 2 * dj, R, C) : zat2(z, i + 2 * di, j + 2 * dj, R, C);
+#if COS2
+    const double e1 = left ? eat2(e, i - di, j - dj, R, C) : eat2(e, i, j, R, C);
+    const double e2 = left ? eat2(e, i - 2 * di, j - 2 * dj, R, C) : eat2(e, i + di, j + dj, R, C);
+    const double f2 = 0.5 * (3.0 * e1 - e2);
+    const int so = (t2 <= t1) && (f2 >= 0.5 * e1);
+    *fso = so ? f2 : e1;
+#else
+    const int so = t2 <= t1;
+    *fso = f;
+#endif
+    *t = so ? (4.0 * t1 - t2) / 3.0 : t1;
+    *al = so ? 1.5 : 1.0;
+    *t1o = t1;
+}
+
+__kernel void fsm2(__global double *z, __global const double *rhs,
+                   __global const double *eh, __global const double *ev,
+                   __global const uchar *upd, const int R, const int C,
+                   const int max_rounds, const double tol,
+                   __global double *out, __local double *red)
+{
+    const int lid = get_local_id(0), L = get_local_size(0);
+    double rc = INFINITY;
+    int rounds = 0, conv = 0;
+    for (int round = 0; round < max_rounds; ++round) {
+        double my = 0.0;
+        for (int o = 0; o < 4; ++o) {
+            for (int d = 0; d < R + C - 1; ++d) {
+                const int i0 = max(0, d - (C - 1)), i1 = min(R - 1, d);
+                for (int ii = i0 + lid; ii <= i1; ii += L) {
+                    const int jj = d - ii;
+                    const int i = (o == 1 || o == 2) ? R - 1 - ii : ii;
+                    const int j = (o == 2 || o == 3) ? C - 1 - jj : jj;
+                    const int c = i * C + j;
+                    if (!upd[c]) continue;
+                    const double u = z[c], f = rhs[c];
+                    double tx, ax, t1x, fx, ty, ay, t1y, fy;
+                    axis2(z, eh, i, j, 0, 1, R, C, f, &tx, &ax, &t1x, &fx);
+                    axis2(z, ev, i, j, 1, 0, R, C, f, &ty, &ay, &t1y, &fy);
+                    const int kx = t1x < KNOWN, ky = t1y < KNOWN;
+                    const double ux = kx ? tx + fx / ax : BIG;
+                    const double uy = ky ? ty + fy / ay : BIG;
+                    const double u1 = fmin(ux, uy);
+                    const double a = (fy * ax) * (fy * ax), b = (fx * ay) * (fx * ay);
+                    const double sa = a + b, dt = tx - ty;
+                    const double disc = sa * ((fx * fy) * (fx * fy)) - (a * b) * (dt * dt);
+                    const double u2 = (a * tx + b * ty + sqrt(fmax(disc, 0.0))) / (sa > 0.0 ? sa : 1.0);
+                    const int ok = kx && ky && (sa > 0.0) && (disc >= 0.0) && (u2 >= t1x) && (u2 >= t1y);
+                    const double nw = fmin(u, ok ? u2 : u1);
+                    z[c] = nw;
+                    my = fmax(my, u - nw);
+                }
+                barrier(CLK_GLOBAL_MEM_FENCE);
+            }
+        }
+        red[lid] = my;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (lid == 0) {
+            double m = 0.0;
+            for (int k = 0; k < L; ++k) m = fmax(m, red[k]);
+            red[0] = m;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        rc = red[0];
+        barrier(CLK_LOCAL_MEM_FENCE);
+        rounds += 1;
+        if (rc <= tol) { conv = 1; break; }
+    }
+    if (lid == 0) { out[0] = 4.0 * rounds; out[1] = rc; out[2] = conv; }
+}
+"""
+
 _KERNEL = r"""
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
@@ -161,11 +257,24 @@ def _program(model: int, scheme: int):
     return cl.Kernel(prg, "fsm")
 
 
-def opencl_available() -> bool:
-    """True when pyopencl finds a float64-capable device that builds the sweeping kernel (PoCL
-    fails on CPUs its LLVM does not know, e.g. ``unknown target CPU 'generic'``)."""
+@lru_cache(maxsize=2)
+def _program2(cos2: int):
+    import pyopencl as cl
+
+    ctx, _ = _context()
+    prg = cl.Program(ctx, _KERNEL2 % {"big": BIG}).build(options=[f"-DCOS2={int(cos2)}"])
+    return cl.Kernel(prg, "fsm2")
+
+
+def opencl_available(scheme: str = "godunov") -> bool:
+    """True when pyopencl finds a float64-capable device that builds the sweeping kernel for
+    ``scheme`` (PoCL fails on CPUs its LLVM does not know, e.g. ``unknown target CPU
+    'generic'``)."""
     try:
-        _program(0, 1)
+        if scheme == "second_order":
+            _program2(1)
+        else:
+            _program(0, 1)
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return False
     return True
@@ -177,14 +286,18 @@ def solve_opencl(
     tol: float = 1e-4,
     max_sweeps: int = 2000,
     local_size: int = 1,
+    slope_average: str = "cos2",
 ) -> SweepResult:
     """Same contract as :func:`nirspi_pipe.sfs.sweeping.solve_numpy`, on an OpenCL device.
 
     ``local_size`` work-items share each anti-diagonal. On a CPU device one work-item (the
     default) is fastest: the kernel is then plain compiled Gauss–Seidel and skips the
-    barrier bookkeeping.
+    barrier bookkeeping. ``slope_average`` is used by ``scheme="second_order"`` only.
     """
     import pyopencl as cl
+
+    if scheme == "second_order":
+        return _solve_second_order(problem, tol, max_sweeps, local_size, slope_average)
 
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
@@ -219,6 +332,51 @@ def solve_opencl(
         queue, (lsz,), (lsz,), *bufs,
         np.int32(rows), np.int32(cols), np.float64(sx), np.float64(sy),
         np.float64(2.0 / float(problem.focal_px)), np.int32(max_rounds), np.float64(tol),
+        out_buf, cl.LocalMemory(8 * lsz),
+    )
+    cl.enqueue_copy(queue, z, bufs[0])
+    cl.enqueue_copy(queue, out, out_buf)
+    queue.finish()
+    return SweepResult(z, int(out[0]), float(out[1]), bool(out[2]))
+
+
+def _solve_second_order(
+    problem: SweepProblem, tol: float, max_sweeps: int, local_size: int, slope_average: str
+) -> SweepResult:
+    """``scheme="second_order"`` on the OpenCL device (kernel ``fsm2``)."""
+    import pyopencl as cl
+
+    from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES, edge_slopes
+
+    if problem.model != 0:
+        raise ValueError("the second-order scheme is implemented for the eikonal (model 0) only")
+    if slope_average not in SLOPE_AVERAGES:
+        raise ValueError(f"slope_average {slope_average!r} not in {SLOPE_AVERAGES}")
+    cos2 = slope_average == "cos2"
+    ctx, queue = _context()
+    kernel = _program2(int(cos2))
+    rows, cols = problem.rhs.shape
+    rhs = np.ascontiguousarray(problem.rhs, np.float64)
+    if cos2:
+        eh, ev = edge_slopes(rhs)
+    else:
+        eh = ev = np.zeros_like(rhs)
+    mf = cl.mem_flags
+    z = np.ascontiguousarray(problem.init, dtype=np.float64).copy()
+    bufs = [
+        cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=z),
+        cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rhs),
+        cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(eh)),
+        cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(ev)),
+        cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(~problem.fixed, np.uint8)),
+    ]
+    out = np.zeros(3)
+    out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
+    max_rounds = max(1, -(-int(max_sweeps) // 4))
+    lsz = int(max(1, local_size))
+    kernel(
+        queue, (lsz,), (lsz,), *bufs,
+        np.int32(rows), np.int32(cols), np.int32(max_rounds), np.float64(tol),
         out_buf, cl.LocalMemory(8 * lsz),
     )
     cl.enqueue_copy(queue, z, bufs[0])
