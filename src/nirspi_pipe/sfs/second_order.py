@@ -53,7 +53,13 @@ import numpy as np
 
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, sweep_orders
 
-__all__ = ["SLOPE_AVERAGES", "edge_slopes", "mean_slope", "solve_second_order_numpy"]
+__all__ = [
+    "SLOPE_AVERAGES",
+    "edge_slopes",
+    "mean_slope",
+    "slope_antiderivative",
+    "solve_second_order_numpy",
+]
 
 #: ``cos2``: slopes averaged along the upwind edges with cos²θ linear (default); ``node``: the
 #: pixel's own ``F`` (fast marching's order 2).
@@ -62,36 +68,73 @@ SLOPE_AVERAGES = ("cos2", "node")
 #: Values at or above this are "not reached yet".
 KNOWN = 0.5 * BIG
 
-#: Smallest cos²θ used (``F`` up to ~1e150 stays finite).
-_G_MIN = 1e-300
+#: Constants shared with the OpenCL kernel (formatted into its source with ``%r``).
+HALF_PI = float(0.5 * np.pi)
+GAUSS_Q = float(0.5 / np.sqrt(3.0)) # two-point Gauss nodes at 1/2 ± GAUSS_Q of the segment
+F_MAX = 1e150  # larger slopes are clipped so that F² stays finite
 
 
-def _s(g: np.ndarray) -> np.ndarray:
-    """Antiderivative ``S(g) = sqrt(g(1 − g)) + asin(sqrt g)`` of ``sqrt((1 − g)/g)``."""
-    return np.sqrt(g * (1.0 - g)) + np.arcsin(np.sqrt(g))
+def _antiderivative(g: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``S(g) = sqrt(g(1 − g)) + asin(sqrt g)``, antiderivative of ``sqrt((1 − g)/g)``, as
+    ``value + (π/2)·hi``: for ``g ≥ 1/2`` (``hi``) the value is ``sqrt(gh) − asin(sqrt h)``
+    (``h = 1 − g`` given separately, accurate near frontal points), so that differences of two
+    nearly frontal pixels do not cancel against π/2."""
+    hi = g >= 0.5
+    value = np.sqrt(g * h)
+    value += np.where(hi, -1.0, 1.0) * np.arcsin(np.sqrt(np.where(hi, h, g)))
+    return value, hi.astype(np.float64)
 
 
-def _f_of_g(g: np.ndarray) -> np.ndarray:
-    return np.sqrt((1.0 - g) / g)
+def _mean_slope_from(g0, h0, g1, h1, v0, o0, v1, o1) -> np.ndarray:
+    """Mean of ``sqrt(h/g)`` over a segment with ``g`` linear from ``g0`` to ``g1``
+    (``h = 1 − g``; ``v, o`` from :func:`_antiderivative`)."""
+    d = np.where(o0 * o1 > 0.0, h0 - h1, g1 - g0)  # g1 − g0 from the accurate side
+    diff = (v1 - v0) + (o1 - o0) * HALF_PI
+    ad = np.abs(d)
+    small = ad <= 5e-3 * np.minimum(g0 + g1, h0 + h1)
+    d[small] = 1.0
+    out = diff / d
+    idx = np.flatnonzero(small)
+    if idx.size:  # cancellation: two-point Gauss rule (relative error < 1e-8 there)
+        q = GAUSS_Q
+        gm = 0.5 * (g0[idx] + g1[idx])
+        hm = 0.5 * (h0[idx] + h1[idx])
+        ds = (g1[idx] - g0[idx]) * q
+        lo = np.sqrt(np.maximum(hm + ds, 0.0) / (gm - ds))
+        up = np.sqrt(np.maximum(hm - ds, 0.0) / (gm + ds))
+        out[idx] = 0.5 * (lo + up)
+    return out
 
 
-def mean_slope(g0: np.ndarray, g1: np.ndarray) -> np.ndarray:
-    """Mean of ``F = sqrt(1/g − 1)`` over a unit segment along which ``g = cos²θ`` goes
-    linearly from ``g0`` to ``g1`` (both in ``(0, 1]``); dimensionless (depth step per pixel).
+def _cos2(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``g = cos²θ = 1/(1 + F²)`` and ``h = 1 − g = F²/(1 + F²)`` (accurate for small F)."""
+    f = np.minimum(np.asarray(f, dtype=np.float64), F_MAX)
+    f2 = f * f
+    g = 1.0 / (1.0 + f2)
+    return g, f2 * g
 
-    Closed form ``(S(g1) − S(g0))/(g1 − g0)`` (:func:`_s`); when ``|g1 − g0|`` is below 1 % of
-    ``min(g, 1 − g)`` at the midpoint (cancellation) the two-point Gauss rule, whose error is
-    then ~1e-9 relative.
+
+def slope_antiderivative(rhs: np.ndarray) -> np.ndarray:
+    """Per-pixel value part of :func:`_antiderivative` for slopes ``rhs = F`` (the only
+    transcendental step; the OpenCL back end takes it from here so that both back ends see the
+    same bits, and computes the rest of :func:`edge_slopes` in its ``edges2`` kernel)."""
+    g, h = _cos2(rhs)
+    return np.ascontiguousarray(_antiderivative(g, h)[0])
+
+
+def mean_slope(f0: np.ndarray, f1: np.ndarray) -> np.ndarray:
+    """Mean slope over a unit segment from a pixel of slope ``f0`` to one of slope ``f1``
+    (``F = tan θ ≥ 0``) when ``g = cos²θ = 1/(1 + F²)`` is linear along it: the mean of
+    ``sqrt(1/g − 1)``, dimensionless (depth step per pixel).
+
+    Closed form ``(S(g1) − S(g0))/(g1 − g0)`` with ``S`` of :func:`_antiderivative`; when
+    ``|g1 − g0|`` is below 1 % of ``min(g, 1 − g)`` at the midpoint (cancellation) the two-point
+    Gauss rule, whose relative error is then below 1e-8.
     """
-    g0 = np.asarray(g0, dtype=np.float64)
-    g1 = np.asarray(g1, dtype=np.float64)
-    d = g1 - g0
-    gm = 0.5 * (g0 + g1)
-    small = np.abs(d) <= 1e-2 * np.minimum(gm, 1.0 - gm)
-    q = 0.5 / np.sqrt(3.0)
-    gauss = 0.5 * (_f_of_g(gm - q * d) + _f_of_g(np.minimum(gm + q * d, 1.0)))
-    exact = (_s(g1) - _s(g0)) / np.where(small, 1.0, d)
-    return np.where(small, gauss, exact)
+    f0, f1 = np.broadcast_arrays(np.asarray(f0, np.float64), np.asarray(f1, np.float64))
+    g0, h0 = _cos2(f0)
+    g1, h1 = _cos2(f1)
+    return _mean_slope_from(g0, h0, g1, h1, *_antiderivative(g0, h0), *_antiderivative(g1, h1))
 
 
 def edge_slopes(rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -101,14 +144,20 @@ def edge_slopes(rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pixel ``(i, j)`` to ``(i, j + 1)`` (last column 0), ``ev[i, j]`` on the edge from ``(i, j)``
     to ``(i + 1, j)`` (last row 0). Depth step per pixel (pixel units).
     """
-    f = np.asarray(rhs, dtype=np.float64)
-    with np.errstate(over="ignore"):
-        g = np.maximum(1.0 / (1.0 + f * f), _G_MIN)
-    eh = np.zeros_like(g)
-    ev = np.zeros_like(g)
-    eh[:, :-1] = mean_slope(g[:, :-1], g[:, 1:])
-    ev[:-1, :] = mean_slope(g[:-1, :], g[1:, :])
-    return eh, ev
+    g, h = _cos2(rhs)
+    rows, cols = g.shape
+    v, o = _antiderivative(g, h)  # one antiderivative per pixel, shared by its four edges
+    gf, hf, vf, of = g.ravel(), h.ravel(), v.ravel(), o.ravel()
+    eh = np.zeros(rows * cols)
+    ev = np.zeros(rows * cols)
+    # On the flattened grid the edge k -> k + step is a pair of contiguous 1-D views.
+    for out, step in ((eh, 1), (ev, cols)):
+        n = rows * cols - step
+        if n > 0:
+            out[:n] = _mean_slope_from(gf[:n], hf[:n], gf[step:], hf[step:], vf[:n], of[:n], vf[step:], of[step:])
+    eh = eh.reshape(rows, cols)
+    eh[:, -1] = 0.0  # the wrap-around pairs (last column -> next row) are not edges
+    return eh, ev.reshape(rows, cols)
 
 
 def _axis(z, c, s, e, f, cos2):
