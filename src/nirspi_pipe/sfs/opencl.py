@@ -408,7 +408,7 @@ def _solve_second_order(
     """``scheme="second_order"`` on the OpenCL device (kernel ``fsm2``)."""
     import pyopencl as cl
 
-    from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES, slope_antiderivative
+    from nirspi_pipe.sfs.second_order import F_MAX, SLOPE_AVERAGES, slope_antiderivative
 
     if problem.model != 0:
         raise ValueError("the second-order scheme is implemented for the eikonal (model 0) only")
@@ -418,7 +418,7 @@ def _solve_second_order(
     ctx, queue = _context()
     kernel, edges = _program2(int(cos2))
     rows, cols = problem.rhs.shape
-    rhs = np.ascontiguousarray(problem.rhs, np.float64)
+    rhs = np.ascontiguousarray(np.minimum(problem.rhs, F_MAX), np.float64)
     mf = cl.mem_flags
     z = np.ascontiguousarray(problem.init, dtype=np.float64).copy()
     rhs_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rhs)

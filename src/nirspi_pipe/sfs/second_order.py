@@ -71,7 +71,9 @@ KNOWN = 0.5 * BIG
 #: Constants shared with the OpenCL kernel (formatted into its source with ``%r``).
 HALF_PI = float(0.5 * np.pi)
 GAUSS_Q = float(0.5 / np.sqrt(3.0)) # two-point Gauss nodes at 1/2 ± GAUSS_Q of the segment
-F_MAX = 1e150  # larger slopes are clipped so that F² stays finite
+#: Larger slopes are clipped (a wall: a step of 1e50 is never taken, cells behind it stay BIG),
+#: so that every product in the update (up to ~F⁶) stays finite.
+F_MAX = 1e50
 
 
 def _antiderivative(g: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,9 +134,11 @@ def mean_slope(f0: np.ndarray, f1: np.ndarray) -> np.ndarray:
     Gauss rule, whose relative error is then below 1e-8.
     """
     f0, f1 = np.broadcast_arrays(np.asarray(f0, np.float64), np.asarray(f1, np.float64))
-    g0, h0 = _cos2(f0)
-    g1, h1 = _cos2(f1)
-    return _mean_slope_from(g0, h0, g1, h1, *_antiderivative(g0, h0), *_antiderivative(g1, h1))
+    shape = f0.shape
+    g0, h0 = _cos2(f0.ravel())
+    g1, h1 = _cos2(f1.ravel())
+    out = _mean_slope_from(g0, h0, g1, h1, *_antiderivative(g0, h0), *_antiderivative(g1, h1))
+    return out.reshape(shape)
 
 
 def edge_slopes(rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -222,19 +226,20 @@ def solve_second_order_numpy(
     if slope_average not in SLOPE_AVERAGES:
         raise ValueError(f"slope_average {slope_average!r} not in {SLOPE_AVERAGES}")
     cos2 = slope_average == "cos2"
-    rows, cols = problem.rhs.shape
+    rhs = np.minimum(np.asarray(problem.rhs, np.float64), F_MAX)
+    rows, cols = rhs.shape
     pad = 2  # a frame of BIG two cells wide: every cell has two neighbours each way
     pc = cols + 2 * pad
     zp = np.full((rows + 2 * pad, pc), BIG)
     zp[pad:-pad, pad:-pad] = problem.init
     z = zp.ravel()
     fp = np.zeros_like(zp)
-    fp[pad:-pad, pad:-pad] = problem.rhs
+    fp[pad:-pad, pad:-pad] = rhs
     f_all = fp.ravel()
     ehp = np.zeros_like(zp)
     evp = np.zeros_like(zp)
     if cos2:
-        eh, ev = edge_slopes(problem.rhs)
+        eh, ev = edge_slopes(rhs)
         ehp[pad:-pad, pad:-pad] = eh
         evp[pad:-pad, pad:-pad] = ev
     eh_all, ev_all = ehp.ravel(), evp.ravel()
