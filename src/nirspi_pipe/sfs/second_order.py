@@ -3,7 +3,8 @@
 Scheme ``second_order`` (option ``sfs=second_order``). Per cell and axis the update takes the
 upwind neighbour ``T₁`` (the smaller of the two) and, when the next cell on the same side is
 smaller still (``T₂ ≤ T₁``: the data come from that side), the one-sided second-order
-difference of fast marching's ``order=2`` (Sethian 1999, §4; what scikit-fmm does)::
+difference of fast marching's ``order=2`` (Sethian 1999, *Level Set Methods and Fast Marching
+Methods*; what scikit-fmm does)::
 
     ∂z/∂x ≈ α (z − T),   α = 3/2, T = (4T₁ − T₂)/3      (second order)
                          α = 1,   T = T₁                (first order, otherwise)
@@ -20,8 +21,8 @@ keeping the root ``z ≥ max(T₁x, T₁y)`` (causality), else the best one-axis
 occluding contour of a smooth surface seen with the light at the camera ``cos θ → 0`` like the
 square root of the distance to the contour, so ``F = tan θ`` is singular there and a sample of
 ``F`` at the pixel centre says little about the depth step across the last pixel (first- and
-second-order schemes alike over-estimate it by pixels; that rim error is ~95 % of scikit-fmm's
-RMS error on the sphere). ``cos²θ = 1/(1 + F²)`` however is smooth and vanishes *linearly* at
+second-order schemes alike over-estimate it by pixels; that rim error is 89–97 % of the squared
+error of scikit-fmm's order 2 on the benchmark sphere). ``cos²θ = 1/(1 + F²)`` however is smooth and vanishes *linearly* at
 the contour. So we take ``cos²θ`` linear between neighbouring pixel centres and integrate
 ``F = sqrt(1/cos²θ − 1)`` exactly along each grid edge (closed form, :func:`edge_slopes`):
 ``e`` = mean of ``F`` over the edge. The exact depth step along the axis is then ``e·cos φ``
@@ -44,7 +45,8 @@ in a few cells (measured; far below the scheme's error).
 
 The Dirichlet cells hold their data. For SFS they are frontal points where ``F = 0`` and the
 depth is locally quadratic (smooth), not the cone of a point source with ``F > 0``: no local
-factoring is needed there (measured: the errors next to the sources are ~0.01 pixel).
+factoring is needed there (measured: RMS errors within 4 pixels of the source are 0.001–0.003 pixel).
+Slopes above ``F_MAX`` = 1e50 are clipped (a wall) so that every product stays finite.
 """
 
 from __future__ import annotations
