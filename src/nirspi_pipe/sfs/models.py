@@ -18,6 +18,9 @@ Shared keys (all stages):
 * ``median_px``: odd median-filter window applied to the image first (0 = off); use it against
   salt noise.
 * ``scheme``, ``backend``, ``tol`` (pixel units), ``max_sweeps``.
+* ``slope_average`` (orthographic stages, ``scheme: second_order`` only): ``cos2`` (slopes
+  averaged along the upwind edges with cos²θ linear, see :mod:`nirspi_pipe.sfs.second_order`)
+  or ``node`` (the pixel's own slope: fast marching's order 2).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES
 from nirspi_pipe.sfs.sweeping import BIG, SCHEMES, SweepProblem, SweepResult, solve_numpy
 from nirspi_pipe.types import Camera, DepthMap, Image2D
 
@@ -167,12 +171,14 @@ def prepare_image(
     return Prepared(norm, mask, sources, rho, info)
 
 
-def _run(problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweeps: int) -> SweepResult:
+def _run(
+    problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweeps: int, slope_average: str = "cos2"
+) -> SweepResult:
     if backend == "opencl":
         from nirspi_pipe.sfs.opencl import solve_opencl
 
         try:
-            return solve_opencl(problem, scheme, tol, max_sweeps)
+            return solve_opencl(problem, scheme, tol, max_sweeps, slope_average=slope_average)
         except Exception as exc:  # noqa: BLE001 - turned into a one-line user error
             if type(exc).__module__.startswith("pyopencl") or isinstance(exc, RuntimeError):
                 lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
@@ -183,7 +189,7 @@ def _run(problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweep
                     "use sfs.backend=numpy"
                 ) from None
             raise
-    return solve_numpy(problem, scheme, tol, max_sweeps)
+    return solve_numpy(problem, scheme, tol, max_sweeps, slope_average=slope_average)
 
 
 def _finish(
@@ -228,8 +234,10 @@ class LaxFriedrichsSFS:
 
     Solves the eikonal ``|∇z| = F = sqrt(1/I² − 1)`` (I normalised by the albedo; the printed
     Alg. A2 line 17 puts Z where I belongs) with ``z = 0`` at the singular points ``I = 1`` by
-    Kao–Osher–Qian Lax–Friedrichs fast sweeping (``scheme: lax_friedrichs``) or by the Godunov
-    upwind update (``scheme: godunov``, much faster for this equation). Depth in pixel pitches.
+    Kao–Osher–Qian Lax–Friedrichs fast sweeping (``scheme: lax_friedrichs``), by the Godunov
+    upwind update (``scheme: godunov``, much faster for this equation) or by second-order upwind
+    sweeping (``scheme: second_order``, with ``slope_average`` ``cos2`` or ``node``; see
+    :mod:`nirspi_pipe.sfs.second_order`). Depth in pixel pitches.
     """
 
     scheme: str = "lax_friedrichs"
@@ -240,9 +248,12 @@ class LaxFriedrichsSFS:
     min_intensity: float = 0.05
     source_tol: float = 1e-3
     median_px: int = 0
+    slope_average: str = "cos2"
 
     def __post_init__(self) -> None:
         _check_common(self, SCHEMES)
+        if self.slope_average not in SLOPE_AVERAGES:
+            raise ConfigError("slope_average", self.slope_average, ", ".join(SLOPE_AVERAGES))
 
     def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
         """``cos θ`` from the normalised radiance; Lambertian: ``I/albedo`` itself."""
@@ -259,8 +270,10 @@ class LaxFriedrichsSFS:
         f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
         scheme = _effective_scheme(self.scheme, f.shape)
         problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, 0.0, BIG))
-        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps))
+        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps), self.slope_average)
         extra = {"focal_px": float(camera.focal_px), **self._model_info()}
+        if scheme == "second_order":
+            extra["slope_average"] = self.slope_average
         return _finish(res.z, prep, res, type(self).__name__, extra, self.backend, scheme)
 
 

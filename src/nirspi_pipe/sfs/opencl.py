@@ -18,6 +18,156 @@ from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
 __all__ = ["solve_opencl", "opencl_available"]
 
+#: Second-order upwind sweeping (``scheme: second_order``), the same arithmetic in the same order
+#: as :func:`nirspi_pipe.sfs.second_order.update`; the edge slopes are computed on the host by
+#: :func:`nirspi_pipe.sfs.second_order.edge_slopes` so that both back ends use identical inputs.
+_KERNEL2 = r"""
+#pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#pragma OPENCL FP_CONTRACT OFF
+#define BIG %(big)r
+#define KNOWN (0.5 * BIG)
+#define HALF_PI %(half_pi)r
+#define GAUSS_Q %(gauss_q)r
+#define F_MAX %(f_max)r
+
+/* Mean of F over the edge between pixels 0 and 1 with cos^2 = 1/(1 + F^2) linear along it
+   (second_order._mean_slope_from; v = slope_antiderivative, computed on the host). */
+inline double mean_slope2(double f0, double v0, double f1, double v1) {
+    f0 = fmin(f0, F_MAX);
+    f1 = fmin(f1, F_MAX);
+    const double q0 = f0 * f0, q1 = f1 * f1;
+    const double g0 = 1.0 / (1.0 + q0), g1 = 1.0 / (1.0 + q1);
+    const double h0 = q0 * g0, h1 = q1 * g1;
+    const int hi0 = g0 >= 0.5, hi1 = g1 >= 0.5;
+    const double d = (hi0 && hi1) ? h0 - h1 : g1 - g0;
+    if (fabs(d) <= 5e-3 * fmin(g0 + g1, h0 + h1)) {
+        const double gm = 0.5 * (g0 + g1), hm = 0.5 * (h0 + h1), ds = (g1 - g0) * GAUSS_Q;
+        const double lo = sqrt(fmax(hm + ds, 0.0) / (gm - ds));
+        const double up = sqrt(fmax(hm - ds, 0.0) / (gm + ds));
+        return 0.5 * (lo + up);
+    }
+    return ((v1 - v0) + ((double)hi1 - (double)hi0) * HALF_PI) / d;
+}
+
+__kernel void edges2(__global const double *rhs, __global const double *v, const int R, const int C,
+                     __global double *eh, __global double *ev) {
+    const int k = get_global_id(0);
+    if (k >= R * C) return;
+    const int i = k / C, j = k - (k / C) * C;
+    eh[k] = (j + 1 < C) ? mean_slope2(rhs[k], v[k], rhs[k + 1], v[k + 1]) : 0.0;
+    ev[k] = (i + 1 < R) ? mean_slope2(rhs[k], v[k], rhs[k + C], v[k + C]) : 0.0;
+}
+
+inline double zat2(__global const double *z, int i, int j, int R, int C) {
+    return (i >= 0 && i < R && j >= 0 && j < C) ? z[i * C + j] : BIG;
+}
+
+inline double eat2(__global const double *e, int i, int j, int R, int C) {
+    return (i >= 0 && i < R && j >= 0 && j < C) ? e[i * C + j] : 0.0;
+}
+
+/* Upwind data of one axis (step (di, dj)): T, alpha, T1 and the slope F* (second_order.py). */
+inline void axis2(__global const double *z, __global const double *e, int i, int j, int di, int dj,
+                  int R, int C, double f, double *t, double *al, double *t1o, double *fso) {
+    const double m1 = zat2(z, i - di, j - dj, R, C), p1 = zat2(z, i + di, j + dj, R, C);
+    const int left = m1 <= p1;
+    const double t1 = left ? m1 : p1;
+    const double t2 = left ? zat2(z, i - 2 * di, j - 2 * dj, R, C) : zat2(z, i + 2 * di, j + 2 * dj, R, C);
+#if COS2
+    const double e1 = left ? eat2(e, i - di, j - dj, R, C) : eat2(e, i, j, R, C);
+    const double e2 = left ? eat2(e, i - 2 * di, j - 2 * dj, R, C) : eat2(e, i + di, j + dj, R, C);
+    const double f2 = 0.5 * (3.0 * e1 - e2);
+    const int so = (t2 <= t1) && (f2 >= 0.5 * e1);
+    *fso = so ? f2 : e1;
+#else
+    const int so = t2 <= t1;
+    *fso = f;
+#endif
+    *t = so ? (4.0 * t1 - t2) / 3.0 : t1;
+    *al = so ? 1.5 : 1.0;
+    *t1o = t1;
+}
+
+/* One cell update (second_order.update); returns the decrease of z[c]. */
+inline double cell2(__global double *z, __global const double *rhs, __global const double *eh,
+                    __global const double *ev, int i, int j, int R, int C) {
+    const int c = i * C + j;
+    const double u = z[c], f = rhs[c];
+    double tx, ax, t1x, fx, ty, ay, t1y, fy;
+    axis2(z, eh, i, j, 0, 1, R, C, f, &tx, &ax, &t1x, &fx);
+    axis2(z, ev, i, j, 1, 0, R, C, f, &ty, &ay, &t1y, &fy);
+    const int kx = t1x < KNOWN, ky = t1y < KNOWN;
+    const double ux = kx ? tx + fx / ax : BIG;
+    const double uy = ky ? ty + fy / ay : BIG;
+    const double u1 = fmin(ux, uy);
+    const double a = (fy * ax) * (fy * ax), b = (fx * ay) * (fx * ay);
+    const double sa = a + b, dt = tx - ty;
+    const double disc = sa * ((fx * fy) * (fx * fy)) - (a * b) * (dt * dt);
+    const double u2 = (a * tx + b * ty + sqrt(fmax(disc, 0.0))) / (sa > 0.0 ? sa : 1.0);
+    const int ok = kx && ky && (sa > 0.0) && (disc >= 0.0) && (u2 >= t1x) && (u2 >= t1y);
+    const double nw = fmin(u, ok ? u2 : u1);
+    z[c] = nw;
+    return u - nw;
+}
+
+inline void mark2(__global uchar *dirty, int i, int j, int R, int C) {
+    if (i >= 0 && i < R && j >= 0 && j < C) dirty[i * C + j] = 1;
+}
+
+/* dirty[c]: a value in the stencil of c changed since c was last updated. A clean cell would
+   compute the same z-bar as last time, and min(z, z-bar) = z, so skipping it changes nothing:
+   results are identical to updating every cell (the numpy path), the later rounds are cheap. */
+__kernel void fsm2(__global double *z, __global const double *rhs,
+                   __global const double *eh, __global const double *ev,
+                   __global const uchar *upd, __global uchar *dirty, const int R, const int C,
+                   const int max_rounds, const double tol,
+                   __global double *out, __local double *red)
+{
+    const int lid = get_local_id(0), L = get_local_size(0);
+    double rc = INFINITY;
+    int rounds = 0, conv = 0;
+    for (int round = 0; round < max_rounds; ++round) {
+        double my = 0.0;
+        for (int o = 0; o < 4; ++o) {
+            const int flip_i = (o == 1 || o == 2), flip_j = (o == 2 || o == 3);
+            for (int d = 0; d < R + C - 1; ++d) {
+                const int i0 = max(0, d - (C - 1)), i1 = min(R - 1, d);
+                for (int ii = i0 + lid; ii <= i1; ii += L) {
+                    const int jj = d - ii;
+                    const int i = flip_i ? R - 1 - ii : ii;
+                    const int j = flip_j ? C - 1 - jj : jj;
+                    const int c = i * C + j;
+                    if (!upd[c] || !dirty[c]) continue;
+                    dirty[c] = 0;
+                    const double dec = cell2(z, rhs, eh, ev, i, j, R, C);
+                    if (dec > 0.0) {
+                        my = fmax(my, dec);
+                        mark2(dirty, i - 1, j, R, C); mark2(dirty, i + 1, j, R, C);
+                        mark2(dirty, i - 2, j, R, C); mark2(dirty, i + 2, j, R, C);
+                        mark2(dirty, i, j - 1, R, C); mark2(dirty, i, j + 1, R, C);
+                        mark2(dirty, i, j - 2, R, C); mark2(dirty, i, j + 2, R, C);
+                    }
+                }
+                barrier(CLK_GLOBAL_MEM_FENCE);
+            }
+        }
+        red[lid] = my;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (lid == 0) {
+            double m = 0.0;
+            for (int k = 0; k < L; ++k) m = fmax(m, red[k]);
+            red[0] = m;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        rc = red[0];
+        barrier(CLK_LOCAL_MEM_FENCE);
+        rounds += 1;
+        if (rc <= tol) { conv = 1; break; }
+    }
+    if (lid == 0) { out[0] = 4.0 * rounds; out[1] = rc; out[2] = conv; }
+}
+"""
+
 _KERNEL = r"""
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
@@ -161,11 +311,32 @@ def _program(model: int, scheme: int):
     return cl.Kernel(prg, "fsm")
 
 
-def opencl_available() -> bool:
-    """True when pyopencl finds a float64-capable device that builds the sweeping kernel (PoCL
-    fails on CPUs its LLVM does not know, e.g. ``unknown target CPU 'generic'``)."""
+@lru_cache(maxsize=2)
+def _program2(cos2: int):
+    import pyopencl as cl
+
+    ctx, _ = _context()
+    prg = cl.Program(ctx, kernel2_source()).build(options=[f"-DCOS2={int(cos2)}"])
+    return cl.Kernel(prg, "fsm2"), cl.Kernel(prg, "edges2")
+
+
+def kernel2_source() -> str:
+    """OpenCL C source of the second-order kernels (``fsm2``, ``edges2``)."""
+    from nirspi_pipe.sfs.second_order import F_MAX, GAUSS_Q, HALF_PI
+
+    consts = {"big": BIG, "half_pi": HALF_PI, "gauss_q": GAUSS_Q, "f_max": F_MAX}
+    return _KERNEL2 % {k: float(v) for k, v in consts.items()}
+
+
+def opencl_available(scheme: str = "godunov") -> bool:
+    """True when pyopencl finds a float64-capable device that builds the sweeping kernel for
+    ``scheme`` (PoCL fails on CPUs its LLVM does not know, e.g. ``unknown target CPU
+    'generic'``)."""
     try:
-        _program(0, 1)
+        if scheme == "second_order":
+            _program2(1)
+        else:
+            _program(0, 1)
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return False
     return True
@@ -177,14 +348,18 @@ def solve_opencl(
     tol: float = 1e-4,
     max_sweeps: int = 2000,
     local_size: int = 1,
+    slope_average: str = "cos2",
 ) -> SweepResult:
     """Same contract as :func:`nirspi_pipe.sfs.sweeping.solve_numpy`, on an OpenCL device.
 
     ``local_size`` work-items share each anti-diagonal. On a CPU device one work-item (the
     default) is fastest: the kernel is then plain compiled Gauss–Seidel and skips the
-    barrier bookkeeping.
+    barrier bookkeeping. ``slope_average`` is used by ``scheme="second_order"`` only.
     """
     import pyopencl as cl
+
+    if scheme == "second_order":
+        return _solve_second_order(problem, tol, max_sweeps, local_size, slope_average)
 
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
@@ -219,6 +394,54 @@ def solve_opencl(
         queue, (lsz,), (lsz,), *bufs,
         np.int32(rows), np.int32(cols), np.float64(sx), np.float64(sy),
         np.float64(2.0 / float(problem.focal_px)), np.int32(max_rounds), np.float64(tol),
+        out_buf, cl.LocalMemory(8 * lsz),
+    )
+    cl.enqueue_copy(queue, z, bufs[0])
+    cl.enqueue_copy(queue, out, out_buf)
+    queue.finish()
+    return SweepResult(z, int(out[0]), float(out[1]), bool(out[2]))
+
+
+def _solve_second_order(
+    problem: SweepProblem, tol: float, max_sweeps: int, local_size: int, slope_average: str
+) -> SweepResult:
+    """``scheme="second_order"`` on the OpenCL device (kernel ``fsm2``)."""
+    import pyopencl as cl
+
+    from nirspi_pipe.sfs.second_order import F_MAX, SLOPE_AVERAGES, slope_antiderivative
+
+    if problem.model != 0:
+        raise ValueError("the second-order scheme is implemented for the eikonal (model 0) only")
+    if slope_average not in SLOPE_AVERAGES:
+        raise ValueError(f"slope_average {slope_average!r} not in {SLOPE_AVERAGES}")
+    cos2 = slope_average == "cos2"
+    ctx, queue = _context()
+    kernel, edges = _program2(int(cos2))
+    rows, cols = problem.rhs.shape
+    rhs = np.ascontiguousarray(np.minimum(problem.rhs, F_MAX), np.float64)
+    mf = cl.mem_flags
+    z = np.ascontiguousarray(problem.init, dtype=np.float64).copy()
+    rhs_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rhs)
+    eh_buf = cl.Buffer(ctx, mf.READ_WRITE, rhs.nbytes)
+    ev_buf = cl.Buffer(ctx, mf.READ_WRITE, rhs.nbytes)
+    if cos2:  # edge slopes on the device; the per-pixel arcsin on the host (same bits as numpy)
+        v_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=slope_antiderivative(rhs))
+        edges(queue, (rows * cols,), None, rhs_buf, v_buf, np.int32(rows), np.int32(cols), eh_buf, ev_buf)
+    bufs = [
+        cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=z),
+        rhs_buf,
+        eh_buf,
+        ev_buf,
+        cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(~problem.fixed, np.uint8)),
+        cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=np.ones(rows * cols, np.uint8)),
+    ]
+    out = np.zeros(3)
+    out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
+    max_rounds = max(1, -(-int(max_sweeps) // 4))
+    lsz = int(max(1, local_size))
+    kernel(
+        queue, (lsz,), (lsz,), *bufs,
+        np.int32(rows), np.int32(cols), np.int32(max_rounds), np.float64(tol),
         out_buf, cl.LocalMemory(8 * lsz),
     )
     cl.enqueue_copy(queue, z, bufs[0])

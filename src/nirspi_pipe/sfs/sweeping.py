@@ -14,6 +14,9 @@ Two schemes, both Gauss–Seidel with the four alternating orderings of fast swe
   ``Z₁ = min(max(2Z₂ − Z₃, Z₃), Z₁)`` (the rule the paper's Alg. A2 lines 7–10 garble).
 * ``godunov`` — the Godunov upwind update of Zhao (2005), *A fast sweeping method for eikonal
   equations*, Math. Comp. 74:603, for ``|∇z| = F`` only. It converges in a handful of sweeps.
+* ``second_order`` — second-order upwind sweeping for ``|∇z| = F`` (fast marching's order-2
+  differences, with slopes averaged along the upwind edges); see
+  :mod:`nirspi_pipe.sfs.second_order`.
 
 Both start from a supersolution (a large value everywhere except the Dirichlet cells) and keep
 ``z ← min(z, z̄)``, so the iterates decrease monotonically to the viscosity solution.
@@ -47,7 +50,7 @@ __all__ = ["SweepProblem", "SweepResult", "solve_numpy", "BIG", "SCHEMES", "swee
 #: Initial value of unknown cells: finite, so nothing ever becomes inf or NaN.
 BIG = 1.0e12
 
-SCHEMES = ("lax_friedrichs", "godunov")
+SCHEMES = ("lax_friedrichs", "godunov", "second_order")
 
 
 @dataclass(frozen=True)
@@ -135,22 +138,32 @@ def _hamiltonian(model: int, p: np.ndarray, q: np.ndarray, xh: np.ndarray | None
 
 
 def solve_numpy(
-    problem: SweepProblem, scheme: str = "lax_friedrichs", tol: float = 1e-4, max_sweeps: int = 2000
+    problem: SweepProblem,
+    scheme: str = "lax_friedrichs",
+    tol: float = 1e-4,
+    max_sweeps: int = 2000,
+    slope_average: str = "cos2",
 ) -> SweepResult:
     """Solve ``problem`` by fast sweeping with vectorised anti-diagonals.
 
     Args:
         problem: the grid problem.
-        scheme: ``lax_friedrichs`` (any model) or ``godunov`` (model 0 only).
+        scheme: ``lax_friedrichs`` (any model), ``godunov`` or ``second_order`` (model 0 only).
         tol: stop when a full round of four sweeps changes no cell by more than ``tol`` (pixel
             units; KOQ's ``‖z^{k+1} − z^k‖∞ ≤ δ`` over one round).
         max_sweeps: upper bound on single-direction sweeps (rounded up to a multiple of four).
+        slope_average: ``second_order`` only: ``cos2`` or ``node`` (see
+            :mod:`nirspi_pipe.sfs.second_order`).
 
     Returns:
         :class:`SweepResult`; ``z`` is finite.
     """
     if scheme not in SCHEMES:
         raise ValueError(f"scheme {scheme!r} not in {SCHEMES}")
+    if scheme == "second_order":
+        from nirspi_pipe.sfs.second_order import solve_second_order_numpy
+
+        return solve_second_order_numpy(problem, tol, max_sweeps, slope_average)
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
     rows, cols = problem.rhs.shape
