@@ -189,14 +189,17 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
         upscaled = depth = itof = cloud = mesh = None
         if "upscale" in stages:
             upscaled = clock.call("upscale", stages["upscale"].upscale, image)
+        # 3D stages work on the finest image; their camera is that image's grid.
+        shaded = upscaled if upscaled is not None else image
+        grid = camera if shaded.data.shape[0] == n else camera.resampled(shaded.data.shape[0])
         if "sfs" in stages:
-            depth = clock.call("sfs", stages["sfs"].solve, upscaled if upscaled is not None else image, camera)
+            depth = clock.call("sfs", stages["sfs"].solve, shaded, grid)
         if "itof" in stages:
             itof = clock.call("itof", stages["itof"].measure, truth, acq, rngs["itof"])
         if "fusion" in stages:
             if depth is None:
                 raise ConfigError("fusion", cfg.get("fusion"), "null unless an sfs stage is set")
-            cloud = clock.call("fusion", stages["fusion"].fuse, depth, itof, camera)
+            cloud = clock.call("fusion", stages["fusion"].fuse, depth, itof, grid)
         if "surface" in stages:
             if cloud is None:
                 raise ConfigError("surface", cfg.get("surface"), "null unless a fusion stage is set")

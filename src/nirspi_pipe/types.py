@@ -43,12 +43,23 @@ class Camera:
 
     resolution: int = 64
     fov_deg: float = 20.0
+    #: False for a camera grid that no pattern is shown on (e.g. after ×3 upscaling): then any
+    #: resolution from 2 to 16384 is allowed. See :meth:`resampled`.
+    patterned: bool = field(default=True, repr=False)
 
     def __post_init__(self) -> None:
-        if not is_power_of_two(self.resolution) or not 2 <= self.resolution <= 4096:
-            raise ConfigError("resolution", self.resolution, "a power of two from 2 to 4096")
+        if self.patterned:
+            if not is_power_of_two(self.resolution) or not 2 <= self.resolution <= 4096:
+                raise ConfigError("resolution", self.resolution, "a power of two from 2 to 4096")
+        elif int(self.resolution) != self.resolution or not 2 <= self.resolution <= 16384:
+            raise ConfigError("resolution", self.resolution, "an integer from 2 to 16384")
         if not 0.0 < float(self.fov_deg) < 170.0:
             raise ConfigError("fov_deg", self.fov_deg, "degrees in (0, 170)")
+
+    def resampled(self, resolution: int) -> "Camera":
+        """The same camera (field of view, pose) on an ``resolution × resolution`` grid, e.g. the
+        grid of an upscaled image; no Hadamard patterns live on it, so any size is allowed."""
+        return Camera(resolution=int(resolution), fov_deg=self.fov_deg, patterned=False)
 
     @property
     def focal_px(self) -> float:

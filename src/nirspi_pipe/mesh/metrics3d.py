@@ -26,7 +26,9 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 
+import matplotlib.tri as mtri
 import numpy as np
+from scipy.spatial import Delaunay, QhullError
 from scipy.spatial import cKDTree
 
 from nirspi_pipe.errors import ConfigError
@@ -124,30 +126,40 @@ def surface_distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return 0.5 * (float(da.mean()) + float(db.mean())), max(float(da.max()), float(db.max()))
 
 
+def _to_grid(z: np.ndarray, n: int) -> np.ndarray:
+    """``z`` on an ``n × n`` grid: unchanged when it already is, else the NaN-aware mean of its
+    ``k × k`` blocks (an SFS depth map of an image upscaled ×k)."""
+    if z.shape == (n, n):
+        return z
+    k = z.shape[0] // n
+    if z.shape != (n * k, n * k):
+        raise ValueError(f"depth map {z.shape} is not a whole multiple of the {n}x{n} truth grid")
+    blocks = z.reshape(n, k, n, k)
+    count = np.isfinite(blocks).sum(axis=(1, 3))
+    total = np.nansum(blocks, axis=(1, 3))
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+
+
 def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
     """z-depth ``(n, n)`` (metres) of a cloud at each pixel centre, linear over the Delaunay
-    triangulation of the points' normalised image coordinates; NaN outside their hull."""
-    from scipy.spatial import Delaunay, QhullError
+    triangulation of the points' normalised image coordinates; NaN outside their hull.
 
+    Uses matplotlib's triangle finder: scipy's ``Delaunay.find_simplex`` was seen to take
+    seconds on these clouds once an OpenCL runtime had been loaded in the process.
+    """
     x, y = camera.pixel_coords()
     n = camera.resolution
-    p = points[points[:, 2] > 0]
+    p = points[np.isfinite(points).all(axis=1) & (points[:, 2] > 0)]
     if len(p) < 3:
         return np.full((n, n), np.nan)
     uv = p[:, :2] / p[:, 2:3]
     try:
-        tri = Delaunay(uv)
+        simplices = Delaunay(uv).simplices
     except QhullError:
         return np.full((n, n), np.nan)
-    q = np.column_stack([x[..., 0].ravel(), y[..., 0].ravel()])
-    simplex = tri.find_simplex(q)
-    inside = simplex >= 0
-    t = tri.transform[simplex[inside]]  # affine maps to barycentric coordinates
-    b = np.einsum("ijk,ik->ij", t[:, :2], q[inside] - t[:, 2])
-    bary = np.column_stack([b, 1.0 - b.sum(axis=1)])
-    out = np.full(n * n, np.nan)
-    out[inside] = np.einsum("ij,ij->i", bary, p[tri.simplices[simplex[inside]], 2])
-    return out.reshape(n, n)
+    tri = mtri.Triangulation(uv[:, 0], uv[:, 1], simplices)
+    z = mtri.LinearTriInterpolator(tri, p[:, 2])(x[..., 0], y[..., 0])
+    return np.ma.filled(z.astype(np.float64), np.nan).reshape(n, n)
 
 
 @dataclass(frozen=True)
@@ -190,12 +202,14 @@ class Metrics3D:
             sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
             faces = grid_triangles(sfs_valid)
             if len(faces):
-                verts = back_project(np.where(sfs_valid, z_sfs, 0.0), cam).reshape(-1, 3)
+                sfs_cam = cam if z_sfs.shape[0] == cam.resolution else cam.resampled(z_sfs.shape[0])
+                verts = back_project(np.where(sfs_valid, z_sfs, 0.0), sfs_cam).reshape(-1, 3)
                 out.update(
                     {k: v for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
                      if k in ("skewness_sfs_mean", "skewness_sfs_p95")}
                 )
         if z_sfs is not None and cloud is not None:
+            z_sfs = _to_grid(z_sfs, cam.resolution)  # an upscaled SFS grid is scored on the truth's
             z_fused = _interpolate_depth(np.asarray(cloud.points_m), cam)
             both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused)
             if both.any():
