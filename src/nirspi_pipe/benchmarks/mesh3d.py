@@ -1,6 +1,6 @@
 """``nirspi-bench mesh3d``: the whole 3D path at 64² against the paper's 147–168 ms (Table 6).
 
-Times SFS (a stand-in from the ground truth unless ``--sfs TARGET`` names a real sfs class),
+Times SFS (a stand-in from the ground truth unless ``--sfs NAME`` names a real sfs option),
 iToF, fusion, surface and metrics on the default sphere, as one call each per repetition, and
 reports the median per stage and in total. Reference measured in the same run: the 2D
 reconstruction (``FWHTSolver.solve`` of the same acquisition) — the ratio says how many 2D
@@ -24,9 +24,19 @@ import numpy as np
 from nirspi_pipe.benchmarks import median_time_s
 
 
-def _load(target: str):  # type: ignore[no-untyped-def]
-    module, _, name = target.rpartition(".")
-    return getattr(importlib.import_module(module), name)()
+def _load(target: str, backend: str | None):  # type: ignore[no-untyped-def]
+    """An sfs stage from a config option name (``second_order``) or an import path."""
+    if "." in target:
+        module, _, name = target.rpartition(".")
+        return getattr(importlib.import_module(module), name)()
+    from hydra import compose, initialize_config_module
+
+    from nirspi_pipe.pipeline import build
+
+    overrides = [f"sfs={target}"] + ([f"sfs.backend={backend}"] if backend else [])
+    with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    return build(cfg.sfs, "sfs")
 
 
 def main(argv: list[str]) -> int:
@@ -46,7 +56,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--repeat", type=int, default=15)
     parser.add_argument("--surface", choices=["power_crust", "poisson"], default="power_crust")
-    parser.add_argument("--sfs", default=None, help="import path of a real sfs class (default: stand-in)")
+    parser.add_argument("--sfs", default=None,
+                        help="an sfs config option (second_order, godunov, lax_friedrichs, …) or the "
+                             "import path of an sfs class (default: a stand-in from the truth)")
+    parser.add_argument("--sfs-backend", default=None, choices=["numpy", "opencl"],
+                        help="sfs.backend for a config option")
     ns = parser.parse_args(argv)
 
     cam = Camera(ns.resolution)
@@ -58,7 +72,7 @@ def main(argv: list[str]) -> int:
     fusion = ItofFusion()
     surface = PowerCrust() if ns.surface == "power_crust" else ScreenedPoisson()
     metrics = Metrics3D()
-    sfs = _load(ns.sfs) if ns.sfs else None
+    sfs = _load(ns.sfs, ns.sfs_backend) if ns.sfs else None
 
     def run_sfs():  # type: ignore[no-untyped-def]
         if sfs is not None:
@@ -86,7 +100,7 @@ def main(argv: list[str]) -> int:
         stage_ms["total"].append((t[-1] - t[0]) * 1e3)
     ref_ms = median_time_s(lambda: solver.solve(acq), ns.repeat) * 1e3
     med = {k: float(np.median(v)) for k, v in stage_ms.items()}
-    sfs_name = ns.sfs or "stand-in (truth degraded)"
+    sfs_name = (f"{ns.sfs}/{ns.sfs_backend or 'default'}") if ns.sfs else "stand-in (truth degraded)"
     print(f"3D path at {ns.resolution}^2, surface={ns.surface}, sfs={sfs_name}, {ns.repeat} repetitions (median ms), "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for k, v in med.items():
