@@ -177,7 +177,8 @@ class NirspiSweeperBase(Sweeper):
             if key in seen:
                 job["duplicate"] = True  # identical config (e.g. two experiments share a grid): run once
             elif not skipped:
-                to_launch.append([*overrides, f"hydra.sweep.subdir={key}"])
+                # quoted: an unquoted hex key such as 4703e54460190101 parses as a float (inf)
+                to_launch.append([*overrides, f"hydra.sweep.subdir='{key}'"])
             seen.add(key)
             jobs.append(job)
         n_dup = sum(bool(j.get("duplicate")) for j in jobs)

@@ -64,7 +64,7 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
     table.to_csv(out_dir / f"{name}.csv", index=False, float_format="%.6g")
     (out_dir / f"{name}.md").write_text(_markdown(table, frame, df, name, fog))
     t = table.set_index("scan").reindex(list(SCANS))
-    bar_plot(out_dir / f"{name}.png", f"{name.title()}: equiangle skewness, {'fog' if fog else 'no fog'}",
+    bar_plot(out_dir / f"{name}.png", f"Table {name[len('table'):]}: equiangle skewness, {'fog' if fog else 'no fog'}",
              [SCAN_LABELS[s] for s in SCANS],
              {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
              {k: t[f"paper_{k}"].tolist() for k in COLUMNS}, "mean equiangle skewness (0 best, 1 degenerate)")
@@ -79,7 +79,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, name: str, fog: bool) -> str:
     title = "with 3 µm fog" if fog else "without fog"
     lines = [
-        f"# {name.title()}: surface quality (mean equiangle skewness), {title}",
+        f"# Table {name[len('table'):]}: surface quality (mean equiangle skewness), {title}",
         "",
         "Each cell: ours, mean ± std over objects × seeds × kLux (the paper's value). "
         "† marks a paired difference to Basic beyond two standard errors. "
