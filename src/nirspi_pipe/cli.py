@@ -144,7 +144,8 @@ def execute_job(
         if p.mesh is not None:
             from nirspi_pipe.mesh.outputs import write_mesh_outputs
 
-            write_mesh_outputs(out_dir, p)  # mesh.ply and mesh.png (mesh beside the truth)
+            # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
+            write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
     write_record(out_dir, record)
     return record
 

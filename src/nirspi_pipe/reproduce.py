@@ -71,7 +71,9 @@ def compare_tables(new: pd.DataFrame, ref: pd.DataFrame, rtol: float, atol: floa
             continue
         a, b = new[c].reset_index(drop=True), ref[c].reset_index(drop=True)
         na, nb = pd.to_numeric(a, errors="coerce"), pd.to_numeric(b, errors="coerce")
-        if nb.notna().sum() == b.notna().sum() and b.notna().any():
+        # numeric when every non-missing cell of both is a number (an all-NaN column is numeric:
+        # with pandas 3, astype(str) keeps NaN and NaN != NaN would fail the string comparison)
+        if nb.notna().sum() == b.notna().sum() and na.notna().sum() == a.notna().sum():
             av, bv = na.to_numpy(float), nb.to_numpy(float)
             ok = np.isclose(av, bv, rtol=rtol, atol=atol, equal_nan=True)
             for i in np.flatnonzero(~ok):

@@ -79,7 +79,7 @@ def progress_line(sweep_dir: Path) -> str | None:
     started = float(info["started"])
     done = failed = 0
     for job in info["jobs"]:
-        if job.get("skipped"):
+        if job.get("skipped") or job.get("duplicate"):
             continue
         rec = Path(sweep_dir) / job["key"] / RECORD_NAME
         try:
@@ -98,7 +98,7 @@ def progress_line(sweep_dir: Path) -> str | None:
         s = int(round(s))
         return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
 
-    skipped = int(info["total"]) - total
+    skipped = sum(bool(j.get("skipped")) and not j.get("duplicate") for j in info["jobs"])
     parts = [f"{done}/{total} jobs done" + (f" ({failed} failed)" if failed else "")]
     if skipped:
         parts[0] += f", {skipped} skipped"
@@ -168,16 +168,22 @@ class NirspiSweeperBase(Sweeper):
         started = time.time()
         jobs: list[dict[str, Any]] = []
         to_launch: list[list[str]] = []
+        seen: set[str] = set()
         for overrides in self._expand(arguments):
             job_cfg = loader.load_sweep_config(self.config, overrides)
             key = job_key(job_cfg)
             skipped = self.resume and _record_status(sweep_dir / key) == "ok"
-            jobs.append({"key": key, "overrides": overrides, "skipped": skipped})
-            if not skipped:
-                to_launch.append([*overrides, f"hydra.sweep.subdir={key}"])
-        keys = [j["key"] for j in jobs]
-        if len(set(keys)) != len(keys):
-            log.warning("some jobs of this sweep have identical configs; they share one folder")
+            job: dict[str, Any] = {"key": key, "overrides": overrides, "skipped": skipped}
+            if key in seen:
+                job["duplicate"] = True  # identical config (e.g. two experiments share a grid): run once
+            elif not skipped:
+                # quoted: an unquoted hex key such as 4703e54460190101 parses as a float (inf)
+                to_launch.append([*overrides, f"hydra.sweep.subdir='{key}'"])
+            seen.add(key)
+            jobs.append(job)
+        n_dup = sum(bool(j.get("duplicate")) for j in jobs)
+        if n_dup:
+            log.warning("%d jobs of this sweep repeat another job's config; each config runs once", n_dup)
         info = {
             "started": started,
             "experiments": self.experiments,
@@ -188,10 +194,11 @@ class NirspiSweeperBase(Sweeper):
         tmp = sweep_dir / (SWEEP_FILE + ".tmp")
         tmp.write_text(json.dumps(info, indent=1))
         tmp.replace(sweep_dir / SWEEP_FILE)
-        n_skip = len(jobs) - len(to_launch)
+        n_skip = sum(bool(j["skipped"]) and not j.get("duplicate") for j in jobs)
         print(
             f"nirspi-run: sweep of {len(jobs)} jobs in {sweep_dir}: {len(to_launch)} to run"
-            + (f", {n_skip} skipped (already complete)" if n_skip else ""),
+            + (f", {n_skip} skipped (already complete)" if n_skip else "")
+            + (f", {n_dup} identical to another job (run once)" if n_dup else ""),
             flush=True,
         )
         returns: list[Sequence[Any]] = []

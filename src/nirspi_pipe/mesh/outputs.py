@@ -74,15 +74,19 @@ def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, i
     return path
 
 
-def write_mesh_outputs(folder: Path, products: Products) -> list[Path]:
-    """Write ``mesh.ply`` and ``mesh.png`` into ``folder`` when the run produced a mesh with faces;
-    returns the written paths (empty otherwise). A failing render is warned about, not raised."""
+def write_mesh_outputs(folder: Path, products: Products, render: bool = True) -> list[Path]:
+    """Write ``mesh.ply`` and (when ``render``) ``mesh.png`` into ``folder`` when the run produced
+    a mesh with faces; returns the written paths (empty otherwise). A failing render is warned
+    about, not raised. The runner passes ``render = output.images``: sweeps that write no images
+    skip the off-screen render (hundreds of ms per job)."""
     mesh = products.mesh
     if mesh is None or len(mesh.faces) == 0:
         return []
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written = [write_ply(folder / "mesh.ply", mesh)]
+    if not render:
+        return written
     try:
         truth = truth_mesh(products.truth) if products.truth is not None else None
         written.append(render_meshes(folder / "mesh.png", mesh, truth))

@@ -1,0 +1,163 @@
+"""Helpers shared by the §7 builders (Tables 3–7, Figure 9): row selection, per-scan statistics,
+paired differences between scan methods, the paper's numbers, and writing/plotting.
+
+Statistics. Every number is a mean over the jobs of one scan method (and condition) — objects ×
+seeds (× kLux where a table pools them) — with its sample standard deviation (``ddof = 1``),
+minimum, maximum and count. The experiments share seeds across scan methods, so the four scans of
+one (object, seed, kLux) see the same noise and the same background/fog trajectories in time: the
+difference to the *Basic* scan is paired. ``d_vs_basic`` is the mean paired difference and
+``se_vs_basic`` its standard error (``std/√n``); ``|d| > 2·se`` is marked significant (†).
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+__all__ = [
+    "SCANS",
+    "SCAN_LABELS",
+    "ok_rows",
+    "stats",
+    "paired_vs_basic",
+    "paper_reference",
+    "fmt",
+    "signif",
+    "failures_note",
+    "conditions_note",
+    "bar_plot",
+]
+
+#: The paper's four scan methods, in its row order.
+SCANS = ("basic", "hilbert", "zigzag", "spiral")
+SCAN_LABELS = {"basic": "Basic", "hilbert": "Hilbert", "zigzag": "Zig-Zag", "spiral": "Spiral"}
+#: Columns that identify one paired sample (present ones are used).
+PAIR_KEYS = ("scene", "seed", "illumination.klux")
+
+
+def ok_rows(frame: pd.DataFrame, need: list[str], experiment: str) -> pd.DataFrame:
+    """The successful rows of ``frame`` whose scan is one of :data:`SCANS`.
+
+    Raises ``ValueError`` naming the experiment to run when a needed column is missing (the frame
+    did not come from that sweep) or when no row is usable.
+    """
+    missing = [c for c in ["scan", *need] if c not in frame.columns]
+    if missing:
+        raise ValueError(f"needs columns {missing}: run `nirspi-run -m +experiment={experiment}`")
+    df = frame[frame["status"] == "ok"] if "status" in frame.columns else frame
+    df = df[df["scan"].isin(SCANS)].copy()
+    if df.empty:
+        raise ValueError(f"no successful job of the four scan methods: run `nirspi-run -m +experiment={experiment}`")
+    return df
+
+
+def stats(values: pd.Series | np.ndarray, prefix: str) -> dict[str, float]:
+    """``{prefix_mean, prefix_std, prefix_min, prefix_max}`` of the finite values (NaN if none);
+    the std is the sample std (ddof = 1), 0 for a single value."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {f"{prefix}_{k}": np.nan for k in ("mean", "std", "min", "max")}
+    return {
+        f"{prefix}_mean": float(v.mean()),
+        f"{prefix}_std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+        f"{prefix}_min": float(v.min()),
+        f"{prefix}_max": float(v.max()),
+    }
+
+
+def paired_vs_basic(df: pd.DataFrame, metric: str, scan: str) -> tuple[float, float, int]:
+    """Mean and standard error of ``metric(scan) − metric(basic)`` over the samples both scans have
+    (paired on scene, seed and kLux), and the number of pairs. ``(0, 0, n)`` for ``basic`` itself;
+    the standard error is NaN with fewer than two pairs."""
+    keys = [k for k in PAIR_KEYS if k in df.columns]
+    sub = df[df["scan"].isin(["basic", scan])]
+    if not keys:
+        return np.nan, np.nan, 0
+    wide = sub.pivot_table(index=keys, columns="scan", values=metric, aggfunc="mean")
+    if "basic" not in wide or scan not in wide:
+        return np.nan, np.nan, 0
+    d = (wide[scan] - wide["basic"]).to_numpy(dtype=np.float64)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return np.nan, np.nan, 0
+    se = float(d.std(ddof=1) / np.sqrt(d.size)) if d.size > 1 else np.nan
+    return float(d.mean()), se, int(d.size)
+
+
+def paper_reference(name: str) -> pd.DataFrame:
+    """The paper's numbers for table ``name`` (``experiments/reference/<name>.csv``, installed)."""
+    path = Path(str(resources.files("nirspi_pipe.experiments"))) / "reference" / f"{name}.csv"
+    return pd.read_csv(path)
+
+
+def fmt(mean: float, std: float, digits: int = 2) -> str:
+    """``"m ± s"`` (``"n/a"`` for NaN)."""
+    if not np.isfinite(mean):
+        return "n/a"
+    return f"{mean:.{digits}f} ± {std:.{digits}f}" if np.isfinite(std) else f"{mean:.{digits}f}"
+
+
+def signif(d: float, se: float) -> str:
+    """``"†"`` when a paired difference is more than two standard errors from 0."""
+    return "†" if np.isfinite(d) and np.isfinite(se) and se > 0 and abs(d) > 2 * se else ""
+
+
+def failures_note(frame: pd.DataFrame, used: pd.DataFrame) -> str:
+    """One sentence on how many jobs the table used and how many failed (never silently dropped)."""
+    total = int(frame["scan"].isin(SCANS).sum()) if "scan" in frame.columns else len(frame)
+    bad = total - len(used)
+    note = f"{len(used)} successful jobs"
+    if bad:
+        errs = frame.loc[frame["status"] != "ok", "error"].dropna().astype(str) if "error" in frame else pd.Series([], dtype=str)
+        top = errs.value_counts().head(2)
+        note += f"; {bad} failed or missing, left out" + (
+            " (" + "; ".join(f"{n}× {e[:90]}" for e, n in top.items()) + ")" if len(top) else "")
+    return note + "."
+
+
+def conditions_note(df: pd.DataFrame) -> str:
+    """Objects, seeds and kLux levels that the rows cover."""
+    parts = []
+    if "scene" in df.columns:
+        parts.append("objects " + ", ".join(sorted(map(str, df["scene"].dropna().unique()))))
+    if "seed" in df.columns:
+        parts.append(f"{df['seed'].nunique()} seeds")
+    if "illumination.klux" in df.columns:
+        parts.append("background " + ", ".join(f"{k:g}" for k in sorted(df["illumination.klux"].dropna().unique())) + " kLux")
+    return "; ".join(parts)
+
+
+def bar_plot(path: Path, title: str, groups: list[str], series: dict[str, tuple[list[float], list[float]]],
+             paper: dict[str, list[float]] | None, ylabel: str) -> None:
+    """Grouped bars (one group per scan method): ours (mean, std error bars) and the paper's values
+    (hatched), written as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(series)
+    k = len(names) + (len(paper) if paper else 0)
+    width = 0.8 / max(k, 1)
+    x = np.arange(len(groups))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    i = 0
+    for name in names:
+        mean, std = series[name]
+        ax.bar(x + (i - (k - 1) / 2) * width, mean, width, yerr=std, capsize=3, label=f"ours: {name}")
+        i += 1
+    for name, vals in (paper or {}).items():
+        ax.bar(x + (i - (k - 1) / 2) * width, vals, width, fill=False, hatch="//", label=f"paper: {name}")
+        i += 1
+    ax.set_xticks(x)
+    ax.set_xticklabels(groups)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

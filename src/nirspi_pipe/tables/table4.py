@@ -1,0 +1,104 @@
+"""Table 4: mesh quality (equiangle skewness) of the SFS mesh and of the final mesh (iToF mapping +
+heat filter + power crust), per scan method, without fog. Table 5 is the same with fog
+(:mod:`nirspi_pipe.tables.table5` calls :func:`build_skewness`).
+
+* ``skewness_sfs``: ``metrics.skewness_sfs_mean``, the mean equiangle skewness
+  ``max((θmax − 60°)/120°, (60° − θmin)/60°)`` of the pixel-grid mesh of the metric SFS depth;
+* ``skewness_mesh_itof``: ``metrics.skewness_mean``, the same for the final power-crust mesh.
+
+Rows: one per scan method, mean ± std (min, max) over objects × seeds × kLux levels, the paper's
+values, the difference (ours − paper) and the paired difference to *Basic*. Writes
+``<name>.csv``, ``<name>.md`` and ``<name>.png``. From ``nirspi-run -m +experiment=table4``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from nirspi_pipe.tables._common import (
+    SCAN_LABELS,
+    SCANS,
+    bar_plot,
+    conditions_note,
+    failures_note,
+    fmt,
+    ok_rows,
+    paired_vs_basic,
+    paper_reference,
+    signif,
+    stats,
+)
+from nirspi_pipe.tables.table3 import fogged
+
+__all__ = ["build", "build_skewness"]
+
+COLUMNS = {"skewness_sfs": "metrics.skewness_sfs_mean", "skewness_mesh_itof": "metrics.skewness_mean"}
+
+
+def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> pd.DataFrame:
+    """Skewness table ``name`` (table4: ``fog=False``, table5: ``fog=True``) into ``out_dir``."""
+    out_dir = Path(out_dir)
+    df = ok_rows(frame, list(COLUMNS.values()), name)
+    df = df[fogged(df) == fog]
+    if df.empty:
+        raise ValueError(f"{name} needs {'fogged' if fog else 'fog-free'} jobs: run `nirspi-run -m +experiment={name}`")
+    paper = paper_reference(name).set_index("scan")
+    rows = []
+    for scan in SCANS:
+        g = df[df["scan"] == scan]
+        if g.empty:
+            continue
+        row: dict = {"scan": scan, "n": int(len(g))}
+        for key, col in COLUMNS.items():
+            st = stats(g[col], key)
+            d, se, _ = paired_vs_basic(df, col, scan)
+            p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
+            row.update(st)
+            row.update({f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
+                        f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    table.to_csv(out_dir / f"{name}.csv", index=False, float_format="%.6g")
+    (out_dir / f"{name}.md").write_text(_markdown(table, frame, df, name, fog))
+    t = table.set_index("scan").reindex(list(SCANS))
+    bar_plot(out_dir / f"{name}.png", f"Table {name[len('table'):]}: equiangle skewness, {'fog' if fog else 'no fog'}",
+             [SCAN_LABELS[s] for s in SCANS],
+             {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
+             {k: t[f"paper_{k}"].tolist() for k in COLUMNS}, "mean equiangle skewness (0 best, 1 degenerate)")
+    return table
+
+
+def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
+    """Build Table 4 (no fog) from a results frame into ``out_dir``."""
+    return build_skewness(frame, out_dir, "table4", fog=False)
+
+
+def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, name: str, fog: bool) -> str:
+    title = "with 3 µm fog" if fog else "without fog"
+    lines = [
+        f"# Table {name[len('table'):]}: surface quality (mean equiangle skewness), {title}",
+        "",
+        "Each cell: ours, mean ± std over objects × seeds × kLux (the paper's value). "
+        "† marks a paired difference to Basic beyond two standard errors. "
+        "ANSYS bands: < 0.25 excellent, < 0.5 good, < 0.75 fair, < 0.9 poor.",
+        "",
+        "| Scanning method | Skewness SFS | Skewness mesh+iToF |",
+        "|---|---:|---:|",
+    ]
+    for r in table.itertuples():
+        cells = [f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'))} ({getattr(r, f'paper_{k}'):.2f})"
+                 f"{signif(getattr(r, f'{k}_d_vs_basic'), getattr(r, f'{k}_se_vs_basic'))}" for k in COLUMNS]
+        lines.append(f"| {SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        f"Ranges over all jobs: SFS {table['skewness_sfs_min'].min():.2f}–{table['skewness_sfs_max'].max():.2f}, "
+        f"mesh+iToF {table['skewness_mesh_itof_min'].min():.2f}–{table['skewness_mesh_itof_max'].max():.2f}. "
+        f"Mean change SFS → mesh+iToF: {(table['skewness_mesh_itof_mean'] - table['skewness_sfs_mean']).mean():+.2f} "
+        f"(paper: {(table['paper_skewness_mesh_itof'] - table['paper_skewness_sfs']).mean():+.2f}).",
+        "",
+        f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame) == fog], df)}",
+    ]
+    return "\n".join(lines) + "\n"
