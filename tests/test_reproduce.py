@@ -24,3 +24,8 @@ def test_numeric_tolerance_and_text_differences_are_reported() -> None:
     assert len(problems) == 1 and "hilbert" in problems[0]
     assert compare_tables(ref.iloc[:1], ref, 1e-3, 0)  # row count differs
     assert compare_tables(ref.drop(columns="psnr"), ref, 1e-3, 0)  # column missing
+
+
+def test_all_nan_columns_compare_equal() -> None:
+    ref = pd.DataFrame({"scan": ["basic"], "skew": [np.nan]})
+    assert compare_tables(ref.copy(), ref, rtol=1e-6, atol=0) == []

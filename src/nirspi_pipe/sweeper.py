@@ -54,6 +54,12 @@ def job_key(job_cfg: Any) -> str:
     return config_hash(resolved)
 
 
+def subdir_override(key: str) -> str:
+    """The override that puts a job in folder ``key``. Quoted: Hydra would read an unquoted hex
+    key such as ``4703e54460190101`` as a float (``inf``), and jobs would share a folder."""
+    return f"hydra.sweep.subdir='{key}'"
+
+
 def read_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
     """``sweep.json`` of a sweep folder, or None when there is none (e.g. a basic sweep)."""
     path = Path(sweep_dir) / SWEEP_FILE
@@ -178,7 +184,7 @@ class NirspiSweeperBase(Sweeper):
                 job["duplicate"] = True  # identical config (e.g. two experiments share a grid): run once
             elif not skipped:
                 # quoted: an unquoted hex key such as 4703e54460190101 parses as a float (inf)
-                to_launch.append([*overrides, f"hydra.sweep.subdir='{key}'"])
+                to_launch.append([*overrides, subdir_override(key)])
             seen.add(key)
             jobs.append(job)
         n_dup = sum(bool(j.get("duplicate")) for j in jobs)
