@@ -87,3 +87,20 @@ def test_metrics3d_on_a_3d_run():
     # a 2D-only run gets the image metrics only
     only2d = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance)))
     assert set(only2d) == {"ssim", "psnr", "rmse"}
+
+
+def test_depth_interpolation_survives_degenerate_clouds() -> None:
+    """A cloud with repeated and collinear points (seen in a torus run) must not raise."""
+    from nirspi_pipe.mesh.metrics3d import _interpolate_depth
+    from nirspi_pipe.types import Camera
+
+    cam = Camera(resolution=16)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-0.02, 0.02, (40, 2)), rng.uniform(0.19, 0.21, 40)])
+    pts = np.vstack([pts, pts[:10], [[0.0, 0.0, 0.2], [1e-12, 0.0, 0.2], [2e-12, 0.0, 0.2]]])
+    z = _interpolate_depth(pts, cam)
+    assert z.shape == (16, 16)
+    inside = np.isfinite(z)
+    assert inside.any() and np.all((z[inside] > 0.18) & (z[inside] < 0.22))
+    line = np.array([[0.0, 0.0, 0.2], [0.01, 0.0, 0.2], [0.02, 0.0, 0.2]])
+    assert np.isnan(_interpolate_depth(line, cam)).all()  # no area: nothing to interpolate

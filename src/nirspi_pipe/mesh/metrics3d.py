@@ -153,13 +153,22 @@ def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
     if len(p) < 3:
         return np.full((n, n), np.nan)
     uv = p[:, :2] / p[:, 2:3]
+    uv, first = np.unique(uv, axis=0, return_index=True)  # a repeated point breaks a triangulation
+    z = p[first, 2]
+    if len(uv) < 3:
+        return np.full((n, n), np.nan)
     try:
         simplices = Delaunay(uv).simplices
     except QhullError:
         return np.full((n, n), np.nan)
-    tri = mtri.Triangulation(uv[:, 0], uv[:, 1], simplices)
-    z = mtri.LinearTriInterpolator(tri, p[:, 2])(x[..., 0], y[..., 0])
-    return np.ma.filled(z.astype(np.float64), np.nan).reshape(n, n)
+    try:
+        tri = mtri.Triangulation(uv[:, 0], uv[:, 1], simplices)
+        zi = mtri.LinearTriInterpolator(tri, z)(x[..., 0], y[..., 0])
+        return np.ma.filled(zi.astype(np.float64), np.nan).reshape(n, n)
+    except (RuntimeError, ValueError):  # matplotlib rejects near-degenerate triangulations
+        from scipy.interpolate import LinearNDInterpolator
+
+        return LinearNDInterpolator(uv, z)(x[..., 0], y[..., 0]).reshape(n, n)
 
 
 @dataclass(frozen=True)
