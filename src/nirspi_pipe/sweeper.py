@@ -163,6 +163,48 @@ class NirspiSweeperBase(Sweeper):
             jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))
         return jobs
 
+    def _compose(self, overrides: list[str], bases: dict[tuple[str, ...], Any]) -> Any:
+        """A job's composed config, as the launcher will compose it, but fast.
+
+        Hydra composes the defaults list (group choices, ``+``/``~`` overrides) and then
+        applies plain ``key=value`` overrides with ``OmegaConf.update(merge=True)``. A full
+        composition costs ~0.1 s, so for a grid of N jobs we compose once per distinct set of
+        structural overrides (cached in ``bases``) and apply the value overrides to a copy,
+        exactly as Hydra does. Anything unusual falls back to Hydra's own composition.
+        """
+        import copy
+
+        loader = self.hydra_context.config_loader
+        repo = getattr(loader, "repository", None)
+        try:
+            parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
+        except Exception:  # noqa: BLE001 - Hydra reports it properly below
+            return loader.load_sweep_config(self.config, overrides)
+        structural: list[str] = []
+        updates: list[Any] = []
+        for ov, text in zip(parsed, overrides):
+            plain = (
+                repo is not None
+                and not (ov.is_add() or ov.is_delete() or ov.is_force_add())
+                and ov.package is None
+                and not ov.key_or_group.startswith("hydra")
+                and not repo.group_exists(ov.key_or_group)
+            )
+            if plain:
+                updates.append(ov)
+            else:
+                structural.append(text)
+        base_key = tuple(structural)
+        if base_key not in bases:
+            bases[base_key] = loader.load_sweep_config(self.config, list(base_key))
+        cfg = copy.deepcopy(bases[base_key])
+        try:
+            for ov in updates:
+                OmegaConf.update(cfg, ov.key_or_group, ov.value(), merge=True)
+        except Exception:  # noqa: BLE001 - e.g. an unknown key: let Hydra say it
+            return loader.load_sweep_config(self.config, overrides)
+        return cfg
+
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None
         assert self.hydra_context is not None
@@ -175,9 +217,9 @@ class NirspiSweeperBase(Sweeper):
         jobs: list[dict[str, Any]] = []
         to_launch: list[list[str]] = []
         seen: set[str] = set()
+        bases: dict[tuple[str, ...], Any] = {}
         for overrides in self._expand(arguments):
-            job_cfg = loader.load_sweep_config(self.config, overrides)
-            key = job_key(job_cfg)
+            key = job_key(self._compose(overrides, bases))
             skipped = self.resume and _record_status(sweep_dir / key) == "ok"
             job: dict[str, Any] = {"key": key, "overrides": overrides, "skipped": skipped}
             if key in seen:
