@@ -88,6 +88,18 @@ def paired_vs_basic(df: pd.DataFrame, metric: str, scan: str) -> tuple[float, fl
     return float(d.mean()), se, int(d.size)
 
 
+def compare_metric(df: pd.DataFrame, group: pd.DataFrame, scan: str, key: str, col: str,
+                   paper: pd.DataFrame) -> dict[str, float]:
+    """One scan's cells for metric ``col``: its :func:`stats` over ``group`` (prefixed ``key``),
+    the paper's value ``paper.loc[scan, key]``, the difference, and the paired difference to
+    Basic over ``df`` with its standard error."""
+    st = stats(group[col], key)
+    d, se, _ = paired_vs_basic(df, col, scan)
+    p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
+    return {**st, f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
+            f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se}
+
+
 def paper_reference(name: str) -> pd.DataFrame:
     """The paper's numbers for table ``name`` (``experiments/reference/<name>.csv``, installed)."""
     path = Path(str(resources.files("nirspi_pipe.experiments"))) / "reference" / f"{name}.csv"

@@ -15,21 +15,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from nirspi_pipe.tables._common import (
     SCAN_LABELS,
     SCANS,
     bar_plot,
+    compare_metric,
     conditions_note,
     failures_note,
     fmt,
     ok_rows,
-    paired_vs_basic,
     paper_reference,
     signif,
-    stats,
 )
 from nirspi_pipe.tables.table3 import fogged
 
@@ -53,12 +51,7 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
             continue
         row: dict = {"scan": scan, "n": int(len(g))}
         for key, col in COLUMNS.items():
-            st = stats(g[col], key)
-            d, se, _ = paired_vs_basic(df, col, scan)
-            p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
-            row.update(st)
-            row.update({f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
-                        f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})
+            row.update(compare_metric(df, g, scan, key, col, paper))
         rows.append(row)
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / f"{name}.csv", index=False, float_format="%.6g")

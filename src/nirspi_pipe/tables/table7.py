@@ -20,11 +20,11 @@ import pandas as pd
 from nirspi_pipe.tables._common import (
     SCAN_LABELS,
     SCANS,
+    compare_metric,
     conditions_note,
     failures_note,
     fmt,
     ok_rows,
-    paired_vs_basic,
     paper_reference,
     signif,
     stats,
@@ -53,12 +53,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             continue
         row: dict = {"scan": scan, "n": int(len(g))}
         for key, col in QUALITY.items():
-            st = stats(g[col], key)
-            d, se, _ = paired_vs_basic(df, col, scan)
-            p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
-            row.update(st)
-            row.update({f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
-                        f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})
+            row.update(compare_metric(df, g, scan, key, col, paper))
         st = stats(g["time_total_ms"], "time_total_ms")
         p = float(paper.loc[scan, "time_total_ms"]) if scan in paper.index else np.nan
         row.update({"time_total_ms_mean": st["time_total_ms_mean"], "time_total_ms_std": st["time_total_ms_std"],
