@@ -57,6 +57,7 @@ def test_multirun_two_jobs_and_results_table(cli) -> None:
     assert res.returncode == 0, res.stderr
     sweep = cli.cwd / "sweep"
     assert len(_records(sweep)) == 2
+    assert "2/2 jobs done" in res.stdout  # progress, printed by the sweeping process
     df = pd.read_parquet(sweep / "results.parquet")
     assert len(df) == 2 and (df["status"] == "ok").all()
     assert sorted(df["seed"]) == [0, 1]
@@ -149,6 +150,7 @@ def test_submitit_local_launcher(cli) -> None:
     assert res.returncode == 0, res.stderr
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert len(df) == 2 and (df["status"] == "ok").all()
+    assert "2/2 jobs done" in res.stdout  # progress shows on the terminal under submitit too
 
 
 def test_same_config_and_seed_are_bitwise_reproducible_across_processes(cli) -> None:

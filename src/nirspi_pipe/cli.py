@@ -180,14 +180,8 @@ def _hydra_task(cfg: Any) -> None:
             raise SystemExit(_EXIT_CONFIG if config_error else 1)
         if not quiet:
             print(_summary(record, out_dir))
-    else:
-        if failed:
-            log.error("job %s failed: %s", out_dir.name, record["meta"]["error"])
-        from nirspi_pipe.sweeper import progress_line
-
-        line = progress_line(Path(hc.sweep.dir))
-        if line:
-            print(f"nirspi-run: {line}", flush=True)
+    elif failed:
+        log.error("job %s failed: %s", out_dir.name, record["meta"]["error"])
 
 
 def run(argv: list[str] | None = None) -> None:

@@ -9,7 +9,7 @@ It expands the sweep exactly like Hydra's ``basic`` sweeper (command-line sweeps
 * skips the job when that folder already holds a complete record (``status == "ok"``), so
   rerunning a sweep command recomputes only what is missing or failed;
 * writes ``sweep.json`` in the sweep folder (start time, totals, every job's key and
-  overrides), which the jobs read to print progress and an ETA, and which
+  overrides), from which a watcher thread prints progress and an ETA as records appear, and which
   :func:`nirspi_pipe.results.collect` uses to list jobs that never wrote a record.
 
 Jobs that composed badly are not launched; they are recorded as failed with the error.
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -31,7 +32,15 @@ from omegaconf import OmegaConf
 
 from nirspi_pipe.records import RECORD_NAME, config_hash, read_record
 
-__all__ = ["NirspiSweeperBase", "register_hydra_plugins", "SWEEP_FILE", "job_key", "read_sweep_file", "progress_line"]
+__all__ = [
+    "NirspiSweeperBase",
+    "ProgressWatcher",
+    "register_hydra_plugins",
+    "SWEEP_FILE",
+    "job_key",
+    "read_sweep_file",
+    "progress_line",
+]
 
 log = logging.getLogger(__name__)
 
@@ -253,11 +262,50 @@ class NirspiSweeperBase(Sweeper):
         if not to_launch:
             return returns
         batch_size = self.max_batch_size or len(to_launch)
-        for start in range(0, len(to_launch), batch_size):
-            batch = to_launch[start : start + batch_size]
-            results = self.launcher.launch(batch, initial_job_idx=start)
-            returns.append(results)
+        watcher = ProgressWatcher(sweep_dir)
+        watcher.start()
+        try:
+            for start in range(0, len(to_launch), batch_size):
+                batch = to_launch[start : start + batch_size]
+                results = self.launcher.launch(batch, initial_job_idx=start)
+                returns.append(results)
+        finally:
+            watcher.stop()
         return returns
+
+
+class ProgressWatcher(threading.Thread):
+    """Prints :func:`progress_line` whenever another job of the sweep finishes.
+
+    It runs in the process that launched the sweep and watches the records appear in the sweep
+    folder, so progress shows on the terminal whatever the launcher (joblib workers, submitit
+    subprocesses, SLURM nodes on a shared file system).
+    """
+
+    def __init__(self, sweep_dir: Path, interval_s: float = 2.0) -> None:
+        super().__init__(name="nirspi-progress", daemon=True)
+        self.sweep_dir, self.interval_s = Path(sweep_dir), interval_s
+        self._halt = threading.Event()
+        self._last: str | None = None
+
+    def run(self) -> None:
+        while not self._halt.wait(self.interval_s):
+            self.report()
+
+    def report(self) -> None:
+        """Print the progress line if the count of finished jobs changed since the last one."""
+        line = progress_line(self.sweep_dir)
+        head = line.split(" | ", 1)[0] if line else None
+        if line and head != self._last:
+            self._last = head
+            print(f"nirspi-run: {line}", flush=True)
+
+    def stop(self) -> None:
+        """Stop watching and print the final state."""
+        self._halt.set()
+        if self.is_alive():
+            self.join()
+        self.report()
 
 
 def register_hydra_plugins() -> None:
