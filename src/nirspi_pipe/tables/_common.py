@@ -11,6 +11,7 @@ difference to the *Basic* scan is paired. ``d_vs_basic`` is the mean paired diff
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
@@ -98,6 +99,22 @@ def compare_metric(df: pd.DataFrame, group: pd.DataFrame, scan: str, key: str, c
     p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
     return {**st, f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
             f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se}
+
+
+def scan_by_level_rows(table: pd.DataFrame, levels: list[float], cell: Callable[[pd.Series], str]) -> list[str]:
+    """Markdown table lines: a header of kLux ``levels``, then one row per scan whose cells are
+    ``cell(row)`` for that scan and level (``n/a`` where the table has no such row)."""
+    lines = [
+        "| Scanning method | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
+        "|---|" + "---:|" * len(levels),
+    ]
+    for scan in SCANS:
+        cells = []
+        for k in levels:
+            r = table[(table["scan"] == scan) & (table["klux"] == k)]
+            cells.append("n/a" if r.empty else cell(r.iloc[0]))
+        lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def paper_reference(name: str) -> pd.DataFrame:

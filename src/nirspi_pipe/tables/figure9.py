@@ -23,6 +23,7 @@ from nirspi_pipe.tables._common import (
     ok_rows,
     paired_vs_basic,
     paper_reference,
+    scan_by_level_rows,
     signif,
     stats,
 )
@@ -67,21 +68,13 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, paper:
         "Each cell: SSIM / PSNR (dB), mean ± std over objects × seeds; † marks a paired "
         "difference to Basic (same objects, seeds and kLux) beyond two standard errors.",
         "",
-        "| Scanning method | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
-        "|---|" + "---:|" * len(levels),
     ]
-    for scan in SCANS:
-        cells = []
-        for k in levels:
-            r = table[(table["scan"] == scan) & (table["klux"] == k)]
-            if r.empty:
-                cells.append("n/a")
-                continue
-            r = r.iloc[0]
-            cells.append(f"{r['ssim_mean']:.3f} ± {r['ssim_std']:.3f}{signif(r['ssim_d_vs_basic'], r['ssim_se_vs_basic'])}"
-                         f" / {r['psnr_db_mean']:.2f} ± "
-                         f"{r['psnr_db_std']:.2f}{signif(r['psnr_db_d_vs_basic'], r['psnr_db_se_vs_basic'])}")
-        lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
+    lines += scan_by_level_rows(
+        table, levels,
+        lambda r: f"{r['ssim_mean']:.3f} ± {r['ssim_std']:.3f}{signif(r['ssim_d_vs_basic'], r['ssim_se_vs_basic'])}"
+                  f" / {r['psnr_db_mean']:.2f} ± "
+                  f"{r['psnr_db_std']:.2f}{signif(r['psnr_db_d_vs_basic'], r['psnr_db_se_vs_basic'])}",
+    )
     hi = table[table["klux"] == levels[-1]].sort_values("psnr_db_mean", ascending=False)
     lines += [
         "",

@@ -26,6 +26,7 @@ from nirspi_pipe.tables._common import (
     ok_rows,
     paired_vs_basic,
     paper_reference,
+    scan_by_level_rows,
     signif,
     stats,
 )
@@ -89,20 +90,12 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         "Each cell: ours, mean ± std over objects × seeds (the paper's value). "
         "† marks a scan whose paired difference to Basic exceeds two standard errors.",
         "",
-        "| Scanning method | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
-        "|---|" + "---:|" * len(levels),
     ]
-    for scan in SCANS:
-        cells = []
-        for k in levels:
-            r = table[(table["scan"] == scan) & (table["klux"] == k)]
-            if r.empty:
-                cells.append("n/a")
-                continue
-            r = r.iloc[0]
-            cells.append(f"{fmt(r['improvement_pct_mean'], r['improvement_pct_std'], 1)} % "
-                         f"({r['paper_improvement_pct']:.2f} %){signif(r['d_vs_basic'], r['se_vs_basic'])}")
-        lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
+    lines += scan_by_level_rows(
+        table, levels,
+        lambda r: f"{fmt(r['improvement_pct_mean'], r['improvement_pct_std'], 1)} % "
+                  f"({r['paper_improvement_pct']:.2f} %){signif(r['d_vs_basic'], r['se_vs_basic'])}",
+    )
     lines += [
         "",
         "Paired difference to Basic (percentage points, mean ± standard error): " + "; ".join(
