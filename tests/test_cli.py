@@ -154,7 +154,7 @@ def test_submitit_local_launcher(cli) -> None:
 
 
 def test_same_config_and_seed_are_bitwise_reproducible_across_processes(cli) -> None:
-    args = ["camera.resolution=32", "source.noise_rel=0.02", "seed=11", "scene=image"]
+    args = ["camera.resolution=32", "source.effects.noise_rel=0.02", "seed=11", "scene=image"]
     a = cli("nirspi-run", *args, "hydra.run.dir=a")
     b = cli("nirspi-run", *args, "hydra.run.dir=b")
     assert a.returncode == 0 and b.returncode == 0, a.stderr + b.stderr

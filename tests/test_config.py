@@ -71,7 +71,7 @@ def test_default_config_has_null_optional_stages() -> None:
         ("camera.resolution=0", "camera.resolution"),
         ("scan.ratio=0", "scan.ratio"),
         ("scan.ratio=1.5", "scan.ratio"),
-        ("source.noise_rel=-1", "source.noise_rel"),
+        ("source.effects.noise_rel=-1", "source.effects.noise_rel"),
     ],
 )
 def test_out_of_range_values_name_their_key(override: str, key: str) -> None:

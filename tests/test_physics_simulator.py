@@ -17,6 +17,7 @@ from nirspi_pipe.physics.fog import MeasuredFog, MieFog, NoFog
 from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.scene.shapes import Plane
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator, modulated_split
 from nirspi_pipe.types import Camera
 
@@ -84,9 +85,8 @@ def test_fog_none_never_calls_mie(monkeypatch):
 
 
 def test_inactive_effects_are_not_built():
-    sim = Simulator(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector())
-    assert sim.effects == ()
-    assert sim._fog is None and sim._background is None  # noqa: SLF001
+    sim = Simulator(forward_model(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector()))
+    assert sim.effects == () and sim.effect_names == ()
 
 
 def test_derived_quantities_of_a_full_run():
@@ -104,7 +104,7 @@ def test_derived_quantities_of_a_full_run():
 
 def test_physical_reconstruction_is_calibrated_relative_radiance():
     scene = Plane(reflectance=0.5).render(Camera(16))
-    acq = Simulator(detector=Photodiode(shot_noise=False, read_noise_e=0.0, adc_bits=None)).acquire(
+    acq = Simulator(forward_model(detector=Photodiode(shot_noise=False, read_noise_e=0.0, adc_bits=None))).acquire(
         scene, np.arange(256), 16, np.random.default_rng(0))
     img = _reconstruct(acq)
     # a flat board: relative radiance with the 1/r² fall-off towards the corners (cos θ of the rays)
@@ -117,7 +117,7 @@ def test_fog_attenuates_by_the_round_trip_transmittance():
     idx = np.arange(64)
     clear = Simulator().acquire(scene, idx, 8, np.random.default_rng(0))
     fog = MeasuredFog(beta_per_m=3.0, backscatter_gain=0.0)
-    foggy = Simulator(fog=fog).acquire(scene, idx, 8, np.random.default_rng(0))
+    foggy = Simulator(forward_model(fog=fog)).acquire(scene, idx, 8, np.random.default_rng(0))
     ratio = foggy.coefficients()[0] / clear.coefficients()[0]
     u, v = scene.camera.pixel_coords(1)
     r = scene.depth_m * np.sqrt(1 + u[..., 0] ** 2 + v[..., 0] ** 2)  # range along each pixel's ray
@@ -129,13 +129,13 @@ def test_fog_attenuates_by_the_round_trip_transmittance():
 def test_static_background_cancels_and_drift_makes_the_order_matter(sphere16):
     n = 16
     order = np.arange(n * n)
-    static = Simulator(illumination=Background(klux=50.0))
+    static = Simulator(forward_model(illumination=Background(klux=50.0)))
     for idx in (order, order[::-1]):
         acq = static.acquire(sphere16, idx, n, np.random.default_rng(0))
         assert np.abs(_reconstruct(acq) - sphere16.radiance).max() < 1e-9
     # a linear drift offsets every pair equally (only the DC pixel moves, whatever the order);
     # flicker and slow wander differ from pair to pair, so the order decides where errors land
-    drift = Simulator(illumination=Background(klux=50.0, drift_rel_per_s=0.2, flicker_rel=0.02, flicker_hz=7.0, wander_rel=0.01))
+    drift = Simulator(forward_model(illumination=Background(klux=50.0, drift_rel_per_s=0.2, flicker_rel=0.02, flicker_hz=7.0, wander_rel=0.01)))
     a = _reconstruct(drift.acquire(sphere16, order, n, np.random.default_rng(0)))
     b = _reconstruct(drift.acquire(sphere16, order[::-1], n, np.random.default_rng(0)))
     err_a, err_b = np.abs(a - sphere16.radiance).max(), np.abs(b - sphere16.radiance).max()
@@ -146,7 +146,7 @@ def test_static_background_cancels_and_drift_makes_the_order_matter(sphere16):
 def test_fog_fluctuation_makes_the_order_matter(sphere16):
     n = 16
     order = np.arange(n * n)
-    sim = Simulator(fog=MeasuredFog(beta_per_m=3.0, fluctuation_rel=0.2, fluctuation_time_s=0.02))
+    sim = Simulator(forward_model(fog=MeasuredFog(beta_per_m=3.0, fluctuation_rel=0.2, fluctuation_time_s=0.02)))
     a = _reconstruct(sim.acquire(sphere16, order, n, np.random.default_rng(0)))
     b = _reconstruct(sim.acquire(sphere16, order[::-1], n, np.random.default_rng(0)))
     assert np.abs(a - b).max() > 1e-3
@@ -177,7 +177,7 @@ def test_saturation_is_counted_and_warned():
     scene = Plane(distance_mm=30.0, reflectance=1.0).render(Camera(8))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        acq = Simulator(detector=Photodiode()).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+        acq = Simulator(forward_model(detector=Photodiode())).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
     assert acq.derived["saturated_patterns"] > 0
     assert any("saturated" in str(w.message) for w in caught)
     assert np.isfinite(acq.coefficients()).all()
@@ -212,11 +212,11 @@ def test_hard_cases_stay_finite_and_in_range(beta, distance_mm, klux, refl, fluc
     n = 4
     scene = Plane(distance_mm=distance_mm, reflectance=refl).render(Camera(n))
     det = Photodiode() if physical else IdealDetector()
-    sim = Simulator(
+    sim = Simulator(forward_model(
         fog=MeasuredFog(beta_per_m=beta, fluctuation_rel=fluct) if beta > 0 else None,
         illumination=Background(klux=klux, drift_rel_per_s=drift),
         detector=det,
-    )
+    ))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         acq = sim.acquire(scene, np.arange(n * n), n, np.random.default_rng(0))
@@ -235,7 +235,7 @@ def test_hard_cases_stay_finite_and_in_range(beta, distance_mm, klux, refl, fluc
 def test_zero_signal_is_finite():
     scene = Plane(reflectance=0.0).render(Camera(8))
     for det in (IdealDetector(), Photodiode()):
-        acq = Simulator(detector=det).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+        acq = Simulator(forward_model(detector=det)).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
         assert acq.derived["signal_photons_per_pattern"] == 0.0
         assert acq.derived["snr_db"] == -200.0
         assert np.isfinite(_reconstruct(acq)).all()
@@ -244,7 +244,7 @@ def test_zero_signal_is_finite():
 
 def test_full_saturation_is_counted():
     scene = Plane(distance_mm=1.0, reflectance=1.0).render(Camera(8))
-    sim = Simulator(illumination=Background(klux=100.0), detector=Photodiode())
+    sim = Simulator(forward_model(illumination=Background(klux=100.0), detector=Photodiode()))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         acq = sim.acquire(scene, np.arange(64), 8, np.random.default_rng(0))
@@ -255,6 +255,6 @@ def test_full_saturation_is_counted():
 
 def test_enabling_one_effect_does_not_change_another_effects_noise(sphere16):
     idx = np.arange(256)
-    a = Simulator(detector=Photodiode()).acquire(sphere16, idx, 16, np.random.default_rng(5))
-    b = Simulator(detector=Photodiode(), illumination=Background(klux=1e-9)).acquire(sphere16, idx, 16, np.random.default_rng(5))
+    a = Simulator(forward_model(detector=Photodiode())).acquire(sphere16, idx, 16, np.random.default_rng(5))
+    b = Simulator(forward_model(detector=Photodiode(), illumination=Background(klux=1e-9))).acquire(sphere16, idx, 16, np.random.default_rng(5))
     assert np.array_equal(a.y_pos, b.y_pos)  # the detector's stream is its own

@@ -30,9 +30,9 @@ def test_noise_free_full_sampling_is_exact(scene: str, resolution: int) -> None:
 
 
 def test_same_seed_same_numbers_and_seeds_differ() -> None:
-    a = run_pipeline(_cfg(["source.noise_rel=0.01", "seed=7", "camera.resolution=32"]))
-    b = run_pipeline(_cfg(["source.noise_rel=0.01", "seed=7", "camera.resolution=32"]))
-    c = run_pipeline(_cfg(["source.noise_rel=0.01", "seed=8", "camera.resolution=32"]))
+    a = run_pipeline(_cfg(["source.effects.noise_rel=0.01", "seed=7", "camera.resolution=32"]))
+    b = run_pipeline(_cfg(["source.effects.noise_rel=0.01", "seed=7", "camera.resolution=32"]))
+    c = run_pipeline(_cfg(["source.effects.noise_rel=0.01", "seed=8", "camera.resolution=32"]))
     assert np.array_equal(a.products.image.data, b.products.image.data)
     assert a.metrics == b.metrics
     assert not np.array_equal(a.products.image.data, c.products.image.data)

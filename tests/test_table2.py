@@ -15,6 +15,7 @@ from nirspi_pipe.physics.detector import Photodiode
 from nirspi_pipe.physics.fog import MieFog
 from nirspi_pipe.physics.range_model import paper_table2
 from nirspi_pipe.scene.shapes import Plane
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.tables.table2 import build, lsm_max_distance
 from nirspi_pipe.types import Camera
@@ -41,7 +42,7 @@ def frame():
     for fog_name, fog_model in (("none", None), ("chamber", fog)):
         for refl in (0.2, 0.5, 0.8):
             for dist in (200, 250, 300, 350, 400, 450, 500):
-                sim = Simulator(fog=fog_model, detector=det)
+                sim = Simulator(forward_model(fog=fog_model, detector=det))
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     acq = sim.acquire(Plane(distance_mm=dist, reflectance=refl).render(cam), np.arange(256), 16,

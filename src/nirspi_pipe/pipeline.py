@@ -55,30 +55,55 @@ class RunOutput:
     warnings: list[str] = field(default_factory=list)
 
 
-def _unwrap(exc: BaseException) -> BaseException:
-    """The innermost cause of a Hydra InstantiationException chain."""
+#: Config groups that are built inside another node (``source.effects.fog: ${fog}``): an error
+#: there is reported under the group the user typed (``fog.beta_per_m``).
+EFFECT_GROUPS = ("fog", "illumination", "detector")
+_EFFECT_PARENT = "source.effects."
+
+
+def _unwrap(exc: BaseException) -> tuple[BaseException, str | None]:
+    """The innermost cause of a Hydra InstantiationException chain, and the ``full_key`` of the
+    innermost node Hydra names (the node whose call failed), when it says."""
+    full_key = None
     while exc.__cause__ is not None and type(exc).__name__ == "InstantiationException":
+        for line in str(exc).splitlines():
+            if line.startswith("full_key: "):
+                full_key = line[len("full_key: "):].strip()
         exc = exc.__cause__
-    return exc
+    return exc, full_key
+
+
+def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
+    """Where to report an error of node ``full_key`` built as part of group ``key``: the path the
+    user types, and whether it is absolute (an effect group inside ``source.effects``)."""
+    if not full_key:
+        return key, False
+    if full_key.startswith(_EFFECT_PARENT) and full_key[len(_EFFECT_PARENT):].split(".")[0] in EFFECT_GROUPS:
+        return full_key[len(_EFFECT_PARENT):], True
+    return (full_key, False) if full_key.startswith(key + ".") else (key, False)
 
 
 def build(node: DictConfig, key: str) -> Any:
-    """Instantiate one config node (``_target_``), turning errors into one-line messages.
+    """Instantiate one config node (``_target_``) recursively, turning errors into one-line
+    messages.
 
-    A :class:`ConfigError` raised by the stage is re-raised with its key prefixed by ``key``,
-    so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …``.
+    A :class:`ConfigError` raised by the stage is re-raised with its key prefixed by the node it
+    came from, so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …`` (and
+    ``fog.beta_per_m=…`` for the fog model that ``source.effects`` builds).
     """
     from hydra.utils import instantiate
 
     try:
         return instantiate(node, _convert_="all")
     except Exception as exc:  # noqa: BLE001 - translated below
-        inner = _unwrap(exc)
+        inner, full_key = _unwrap(exc)
+        where, absolute = _user_key(full_key, key)
         if isinstance(inner, ConfigError):
-            raise inner.under(key) from None
+            err = inner.under(where)
+            raise (ConfigError(err.key, err.value, err.allowed, err.unknown_key, absolute=True) if absolute else err) from None
         if isinstance(inner, TypeError) and "unexpected keyword argument" in str(inner):
             bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
-            raise ConfigError(f"{key}.{bad}", None, _accepted_keys(node), unknown_key=True) from None
+            raise ConfigError(f"{where}.{bad}", None, _accepted_keys(node), unknown_key=True) from None
         raise
 
 

@@ -18,6 +18,7 @@ from nirspi_pipe.metrics import rmse, ssim
 from nirspi_pipe.patterns.hadamard import fwht2, sylvester
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.solvers.fwht import FWHTSolver
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Acquisition, Camera
 
@@ -47,7 +48,7 @@ def test_full_sampling_without_tv_is_exact() -> None:
 def test_beats_zero_filled_fwht_at_25_percent_on_the_sphere(noise: float) -> None:
     n = 64
     scene = Sphere().render(Camera(n))
-    acq = Simulator(noise_rel=noise).acquire(scene, low_sequency_indices(n, 0.25), n, np.random.default_rng(0))
+    acq = Simulator(forward_model(noise_rel=noise)).acquire(scene, low_sequency_indices(n, 0.25), n, np.random.default_rng(0))
     zero_filled = FWHTSolver().solve(acq).data
     admm = ADMMTVSolver(tv_weight=0.03).solve(acq)
     truth = scene.radiance

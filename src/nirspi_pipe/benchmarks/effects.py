@@ -19,6 +19,7 @@ from nirspi_pipe.physics.detector import IdealDetector, Photodiode
 from nirspi_pipe.physics.fog import MieFog, NoFog
 from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import Sphere
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
 
@@ -31,13 +32,13 @@ def configurations() -> dict[str, Simulator]:
     _ = fog_tv.extinction_per_m
     return {
         "bare (reference)": Simulator(),
-        "available, off": Simulator(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector()),
-        "+ detector (budget, noise, ADC)": Simulator(detector=Photodiode()),
-        "+ fog": Simulator(fog=fog),
-        "+ background 15 kLux": Simulator(illumination=Background(klux=15.0)),
-        "+ background drift/flicker": Simulator(illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05)),
-        "+ fog fluctuation": Simulator(fog=fog_tv),
-        "all": Simulator(fog=fog_tv, illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05), detector=Photodiode()),
+        "available, off": Simulator(forward_model(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector())),
+        "+ detector (budget, noise, ADC)": Simulator(forward_model(detector=Photodiode())),
+        "+ fog": Simulator(forward_model(fog=fog)),
+        "+ background 15 kLux": Simulator(forward_model(illumination=Background(klux=15.0))),
+        "+ background drift/flicker": Simulator(forward_model(illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05))),
+        "+ fog fluctuation": Simulator(forward_model(fog=fog_tv)),
+        "all": Simulator(forward_model(fog=fog_tv, illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05), detector=Photodiode())),
     }
 
 
@@ -55,5 +56,5 @@ def main(argv: list[str]) -> int:
     for name, sim in configurations().items():
         t = median_time_s(lambda: sim.acquire(scene, idx, n, np.random.default_rng(0)), ns.repeat)
         ref = t if ref is None else ref
-        print(f"{name:<34} {t * 1e3:>9.3f} {t / ref:>7.2f}  {','.join(sim.effects) or '-'}")
+        print(f"{name:<34} {t * 1e3:>9.3f} {t / ref:>7.2f}  {','.join(sim.effect_names) or '-'}")
     return 0

@@ -8,6 +8,9 @@
   saturation, ADC).
 * :mod:`.timevarying` — background drift/flicker/wander and fog fluctuation (seeded).
 * :mod:`.range_model` — Algorithm A1 and the calibration of its free constants on Table 2.
+* :mod:`.effects` — the forward model as a chain of small effect objects (illumination, fog
+  attenuation, fog fluctuation, backscatter, background light, drift, detector, Gaussian noise),
+  the public :class:`~.effects.Effect` interface, and :func:`~.effects.forward_model`.
 
-The simulator (:mod:`nirspi_pipe.sources.simulator`) composes these effects from the config.
+The simulator (:mod:`nirspi_pipe.sources.simulator`) applies the chain the runner built from the config.
 """

@@ -1,0 +1,197 @@
+"""Each effect of the forward-model chain on its own (nirspi_pipe.physics.effects)."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+from typing import ClassVar
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.physics.budget import PhotonBudget
+from nirspi_pipe.physics.detector import IdealDetector, Photodiode
+from nirspi_pipe.physics.effects import (
+    Backscatter,
+    BackgroundDrift,
+    BackgroundLight,
+    DetectorReadout,
+    Effect,
+    Exposure,
+    FogAttenuation,
+    FogFluctuation,
+    GaussianNoise,
+    Illumination,
+    Signal,
+    forward_model,
+)
+from nirspi_pipe.physics.fog import MeasuredFog, NoFog
+from nirspi_pipe.physics.light import Background
+from nirspi_pipe.scene.shapes import Plane
+from nirspi_pipe.sources.simulator import Simulator
+from nirspi_pipe.types import Camera
+
+N = 8
+
+
+def _exposure(distance_mm: float = 200.0, reflectance: float = 0.5, n_dark: int = 0, streams: int = 3) -> Exposure:
+    scene = Plane(distance_mm=distance_mm, reflectance=reflectance).render(Camera(N))
+    m = N * N
+    t_pos = (n_dark + 2.0 * np.arange(m)) * 1e-3
+    rng = np.random.default_rng(3)
+    return Exposure(
+        scene=scene, indices=np.arange(m), n=N, t_pos=t_pos, t_neg=t_pos + 1e-3, t_dark=np.arange(n_dark) * 1e-3,
+        budget=PhotonBudget(), rngs=tuple(rng.spawn(streams)), rng_main=rng,
+    )
+
+
+def _start(ex: Exposure) -> Signal:
+    return Signal(image_e=ex.scene.radiance * ex.ref_e)
+
+
+def test_illumination_falls_off_as_inverse_square():
+    near, far = _exposure(200.0), _exposure(400.0)
+    a = Illumination().apply(_start(near), near).image_e
+    b = Illumination().apply(_start(far), far).image_e
+    # the same pixels see the plane at twice the range: a quarter of the light (Eqs. 10-11)
+    centre = (N // 2, N // 2)
+    assert b[centre] / a[centre] == pytest.approx(0.25, rel=1e-9)
+    assert (a >= 0).all()
+
+
+@settings(max_examples=20, deadline=None)
+@given(beta=st.floats(0.0, 50.0))
+def test_fog_attenuation_is_beer_lambert_on_the_round_trip(beta):
+    ex = _exposure()
+    s = FogAttenuation(MeasuredFog(beta_per_m=beta)).apply(_start(ex), ex).measured(ex)
+    expected = float((ex.scene.radiance * ex.ref_e * np.exp(-2.0 * beta * ex.range_m)).sum())
+    assert s.pos_e is not None and s.neg_e is not None
+    assert s.pos_e + s.neg_e == pytest.approx(np.full(N * N, expected), rel=1e-9, abs=1e-300)
+    assert s.beta_per_m == beta and s.conditions["fog_extent_m"] == pytest.approx(0.35)
+
+
+def test_fog_fluctuation_needs_fog_first_and_is_seeded():
+    ex = _exposure()
+    with pytest.raises(ValueError, match="follow the fog"):
+        FogFluctuation(0.2).apply(_start(ex), ex)
+    fogged = FogAttenuation(MeasuredFog(beta_per_m=3.0)).apply(_start(ex), ex)
+    a = FogFluctuation(0.2, 0.01).apply(fogged, ex)
+    b = FogFluctuation(0.2, 0.01).apply(fogged, _exposure())
+    assert a.depth_scale_pos is not None and np.array_equal(a.depth_scale_pos, b.depth_scale_pos)
+    assert (a.depth_scale_pos >= 0).all() and a.derived["fog_factor_std"] > 0
+    with pytest.raises(ConfigError, match="fluctuation_rel"):
+        FogFluctuation(2.0)
+
+
+def test_backscatter_adds_the_eq12_veil_to_every_reading():
+    ex = _exposure(distance_mm=1000.0)
+    fogged = FogAttenuation(MeasuredFog(beta_per_m=2.0, backscatter_gain=0.0)).apply(_start(ex), ex)
+    clear = fogged.measured(ex)
+    veiled = Backscatter(0.05).apply(fogged, ex)
+    white_1m = float(ex.budget.white_electrons(1.0)) / (N * N)
+    veil = 0.05 * white_1m * (1.0 - np.exp(-2.0 * np.minimum(ex.range_m, 0.35)))
+    added = (veiled.pos_e + veiled.neg_e) - (clear.pos_e + clear.neg_e)
+    assert added == pytest.approx(np.full(N * N, veil.sum()), rel=1e-9)
+    with pytest.raises(ValueError, match="follow the fog"):
+        Backscatter(0.05).apply(_start(ex), ex)
+
+
+def test_background_light_cancels_in_the_difference():
+    ex = _exposure()
+    base = _start(ex).measured(ex)
+    lit = BackgroundLight(Background(klux=30.0)).apply(_start(ex), ex)
+    pos, neg = lit.total_e()
+    assert lit.background_e > 0
+    assert pos - neg == pytest.approx(base.pos_e - base.neg_e, abs=1e-6 * lit.background_e)
+    assert pos.mean() > base.pos_e.mean()
+
+
+def test_background_drift_no_longer_cancels():
+    ex = _exposure()
+    with pytest.raises(ValueError, match="follow the background"):
+        BackgroundDrift(drift_rel_per_s=1.0).apply(_start(ex), ex)
+    lit = BackgroundLight(Background(klux=30.0)).apply(_start(ex), ex)
+    drift = BackgroundDrift(drift_rel_per_s=5.0).apply(lit, ex)
+    assert np.all(np.asarray(drift.bg_neg) > np.asarray(drift.bg_pos))  # later readings see more light
+    assert drift.derived["background_factor_std"] > 0
+
+
+def test_detector_readout_is_charge_plus_pedestal_in_counts():
+    ex = _exposure(n_dark=4)
+    det = Photodiode(shot_noise=False, read_noise_e=0.0, dark_current_na=0.0, adc_bits=None, full_scale_v=None)
+    s = DetectorReadout(det).apply(Illumination().apply(_start(ex), ex), ex)
+    pos_e, _ = s.measured(ex).total_e()
+    assert s.y_pos == pytest.approx(pos_e + det.offset_e, rel=1e-12)
+    assert s.saturated == 0 and s.gain == pytest.approx(ex.ref_e)
+
+
+def test_detector_counts_and_warns_saturation():
+    ex = _exposure(distance_mm=10.0, reflectance=1.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = DetectorReadout(Photodiode()).apply(Illumination().apply(_start(ex), ex), ex)
+    assert s.saturated > 0
+    assert any("saturated" in str(w.message) for w in caught)
+
+
+def test_detector_without_saturation_does_not_warn():
+    ex = _exposure()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = DetectorReadout(Photodiode()).apply(Illumination().apply(_start(ex), ex), ex)
+    assert s.saturated == 0 and not caught
+
+
+def test_gaussian_noise_has_the_stated_sigma():
+    ex = _exposure()
+    clean = _start(ex).read_out(ex)
+    noisy = GaussianNoise(0.01).apply(_start(ex), ex)
+    sigma = 0.01 * 0.5 * float(ex.scene.radiance.sum())
+    assert noisy.derived["noise_sigma"] == pytest.approx(sigma)
+    resid = np.concatenate([noisy.y_pos - clean.y_pos, noisy.y_neg - clean.y_neg])
+    assert np.std(resid) == pytest.approx(sigma, rel=0.15)  # 128 draws
+    with pytest.raises(ConfigError, match="noise_rel"):
+        GaussianNoise(-1.0)
+
+
+def test_forward_model_leaves_out_what_is_off_and_keeps_the_order():
+    assert forward_model(NoFog(), Background(klux=0.0), IdealDetector(), 0.0) == ()
+    chain = forward_model(
+        MeasuredFog(beta_per_m=1.0, fluctuation_rel=0.1), Background(klux=5.0, flicker_rel=0.1), Photodiode(), 0.01
+    )
+    assert [e.name for e in chain] == [
+        "budget", "fog", "fog_fluctuation", "backscatter", "background", "background_drift", "detector",
+        "gaussian_noise",
+    ]
+    assert all(isinstance(e, Effect) for e in chain)
+    with pytest.raises(ConfigError, match="detector"):
+        forward_model(detector="ingaas")
+
+
+@dataclass(frozen=True)
+class _Haze:
+    """A plugin-style effect: a grey filter in the image domain."""
+
+    transmission: float
+    name: ClassVar[str] = "haze"
+    domain: ClassVar[str] = "image"
+
+    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+        return replace(signal, image_e=signal.image_e * self.transmission)
+
+
+def test_a_new_effect_is_one_small_class():
+    scene = Plane().render(Camera(N))
+    idx = np.arange(N * N)
+    chain = forward_model(MeasuredFog(beta_per_m=1.0), extra=[_Haze(0.5)])
+    assert [e.name for e in chain] == ["fog", "haze", "backscatter"]
+    plain = Simulator(chain[:1])
+    hazy = Simulator(chain[:2])
+    a = plain.acquire(scene, idx, N, np.random.default_rng(0))
+    b = hazy.acquire(scene, idx, N, np.random.default_rng(0))
+    assert b.y_pos == pytest.approx(0.5 * a.y_pos) and b.info["effects"] == "fog,haze"
+    with pytest.raises(ConfigError, match="domain"):
+        forward_model(extra=[object()])
