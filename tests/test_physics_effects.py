@@ -15,9 +15,9 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.detector import IdealDetector, Photodiode
 from nirspi_pipe.physics.effects import (
-    Backscatter,
     BackgroundDrift,
     BackgroundLight,
+    Backscatter,
     DetectorReadout,
     Effect,
     Exposure,

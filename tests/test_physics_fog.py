@@ -75,7 +75,7 @@ def test_mie_is_lazy(monkeypatch):
     monkeypatch.setattr(miepython, "efficiencies", boom)
     fog = F.MieFog(number_density_per_cm3=1e4)  # building the model does not call Mie
     with pytest.raises(AssertionError, match="Mie called"):
-        fog.extinction_per_m
+        _ = fog.extinction_per_m
 
 
 @pytest.mark.parametrize(

@@ -16,6 +16,7 @@ import pytest
 
 from nirspi_pipe import plugins
 
+
 def _pip_flags() -> list[str]:
     """Offline and fast (no build isolation) when this venv can build a wheel itself; otherwise
     let pip fetch setuptools into an isolated build environment."""
@@ -110,7 +111,7 @@ def test_config_store_entries_are_listed(fake_entry_points) -> None:
     assert report.plugins[0].searchpath == ()
 
 
-def test_builtin_option_is_reported_as_shadowed(fake_entry_points) -> None:
+def test_builtin_option_clash_is_refused_naming_the_plugin(fake_entry_points) -> None:
     root, eps = fake_entry_points
     tag = uuid.uuid4().hex[:8]
     conf = root / f"shadow_{tag}_conf" / "solver"
@@ -120,7 +121,48 @@ def test_builtin_option_is_reported_as_shadowed(fake_entry_points) -> None:
     _write_module(root, f"shadow_{tag}", f"SEARCHPATH = ['pkg://shadow_{tag}_conf']\n")
     eps.append(_ep("shadow", f"shadow_{tag}"))
     report = plugins.discover(refresh=True)
-    assert report.plugins[0].shadowed == ("solver/fwht",)
+    assert not report.plugins
+    assert report.failures[0].name == "shadow" and "solver/fwht" in report.failures[0].error
+
+
+def test_configstore_clash_is_refused_and_unregistered(fake_entry_points) -> None:
+    from hydra.core.config_store import ConfigStore
+
+    root, eps = fake_entry_points
+    tag = uuid.uuid4().hex[:8]
+    before = ConfigStore.instance().repo.get("scan", {}).get("basic.yaml")
+    _write_module(
+        root,
+        f"clash_{tag}",
+        """
+        from hydra.core.config_store import ConfigStore
+        ConfigStore.instance().store(group="scan", name="basic", node={"ratio": 0.5, "evil": 1})
+        ConfigStore.instance().store(group="scan", name="clash_extra", node={"ratio": 0.5})
+        """,
+    )
+    eps.append(_ep("clash", f"clash_{tag}"))
+    report = plugins.discover(refresh=True)
+    assert [f.name for f in report.failures] == ["clash"] and "scan/basic" in report.failures[0].error
+    scan = ConfigStore.instance().repo.get("scan", {})
+    assert scan.get("basic.yaml") is before and "clash_extra.yaml" not in scan
+
+
+@pytest.mark.parametrize(
+    "body, expected",
+    [
+        ("raise SystemExit(3)", "SystemExit"),
+        ("raise KeyboardInterrupt", "KeyboardInterrupt"),
+        ("import os\nos._exit(0)", "ended the process on import"),
+    ],
+)
+def test_plugin_that_exits_on_import_is_named_and_skipped(fake_entry_points, body: str, expected: str) -> None:
+    root, eps = fake_entry_points
+    tag = uuid.uuid4().hex[:8]
+    _write_module(root, f"exits_{tag}", body + "\n")
+    eps.append(_ep("exits", f"exits_{tag}"))
+    report = plugins.discover(refresh=True)
+    assert not report.plugins
+    assert report.failures[0].name == "exits" and expected in report.failures[0].error
 
 
 _PLUGIN_SOLVER = '''

@@ -97,7 +97,7 @@ def _solve_c(lib, problem: SweepProblem, scheme: str, tol=1e-4, max_sweeps=2000)
 
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
 def test_kernel_source_as_c_agrees_with_numpy(tmp_path):
-    for name, problem, scheme in _problems():
+    for _name, problem, scheme in _problems():
         tag = f"{problem.model}{int(scheme == 'godunov')}"
         src = tmp_path / f"k{tag}.c"
         src.write_text(_SHIM + ocl._KERNEL % {"big": BIG})

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from hydra import compose, initialize_config_module
 
 from nirspi_pipe.cli import execute_job
 from nirspi_pipe.device.convert import convert

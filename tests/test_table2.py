@@ -12,10 +12,10 @@ import pandas as pd
 import pytest
 
 from nirspi_pipe.physics.detector import Photodiode
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.physics.fog import MieFog
 from nirspi_pipe.physics.range_model import paper_table2
 from nirspi_pipe.scene.shapes import Plane
-from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.tables.table2 import build, lsm_max_distance
 from nirspi_pipe.types import Camera

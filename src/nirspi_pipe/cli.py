@@ -22,14 +22,13 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME
 from nirspi_pipe.errors import ConfigError, NirspiError
 
 __all__ = ["run", "collect", "execute_job"]
 
 log = logging.getLogger("nirspi_pipe")
 
-CONFIG_MODULE = "nirspi_pipe.conf"
-CONFIG_NAME = "config"
 _EXIT_CONFIG = 2
 
 

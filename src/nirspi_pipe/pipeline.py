@@ -199,6 +199,12 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
             if required not in stages:
                 raise ConfigError(required, None, f"a {required} stage ({required}=null is not allowed)")
         source, scan, solver = stages["source"], stages["scan"], stages["solver"]
+        if getattr(source, "needs_scan_indices", False) and getattr(source, "scan_indices", None) is None:
+            from dataclasses import replace
+
+            from nirspi_pipe.configs import scan_indices
+
+            source = replace(source, scan_indices=scan_indices)  # the runner resolves scan options
         n = camera.resolution
 
         truth = None

@@ -19,24 +19,32 @@ A config folder holds ``<group>/<option>.yaml`` files (``solver/admm_tv.yaml``) 
 ``_target_`` names the plugin's class. nirspi-pipe appends every folder to Hydra's config search
 path by registering one :class:`NirspiPluginSearchPath` (a Hydra ``SearchPathPlugin``)
 programmatically, so it does not depend on the ``hydra_plugins`` namespace package (which
-breaks with editable installs, Hydra issue #2359). Options of nirspi-pipe itself come first on
-the search path: a plugin cannot shadow a built-in option (``--plugins`` reports the clash).
+breaks with editable installs, Hydra issue #2359).
 
-A plugin that fails to load (import error, exception in its register function, a search path
-that does not resolve) is reported by name with one warning line and skipped; other plugins and
-the run itself go on.
+A plugin whose config names clash with a built-in option (a file or a ``ConfigStore`` entry
+``scan/basic``) is refused whole, named, and its ``ConfigStore`` entries are removed again, so
+nothing of it shadows or merges into a built-in config. A plugin that fails to load (any
+exception on import or in its register function, ``SystemExit`` and ``KeyboardInterrupt``
+included; a search path that does not resolve) is reported by name with one warning line and
+skipped. On POSIX each plugin is first imported in a forked child, so one that ends the process
+(``os._exit``) or hangs on import is skipped the same way. Other plugins and the run go on.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
-from importlib import metadata
+from importlib import metadata, resources
+from pathlib import Path
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hydra.core.config_search_path import ConfigSearchPath
 from hydra.plugins.search_path_plugin import SearchPathPlugin
+
+if TYPE_CHECKING:
+    from importlib.resources.abc import Traversable
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -55,6 +63,11 @@ log = logging.getLogger("nirspi_pipe.plugins")
 #: The entry-point group plugins declare themselves in.
 ENTRY_POINT_GROUP = "nirspi_pipe.plugins"
 
+#: nirspi-pipe's experiment configs (``+experiment=…``).
+EXPERIMENTS_PATH = "pkg://nirspi_pipe.experiments"
+
+_BUILTIN_CONF = "nirspi_pipe.conf"
+
 #: Provider name prefix of plugin folders on Hydra's search path.
 _PROVIDER = "nirspi-plugin"
 
@@ -69,7 +82,6 @@ class PluginInfo:
         distribution: ``name version`` of the installed distribution, when known.
         searchpath: config folders it added to Hydra's search path.
         options: ``{group: [option, …]}`` from its config folders and ``ConfigStore`` entries.
-        shadowed: ``group/option`` names also defined by nirspi-pipe (the built-in one wins).
     """
 
     name: str
@@ -77,7 +89,6 @@ class PluginInfo:
     distribution: str
     searchpath: tuple[str, ...]
     options: dict[str, list[str]] = field(default_factory=dict)
-    shadowed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -134,45 +145,46 @@ def _as_paths(value: Any, where: str) -> tuple[str, ...]:
     raise TypeError(f"{where} must be None, a string or a list of strings, got {type(value).__name__}")
 
 
-def _folder_options(path: str) -> dict[str, list[str]]:
-    """``{group: [options]}`` of one config folder (raises when the folder does not resolve)."""
-    from hydra._internal.config_repository import ConfigRepository
-    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
-    from hydra.core.object_type import ObjectType
+def _folder(path: str) -> Traversable:
+    """The config folder ``pkg://package.sub`` or ``file://dir`` (a plain path is a file path)."""
+    if path.startswith("pkg://"):
+        module = path[len("pkg://"):].strip("/").replace("/", ".")
+        try:
+            return resources.files(module)
+        except ModuleNotFoundError as exc:
+            raise FileNotFoundError(f"config folder {path} does not exist ({exc})") from None
+    return Path(path[len("file://"):] if path.startswith("file://") else path)
 
-    csp = ConfigSearchPathImpl()
-    csp.append(_PROVIDER, path)
-    repo = ConfigRepository(config_search_path=csp)
-    source = repo.get_sources()[0]
-    if not source.available():
+
+def _folder_options(path: str) -> dict[str, list[str]]:
+    """``{group: [options]}`` of one config folder (raises when the folder does not resolve):
+    ``<group>/<option>.yaml`` files, nested groups joined by ``/``."""
+    root = _folder(path)
+    if not root.is_dir():
         raise FileNotFoundError(f"config folder {path} does not exist")
     found: dict[str, list[str]] = {}
 
-    def walk(group: str) -> None:
-        for sub in repo.get_group_options(group, ObjectType.GROUP):
-            walk(f"{group}/{sub}" if group else sub)
-        if group:
-            opts = repo.get_group_options(group, ObjectType.CONFIG)
-            if opts:
-                found[group] = sorted(opts)
+    def walk(node: Traversable, group: str) -> None:
+        for entry in node.iterdir():
+            if entry.is_dir() and not entry.name.startswith(("_", ".")):
+                walk(entry, f"{group}/{entry.name}" if group else entry.name)
+            elif group and entry.is_file() and entry.name.endswith((".yaml", ".yml")):
+                found.setdefault(group, []).append(entry.name.rsplit(".", 1)[0])
 
-    walk("")
-    return found
+    walk(root, "")
+    return {g: sorted(o) for g, o in sorted(found.items())}
+
+
+_BUILTIN_STORE: frozenset[tuple[str, str]] | None = None
 
 
 def _builtin_options() -> set[tuple[str, str]]:
-    from hydra._internal.config_repository import ConfigRepository
-    from hydra._internal.config_search_path_impl import ConfigSearchPathImpl
-    from hydra.core.object_type import ObjectType
-
-    csp = ConfigSearchPathImpl()
-    csp.append("main", "pkg://nirspi_pipe.conf")
-    repo = ConfigRepository(config_search_path=csp)
-    return {
-        (g, o)
-        for g in repo.get_group_options("", ObjectType.GROUP)
-        for o in repo.get_group_options(g, ObjectType.CONFIG)
-    }
+    """``(group, option)`` of nirspi-pipe's own configs and ConfigStore entries (before plugins)."""
+    global _BUILTIN_STORE
+    if _BUILTIN_STORE is None:  # taken once, before any plugin registered anything
+        _BUILTIN_STORE = frozenset(_store_options())
+    builtin = {(g, o) for g, opts in _folder_options(f"pkg://{_BUILTIN_CONF}").items() for o in opts}
+    return builtin | _BUILTIN_STORE
 
 
 def _distribution(ep: metadata.EntryPoint) -> str:
@@ -182,30 +194,115 @@ def _distribution(ep: metadata.EntryPoint) -> str:
     return f"{dist.metadata['Name']} {dist.version}"
 
 
-def _load_one(ep: metadata.EntryPoint, builtin: set[tuple[str, str]]) -> PluginInfo:
-    before = _store_options()
+def _unregister(entries: set[tuple[str, str]]) -> None:
+    """Remove ConfigStore entries (``(group, option)``) a refused plugin registered."""
+    from hydra.core.config_store import ConfigStore
+
+    repo = ConfigStore.instance().repo
+    for group, opt in entries:
+        node = repo
+        for part in group.split("/"):
+            node = node.get(part, {})
+        node.pop(f"{opt}.yaml", None)
+
+
+def _register(ep: metadata.EntryPoint) -> tuple[str, ...]:
+    """Import the plugin (and call it when it is a callable); its config folders."""
     obj = ep.load()
     if isinstance(obj, ModuleType):
-        paths = _as_paths(getattr(obj, "SEARCHPATH", None), f"{ep.value}.SEARCHPATH")
-    elif callable(obj):
-        paths = _as_paths(obj(), f"{ep.value}()")
-    else:
-        raise TypeError(f"{ep.value} is neither a module nor a callable")
+        return _as_paths(getattr(obj, "SEARCHPATH", None), f"{ep.value}.SEARCHPATH")
+    if callable(obj):
+        return _as_paths(obj(), f"{ep.value}()")
+    raise TypeError(f"{ep.value} is neither a module nor a callable")
+
+
+#: Seconds a plugin may take to import in the guarded probe before it is skipped as hung.
+PROBE_TIMEOUT_S = 60.0
+
+
+def _probe(ep: metadata.EntryPoint) -> str | None:
+    """Import the plugin once in a forked child first (POSIX): a plugin that ends the process on
+    import (``os._exit``, a signal) or hangs is caught here and skipped, instead of ending
+    ``nirspi-run`` silently. Returns the reason to skip it, or None. Exceptions (including
+    ``SystemExit``/``KeyboardInterrupt``) are left to the real import, which reports them."""
+    import select
+    import signal
+    import time
+
+    if not hasattr(os, "fork"):
+        return None
+    read_fd, write_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: import, say so, and leave without running any exit handler
+        os.close(read_fd)
+        try:
+            _register(ep)
+        except BaseException:  # noqa: BLE001, S110 - the parent's own import reports it
+            pass
+        os.write(write_fd, b"ok")
+        os._exit(0)
+    os.close(write_fd)
+    try:
+        deadline = time.monotonic() + PROBE_TIMEOUT_S
+        data = b""
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([read_fd], [], [], max(deadline - time.monotonic(), 0.0))
+            if not ready:
+                break
+            chunk = os.read(read_fd, 16)
+            if not chunk:
+                break
+            data += chunk
+        if data != b"ok":
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            _, status = os.waitpid(pid, 0)
+            if os.WIFEXITED(status):
+                return f"ended the process on import (exit status {os.WEXITSTATUS(status)}, os._exit?)"
+            sig = os.WTERMSIG(status) if os.WIFSIGNALED(status) else None
+            if sig == signal.SIGKILL and not data:
+                return f"did not finish importing within {PROBE_TIMEOUT_S:g} s"
+            return f"killed the process on import (signal {sig})"
+        os.waitpid(pid, 0)
+        return None
+    finally:
+        os.close(read_fd)
+
+
+def _load_one(ep: metadata.EntryPoint, builtin: set[tuple[str, str]]) -> PluginInfo:
+    reason = _probe(ep)
+    if reason:
+        raise PluginRefused(reason)
+    before = _store_options()
+    paths = _register(ep)
+    added = _store_options() - before
     options: dict[str, set[str]] = {}
-    for group, opt in _store_options() - before:
+    for group, opt in added:
         options.setdefault(group, set()).add(opt)
-    for path in paths:
-        for group, opts in _folder_options(path).items():
-            options.setdefault(group, set()).update(opts)
-    shadowed = tuple(sorted(f"{g}/{o}" for g, opts in options.items() for o in opts if (g, o) in builtin))
+    try:
+        for path in paths:
+            for group, opts in _folder_options(path).items():
+                options.setdefault(group, set()).update(opts)
+    except BaseException:
+        _unregister(added)
+        raise
+    clashes = sorted(f"{g}/{o}" for g, opts in options.items() for o in opts if (g, o) in builtin)
+    if clashes:  # refused whole: nothing of it shadows or merges into a built-in config
+        _unregister(added)
+        raise PluginRefused(f"its config name(s) {', '.join(clashes)} clash with built-in ones; rename them")
     return PluginInfo(
         name=ep.name,
         value=ep.value,
         distribution=_distribution(ep),
         searchpath=paths,
         options={g: sorted(o) for g, o in sorted(options.items())},
-        shadowed=shadowed,
     )
+
+
+class PluginRefused(Exception):
+    """A plugin that loaded but is not used (a clash with a built-in name, or a process exit)."""
 
 
 _REPORT: PluginReport | None = None
@@ -234,7 +331,8 @@ def discover(refresh: bool = False) -> PluginReport:
         seen.add(ep.name)
         try:
             plugins.append(_load_one(ep, builtin))
-        except (Exception, SystemExit) as exc:  # noqa: BLE001 - a broken plugin must not break the run
+        except BaseException as exc:  # noqa: BLE001 - a broken plugin must not break the run (SystemExit,
+            # KeyboardInterrupt raised by its import included; the process exits are caught by _probe)
             failure = PluginFailure(ep.name, ep.value, _one_line(exc))
             failures.append(failure)
             log.warning("plugin %r (%s) failed to load and was skipped: %s", ep.name, ep.value, failure.error)
@@ -251,6 +349,9 @@ class NirspiPluginSearchPath(SearchPathPlugin):
     """Appends the config folders of installed nirspi-pipe plugins to Hydra's search path."""
 
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
+        # the experiments folder (conf/config.yaml names it in hydra.searchpath too; listing it
+        # here lets the config catalogue see it without composing the primary config)
+        search_path.append("nirspi-pipe", EXPERIMENTS_PATH)
         for info in discover().plugins:
             for path in info.searchpath:
                 search_path.append(f"{_PROVIDER}:{info.name}", path)
@@ -284,8 +385,6 @@ def format_report(report: PluginReport) -> str:
             lines.append(f"    {group}: {', '.join(opts)}")
         if not info.options:
             lines.append("    (adds no config options)")
-        for name in info.shadowed:
-            lines.append(f"    shadowed by the built-in option {name} (rename it in the plugin)")
     for fail in report.failures:
         lines.append(f"  {fail.name}  FAILED ({fail.value}): {fail.error}")
     return "\n".join(lines)

@@ -20,11 +20,11 @@ import json
 import math
 import platform
 import subprocess
+from collections.abc import Mapping
 from functools import lru_cache
 from importlib import metadata
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
 
 import numpy as np
 

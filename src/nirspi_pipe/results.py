@@ -15,9 +15,9 @@ Failed jobs are rows with ``status == "failed"`` and their ``error``; they are n
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
-from collections.abc import Iterable, Mapping
 
 import pandas as pd
 

@@ -7,9 +7,9 @@ never rebound, and stages never write into arrays they received.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
-from collections.abc import Mapping
 
 import numpy as np
 
@@ -56,7 +56,7 @@ class Camera:
         if not 0.0 < float(self.fov_deg) < 170.0:
             raise ConfigError("fov_deg", self.fov_deg, "degrees in (0, 170)")
 
-    def resampled(self, resolution: int) -> "Camera":
+    def resampled(self, resolution: int) -> Camera:
         """The same camera (field of view, pose) on an ``resolution × resolution`` grid, e.g. the
         grid of an upscaled image; no Hadamard patterns live on it, so any size is allowed."""
         return Camera(resolution=int(resolution), fov_deg=self.fov_deg, patterned=False)

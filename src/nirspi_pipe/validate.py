@@ -3,7 +3,7 @@ line naming the group and its allowed values instead of Hydra's multi-line repor
 
 from __future__ import annotations
 
-from functools import lru_cache
+from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 
 __all__ = ["check_overrides", "group_options", "config_groups"]
 
@@ -14,33 +14,8 @@ _FLAGS_WITH_VALUE = {
 }
 
 
-@lru_cache(maxsize=1)
-def _repository():  # type: ignore[no-untyped-def]
-    from hydra._internal.config_repository import ConfigRepository
-    from hydra._internal.utils import create_config_search_path
-
-    from nirspi_pipe.cli import CONFIG_MODULE
-    from nirspi_pipe.plugins import activate
-
-    activate()  # plugin config folders join every search path created from here on
-    csp = create_config_search_path(f"pkg://{CONFIG_MODULE}")
-    csp.append("nirspi-pipe", "pkg://nirspi_pipe.experiments")
-    return ConfigRepository(config_search_path=csp)
-
-
-def group_options(group: str) -> list[str]:
-    """Options of a config group (``scan`` → ``["basic", …]``) on nirspi-pipe's search path."""
-    from hydra.core.object_type import ObjectType
-
-    return sorted(_repository().get_group_options(group, ObjectType.CONFIG))
-
-
-def config_groups(parent: str = "") -> list[str]:
-    """Config groups directly under ``parent`` (top level by default), hydra's own excluded."""
-    from hydra.core.object_type import ObjectType
-
-    names = _repository().get_group_options(parent, ObjectType.GROUP)
-    return sorted(n for n in names if n != "hydra")
+def _group_exists(group: str) -> bool:
+    return group in all_groups()
 
 
 def _override_args(args: list[str]) -> list[str]:
@@ -69,11 +44,10 @@ def check_overrides(args: list[str]) -> str | None:
         parsed = OverridesParser.create().parse_overrides(overrides)
     except HydraException:
         return None
-    repo = _repository()
     choices: list[str] = []
     for ov in parsed:
         group = ov.key_or_group.split("@", 1)[0]
-        if ov.is_delete() or group.startswith("hydra") or not repo.group_exists(group):
+        if ov.is_delete() or group.startswith("hydra") or not _group_exists(group):
             continue
         values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
         allowed = group_options(group)
@@ -90,13 +64,11 @@ def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore
     from hydra import compose, initialize_config_module
     from omegaconf import DictConfig, OmegaConf
 
-    from nirspi_pipe.cli import CONFIG_MODULE, CONFIG_NAME
-
     keys = [
         ov.key_or_group
         for ov in parsed
         if not ov.is_add() and not ov.is_delete() and not ov.is_force_add()
-        and not ov.key_or_group.startswith("hydra") and not _repository().group_exists(ov.key_or_group)
+        and not ov.key_or_group.startswith("hydra") and not _group_exists(ov.key_or_group)
     ]
     if not keys:
         return None

@@ -16,10 +16,10 @@ import numpy as np
 
 from nirspi_pipe.benchmarks import median_time_s
 from nirspi_pipe.physics.detector import IdealDetector, Photodiode
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.physics.fog import MieFog, NoFog
 from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import Sphere
-from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
 

@@ -38,5 +38,5 @@ def main(argv: list[str]) -> int:
         t_dense = median_time_s(lambda: sub @ c / (n * n), ns.repeat)
         diff = float(np.max(np.abs(zero_filled_inverse(n, idx, c).ravel() - sub @ c / (n * n))))
         print(f"{n:>4}^2 {t_fast * 1e3:>10.3f} {t_dense * 1e3:>10.3f} {t_fast / t_dense:>8.3f} {diff:>9.1e}")
-        del h, sub
+        h = sub = np.empty(0)  # free the dense matrix before the next size
     return 0

@@ -40,13 +40,13 @@ def main(argv: list[str]) -> int:
         per = score_heldout(weights, tuple(ns.noise))
         rows += per
         for r in summarise(per):
-            print(f"{'x%d' % scale:>5} {r['noise_rel']:>9.0e} {r['images']:>3} {r['psnr_bicubic']:>12.2f} "
+            print(f"{f'x{scale}':>5} {r['noise_rel']:>9.0e} {r['images']:>3} {r['psnr_bicubic']:>12.2f} "
                   f"{r['psnr_fsrcnn']:>11.2f} {r['gain_db']:>+8.2f} {r['ssim_bicubic']:>12.4f} {r['ssim_fsrcnn']:>11.4f}")
     if ns.per_image:
         print()
         print(f"{'scale':>5} {'noise_rel':>9} {'image':>12} {'PSNR bic':>9} {'PSNR fsr':>9} {'gain':>7}")
         for r in rows:
-            print(f"{'x%d' % r['scale']:>5} {r['noise_rel']:>9.0e} {r['image']:>12} {r['psnr_bicubic']:>9.2f} "
+            print(f"{'x' + str(r['scale']):>5} {r['noise_rel']:>9.0e} {r['image']:>12} {r['psnr_bicubic']:>9.2f} "
                   f"{r['psnr_fsrcnn']:>9.2f} {r['gain_db']:>+7.2f}")
     losers = sorted({(r["scale"], r["noise_rel"]) for r in summarise(rows) if r["gain_db"] <= 0})
     print("fsrcnn beats bicubic in mean PSNR at every scale and noise level" if not losers
@@ -60,5 +60,5 @@ def main(argv: list[str]) -> int:
         t_net = median_time_s(lambda: fsrcnn_forward(img, weights), ns.repeat)
         t_bic = median_time_s(lambda: bicubic(img, scale), ns.repeat)
         out = f"{ns.size}²→{ns.size * scale}²"
-        print(f"{'x%d' % scale:>5} {out:>9} {t_net * 1e3:>10.2f} {t_bic * 1e3:>11.2f} {t_net / t_bic:>7.1f}")
+        print(f"{f'x{scale}':>5} {out:>9} {t_net * 1e3:>10.2f} {t_bic * 1e3:>11.2f} {t_net / t_bic:>7.1f}")
     return 0

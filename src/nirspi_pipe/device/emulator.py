@@ -34,27 +34,10 @@ from nirspi_pipe.device.protocol import (
 )
 from nirspi_pipe.sources.simulator import split_measure
 
-__all__ = ["FAULTS", "Emulator", "render_scene", "main"]
+__all__ = ["FAULTS", "Emulator", "main"]
 
 FAULTS = ("none", "truncate", "nan", "stall", "bad-header", "seq", "no-end")
 LOOPBACK = "127.0.0.1"
-
-
-def render_scene(scene: str, resolution: int, overrides: list[str] | None = None) -> np.ndarray:
-    """Relative radiance ``(n, n)`` of nirspi-pipe's ``scene=<scene>`` option at ``resolution``."""
-    from hydra import compose, initialize_config_module
-    from hydra.utils import instantiate
-
-    from nirspi_pipe.plugins import activate
-
-    activate()
-    with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        cfg = compose(
-            "config",
-            overrides=[f"scene={scene}", f"camera.resolution={resolution}", *(overrides or [])],
-        )
-    camera = instantiate(cfg.camera)
-    return instantiate(cfg.scene).render(camera).radiance
 
 
 @dataclass
@@ -117,7 +100,7 @@ class Emulator:
                 self._sock.settimeout(min(left, 1.0))
                 try:
                     conn, _ = self._sock.accept()
-                except socket.timeout:
+                except TimeoutError:
                     continue
                 served += 1
                 with conn:
@@ -225,6 +208,8 @@ def main(argv: list[str] | None = None) -> None:
     if not 1 <= ns.connections <= 1000 or not 0 < ns.lifetime_s <= 3600:
         p.error("--connections must be 1-1000 and --lifetime-s in (0, 3600]")
     try:
+        from nirspi_pipe.configs import render_scene  # the command line composes; the emulator does not
+
         radiance = render_scene(ns.scene, ns.resolution, ns.scene_override)
     except Exception as exc:  # noqa: BLE001 - one line for the user
         print(f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)

@@ -23,7 +23,6 @@ reading, a missing end marker) is an error naming the field.
 from __future__ import annotations
 
 import json
-import socket
 import struct
 from typing import Any, BinaryIO
 
@@ -68,7 +67,7 @@ def read_exact(fh: BinaryIO, size: int, field: str, where: str = "") -> bytes:
     while got < size:
         try:
             chunk = fh.read(size - got)
-        except socket.timeout:
+        except TimeoutError:
             raise StreamError(field, f"timed out after {got} of {size} bytes", where) from None
         except OSError as exc:
             raise StreamError(field, f"connection failed after {got} of {size} bytes ({exc})", where) from None
@@ -83,7 +82,7 @@ def read_line(fh: BinaryIO, field: str, where: str = "") -> bytes:
     """One ``\\n``-terminated line (at most :data:`MAX_LINE` bytes), without the newline."""
     try:
         line = fh.readline(MAX_LINE + 1)
-    except socket.timeout:
+    except TimeoutError:
         raise StreamError(field, "timed out waiting for the line", where) from None
     except OSError as exc:
         raise StreamError(field, f"connection failed ({exc})", where) from None

@@ -28,8 +28,7 @@ from dataclasses import dataclass, field
 
 import matplotlib.tri as mtri
 import numpy as np
-from scipy.spatial import Delaunay, QhullError
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.mesh.fusion import back_project, grid_triangles

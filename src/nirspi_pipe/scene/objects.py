@@ -73,7 +73,7 @@ def load_gray_image(path: str) -> np.ndarray:
             raise ConfigError("path", path, "an existing image file or skimage:<sample name>")
         try:
             img = io.imread(file)
-        except Exception as exc:  # unreadable or not an image
+        except Exception as exc:  # noqa: BLE001 - unreadable or not an image: one-line error
             raise ConfigError("path", path, f"a readable image file ({type(exc).__name__})") from None
     img = np.asarray(img)
     if img.ndim == 3:

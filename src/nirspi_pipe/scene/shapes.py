@@ -331,7 +331,7 @@ def _load_mesh_file(path: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np
         with warnings.catch_warnings():  # VTK readers warn, then return an empty mesh: checked below
             warnings.simplefilter("ignore")
             mesh = pv.read(str(file))
-    except Exception as exc:  # unreadable or unknown format
+    except Exception as exc:  # noqa: BLE001 - unreadable or unknown format: one-line error
         raise ConfigError("path", path, f"a readable mesh file .ply/.stl/.obj ({type(exc).__name__})") from None
     if not isinstance(mesh, pv.PolyData):
         mesh = mesh.extract_surface()

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, sweep_orders
+from nirspi_pipe.sfs.grid import BIG, SweepProblem, SweepResult, sweep_orders
 
 __all__ = [
     "SLOPE_AVERAGES",

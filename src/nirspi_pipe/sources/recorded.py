@@ -15,33 +15,23 @@ operator (``lstsq``, ``fista_tv``).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-from nirspi_pipe.device.recording import Recording, RecordingError, load_recording, match_hadamard
+from nirspi_pipe.device.recording import Recording, load_recording, match_hadamard
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.orders import n_selected
 from nirspi_pipe.types import Acquisition, Camera, Scene
 
-__all__ = ["Recorded", "recording_to_acquisition", "scan_indices"]
+__all__ = ["Recorded", "recording_to_acquisition"]
 
-
-def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
-    """Indices of nirspi-pipe's scan option ``order`` (``conf/scan/<order>.yaml``, plugins
-    included) at ``ratio`` for ``n × n`` patterns. Raises :class:`RecordingError` on ``order``."""
-    from hydra.utils import instantiate
-
-    from nirspi_pipe.validate import _repository, group_options
-
-    result = _repository().load_config(f"scan/{order}")
-    if result is None:
-        raise RecordingError("order", f"{order!r} is not a scan option; allowed: {', '.join(group_options('scan'))}")
-    node = result.config
-    node.ratio = float(ratio)
-    return np.asarray(instantiate(node).select(n), dtype=np.int64)
+#: ``(order, ratio, n) -> indices``: resolves a scan option a recording names (the runner hands
+#: :func:`nirspi_pipe.configs.scan_indices` to the source; a stage never reads configs itself).
+ScanIndices = Callable[[str, float, int], np.ndarray]
 
 
 def _truth(rec: Recording, name: str) -> Scene | None:
@@ -165,13 +155,19 @@ class Recorded:
         subtract_offset: subtract the mean background (else dark) reading from raw readings.
         use_scan_ratio: honour ``scan.ratio`` by keeping only the first ``round(ratio · n²)``
             measurements of the file; false keeps them all.
+        scan_indices: resolves the scan option a recording names in its pattern spec
+            (``order``); the runner hands it over (:data:`ScanIndices`). None: such a
+            recording is refused with a message naming ``order``.
     """
 
     path: str | None = None
     subtract_offset: bool = True
     use_scan_ratio: bool = True
+    scan_indices: ScanIndices | None = field(default=None, repr=False, compare=False)
 
-    needs_scene = False
+    needs_scene: ClassVar[bool] = False
+    #: The runner sets :attr:`scan_indices` on sources that say they use it.
+    needs_scan_indices: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if self.path is None or str(self.path).strip() == "":
@@ -184,7 +180,7 @@ class Recorded:
     ) -> Acquisition:
         """Load, validate and convert the recording; ``scene`` and ``rng`` are not used, and of
         ``indices`` only their number (the scan ratio) matters."""
-        rec = load_recording(self.path, indices_from_order=scan_indices)  # type: ignore[arg-type]
+        rec = load_recording(self.path, indices_from_order=self.scan_indices)  # type: ignore[arg-type]
         if rec.n != n:
             warnings.warn(
                 f"source: the recording is {rec.n}x{rec.n} but camera.resolution={n}; "

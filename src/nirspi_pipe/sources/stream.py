@@ -128,7 +128,7 @@ class Stream:
         idx = np.ascontiguousarray(indices, dtype="<i8")
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
-        except socket.timeout:
+        except TimeoutError:
             raise StreamError("connect", f"no answer within {self.timeout_s:g} s (source.timeout_s)", where) from None
         except OSError as exc:
             raise StreamError("connect", f"cannot connect ({exc.strerror or exc})", where) from None
