@@ -92,3 +92,53 @@ def test_unknown_options_and_keys_are_one_line() -> None:
     assert msg is not None and "scene.diameterr_mm" in msg and "diameter_mm" in msg
     assert check_overrides(["scan=basic", "seed=3", "scene.diameter_mm=30"]) is None
     assert check_overrides(["+scene.extra=1"]) is None  # additions are Hydra's business
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key", "allowed"),
+    [
+        (["scene.distance_mm=abc"], "scene.distance_mm", "a distance in mm > 0"),
+        (["fog=chamber", "fog.number_density_per_cm3=lots"], "fog.number_density_per_cm3", "per cm³"),
+        (["fog=measured", "fog.beta_per_m=-1"], "fog.beta_per_m", "extinction coefficient"),
+        (["camera.resolution=abc"], "camera.resolution", "a power of two"),
+        (["illumination=klux", "illumination.klux=true"], "illumination.klux", "kLux in [0, 100]"),
+        (["source.effects.noise_rel=abc"], "source.effects.noise_rel", "a number"),
+    ],
+)
+def test_a_wrong_type_reads_like_a_wrong_value(overrides: list[str], key: str, allowed: str) -> None:
+    from nirspi_pipe.pipeline import run_pipeline
+
+    with pytest.raises(ConfigError) as info:
+        run_pipeline(_compose([*overrides, "camera.resolution=8"] if "camera" not in key else overrides))
+    assert info.value.key == key and allowed in info.value.allowed
+    assert str(info.value).startswith(f"{key}=") and "\n" not in str(info.value)
+
+
+def test_a_top_level_typo_suggests_the_nearest_key() -> None:
+    msg = check_overrides(["scen.distance_mm=1"])
+    assert msg is not None and "did you mean scene.distance_mm?" in msg
+    assert "\n" not in msg
+
+
+def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
+    from nirspi_pipe.validate import OFF_OPTION, REQUIRED_GROUPS, rewrite_nulls
+
+    args, problem = rewrite_nulls(["-m", "upscale=null,bicubic", "sfs=None", "seed=0", "scene.distance_mm=null"])
+    assert problem is None
+    assert args == ["-m", f"upscale={OFF_OPTION},bicubic", f"sfs={OFF_OPTION}", "seed=0", "scene.distance_mm=null"]
+    for group in REQUIRED_GROUPS:
+        _, problem = rewrite_nulls([f"{group}=null"])
+        assert problem is not None and problem.startswith(f"{group}=null is not allowed") and "allowed:" in problem
+    for group in ("scene", "fog", "illumination", "detector", "upscale", "sfs", "itof", "fusion", "surface", "metrics"):
+        assert OFF_OPTION in group_options(group), group
+        assert _compose([f"{group}={OFF_OPTION}"]).get(group) is None
+
+
+def test_stage_null_on_the_command_line_runs(cli) -> None:
+    for args in (["sfs=null"], ["metrics=null"], ["fusion=null"], ["fog=null", "detector=null"]):
+        res = cli("nirspi-run", *args, "camera.resolution=8", "output.quiet=true", "hydra.run.dir=out")
+        assert res.returncode == 0, (args, res.stderr[-2000:])
+    res = cli("nirspi-run", "solver=null", "hydra.run.dir=out")
+    assert res.returncode == 2 and "solver=null is not allowed" in res.stderr
+    res = cli("nirspi-run", "scene=null", "camera.resolution=8", "hydra.run.dir=out")
+    assert res.returncode == 2 and res.stderr.strip().endswith("a scene (this source simulates one)")

@@ -181,6 +181,22 @@ def test_one_saturated_pattern_warns_and_stays_finite(solver_name):
     assert np.all(np.isfinite(out.data))
 
 
+@pytest.mark.parametrize("saturated", [0, 3])
+def test_out_of_bound_warning_blames_saturation_only_when_counted(saturated):
+    img = _scene(N_SIDE)
+    order = ORDERS["zigzag"]().order(N_SIDE)[:128]
+    c = fwht2(img).ravel()[order]
+    c[17] = 1e12  # out of bounds: noise in dense fog, or a saturated reading
+    acq = Acquisition(n=N_SIDE, indices=order, y_pos=c, derived={"saturated_patterns": saturated})
+    with pytest.warns(UserWarning) as caught:
+        DEFAULT_SOLVERS["fwht"].solve(acq)
+    text = " ".join(str(w.message) for w in caught)
+    if saturated:
+        assert "3 readings at full scale" in text
+    else:
+        assert "no reading saturated" in text and "saturated or" not in text
+
+
 @pytest.mark.parametrize("solver_name", list(DEFAULT_SOLVERS))
 def test_dc_only_warns_flat_field(solver_name):
     img = _scene(N_SIDE)

@@ -188,14 +188,15 @@ def run(argv: list[str] | None = None) -> None:
     import hydra
 
     from nirspi_pipe.sweeper import register_hydra_plugins
-    from nirspi_pipe.validate import check_overrides
+    from nirspi_pipe.validate import check_overrides, rewrite_nulls
 
     args = list(sys.argv[1:] if argv is None else argv)
     if "--plugins" in args:
         _list_plugins()
         return
     _activate_plugins()
-    problem = check_overrides(args)
+    args, problem = rewrite_nulls(args)
+    problem = problem or check_overrides(args)
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)

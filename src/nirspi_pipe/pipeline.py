@@ -93,6 +93,7 @@ def build(node: DictConfig, key: str) -> Any:
     """
     from hydra.utils import instantiate
 
+    _check_types(node, key)
     try:
         return instantiate(node, _convert_="all")
     except Exception as exc:  # noqa: BLE001 - translated below
@@ -105,6 +106,124 @@ def build(node: DictConfig, key: str) -> Any:
             bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
             raise ConfigError(f"{where}.{bad}", None, _accepted_keys(node), unknown_key=True) from None
         raise
+
+
+_KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a string"}
+
+
+def _scalar_kinds(hint: Any) -> tuple[type, ...] | None:
+    """The scalar types a field annotation accepts (None also when Optional), or None when the
+    annotation is not a plain scalar (tuples, mappings, models: the stage checks those)."""
+    import types
+    import typing
+
+    args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
+    kinds = tuple(a for a in args if a in _KINDS or a is type(None))
+    return kinds if kinds and len(kinds) == len(args) else None
+
+
+def _type_ok(value: Any, kinds: tuple[type, ...]) -> bool:
+    if value is None:
+        return type(None) in kinds
+    if isinstance(value, bool):
+        return bool in kinds
+    if isinstance(value, (int, float)):
+        return float in kinds or (int in kinds and float(value).is_integer())
+    return isinstance(value, str) and str in kinds
+
+
+def _allowed_for(cls: Any, params: dict[str, Any], name: str, kinds: tuple[type, ...]) -> str:
+    """The ``allowed`` text the stage itself gives for ``name``: its ``__post_init__`` is asked
+    with a value of the right type that no range accepts (NaN), so a wrong type and a wrong
+    value read the same."""
+    fallback = " or ".join(_KINDS[k] for k in kinds if k in _KINDS) + (", or null" if type(None) in kinds else "")
+    if float not in kinds and int not in kinds:
+        return fallback
+    try:
+        cls(**{**params, name: float("nan")})
+    except ConfigError as exc:
+        if exc.key == name:
+            return exc.allowed
+    except Exception:  # noqa: BLE001 - only a message is asked for
+        pass
+    return fallback
+
+
+def _locate(target: str) -> Any:
+    """The object a ``_target_`` names (``package.module.Name``), or None; imports quietly."""
+    import importlib
+
+    parts = target.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        try:
+            obj: Any = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return None
+        return obj
+    return None
+
+
+def _check_types(node: Any, key: str) -> None:
+    """Scalar fields of every ``_target_`` dataclass in ``node`` have their annotated type; a
+    string for a number (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming
+    the key and the stage's allowed values. The dataclass annotations are the source of types."""
+    import dataclasses
+    import inspect
+    import typing
+
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    def walk(sub: Any, path: str) -> None:
+        if isinstance(sub, ListConfig):
+            for i, item in enumerate(sub):
+                walk(item, f"{path}.{i}")
+            return
+        if not isinstance(sub, DictConfig):
+            return
+        for k in sub.keys():
+            if not str(k).startswith("_"):
+                walk(sub[k], f"{path}.{k}")  # resolved: ${fog} is the fog group's node
+        target = sub.get("_target_") if "_target_" in sub else None
+        if not isinstance(target, str):
+            return
+        fn = _locate(target)
+        if fn is None:
+            return
+        try:
+            hints = typing.get_type_hints(fn)
+            if dataclasses.is_dataclass(fn):
+                names = [f.name for f in dataclasses.fields(fn) if f.init]
+            else:
+                names = [p for p in inspect.signature(fn).parameters if p in hints]
+        except Exception:  # noqa: BLE001 - unresolvable annotations: instantiation reports problems
+            return
+        params = None
+        for name in names:
+            if name not in sub:
+                continue
+            kinds = _scalar_kinds(hints.get(name))
+            if kinds is None:
+                continue
+            value = OmegaConf.select(sub, name)  # resolved
+            if _type_ok(value, kinds):
+                continue
+            if params is None:
+                raw = OmegaConf.to_container(sub, resolve=True)
+                params = {str(k): v for k, v in raw.items() if not str(k).startswith("_")} if isinstance(raw, dict) else {}
+            where, _ = _user_key(f"{path}.{name}", key)
+            raise ConfigError(where, value, _allowed_for(fn, params, name, kinds), absolute=True)
+
+    try:
+        walk(node, key)
+    except ConfigError:
+        raise
+    except Exception:  # noqa: BLE001 - the check is a courtesy; instantiation reports the rest
+        return
 
 
 def _accepted_keys(node: DictConfig) -> str:
@@ -197,7 +316,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
             stages = build_stages(cfg)
         for required in ("source", "scan", "solver"):
             if required not in stages:
-                raise ConfigError(required, None, f"a {required} stage ({required}=null is not allowed)")
+                raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
         source, scan, solver = stages["source"], stages["scan"], stages["solver"]
         if getattr(source, "needs_scan_indices", False) and getattr(source, "scan_indices", None) is None:
             from dataclasses import replace
@@ -210,7 +329,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
         truth = None
         if source.needs_scene:
             if "scene" not in stages:
-                raise ConfigError("scene", None, "a scene (this source simulates one)")
+                raise ConfigError("scene", "null", "a scene (this source simulates one)")
             truth = clock.call("scene", stages["scene"].render, camera)
         indices = clock.call("scan", scan.select, n)
         acq = clock.call("source", source.acquire, truth, indices, n, rngs["source"])

@@ -5,7 +5,14 @@ from __future__ import annotations
 
 from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 
-__all__ = ["check_overrides", "group_options", "config_groups"]
+__all__ = ["check_overrides", "rewrite_nulls", "group_options", "config_groups", "REQUIRED_GROUPS", "OFF_OPTION"]
+
+#: Stage groups a run cannot do without: ``solver=null`` is refused with one line.
+REQUIRED_GROUPS = ("source", "scan", "solver")
+#: The option of every optional group that switches it off (``conf/<group>/off.yaml``); Hydra
+#: does not accept ``group=null`` for a config group, so ``nirspi-run`` rewrites null to it.
+OFF_OPTION = "off"
+_NULLS = ("null", "None")
 
 #: Hydra flags followed by a value.
 _FLAGS_WITH_VALUE = {
@@ -16,6 +23,45 @@ _FLAGS_WITH_VALUE = {
 
 def _group_exists(group: str) -> bool:
     return group in all_groups()
+
+
+def _group_of(arg: str) -> str | None:
+    """The config group an override ``[+~]group[@pkg]=value`` sets, or None."""
+    if "=" not in arg or arg.startswith("-"):
+        return None
+    key = arg.split("=", 1)[0].lstrip("+~").split("@", 1)[0]
+    return key if key and not key.startswith("hydra") and _group_exists(key) else None
+
+
+def rewrite_nulls(args: list[str]) -> tuple[list[str], str | None]:
+    """``group=null`` (also in a sweep list, ``upscale=null,bicubic``) becomes the group's
+    ``off`` option, which sets the stage to null; ``solver=null`` (a required group) is a
+    one-line problem. Returns the new arguments and the problem, if any."""
+    out: list[str] = []
+    skip = False
+    for arg in args:
+        if skip or arg.startswith("-"):
+            skip = (not skip) and arg in _FLAGS_WITH_VALUE
+            out.append(arg)
+            continue
+        group = _group_of(arg)
+        if group is None:
+            out.append(arg)
+            continue
+        head, value = arg.split("=", 1)
+        tokens = [t.strip() for t in value.split(",")]
+        if not any(t in _NULLS for t in tokens) or any(c in value for c in "()[]{}'\""):
+            out.append(arg)  # no null, or a sweep function/quoted value: left to Hydra
+            continue
+        if group in REQUIRED_GROUPS:
+            return args, (
+                f"{group}=null is not allowed: a run needs a {group} stage; allowed: {', '.join(group_options(group))}"
+            )
+        if OFF_OPTION not in group_options(group):
+            out.append(arg)
+            continue
+        out.append(head + "=" + ",".join(OFF_OPTION if t in _NULLS else t for t in tokens))
+    return out, None
 
 
 def _override_args(args: list[str]) -> list[str]:
@@ -78,6 +124,14 @@ def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore
     except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
         return None
     for key in keys:
+        top = key.split(".", 1)[0]
+        if top not in cfg.keys():  # keys() keeps ??? values
+            import difflib
+
+            known_top = sorted({str(k) for k in cfg.keys()} | {g.split("/")[0] for g in all_groups()})
+            near = difflib.get_close_matches(top, known_top, n=1)
+            hint = f"did you mean {near[0]}{key[len(top):]}? " if near else ""
+            return f"{key}: {top} is not a key or group; {hint}allowed: {', '.join(known_top)}"
         parent, _, leaf = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else cfg
         if isinstance(node, DictConfig) and leaf not in node.keys():  # keys() keeps ??? values

@@ -83,9 +83,16 @@ def checked_coefficients(acquisition: Acquisition, solver: str) -> np.ndarray:
     over = check & (np.abs(c) > SATURATION_MARGIN * bound)
     if over.any():
         worst = int(np.argmax(np.where(over, np.abs(c), -np.inf)))
+        saturated = acquisition.derived.get("saturated_patterns")
+        if saturated:  # the source counted saturated readings: name them
+            cause = f"saturated ({int(saturated)} readings at full scale) or corrupted"
+        elif saturated == 0:  # counted, none: noise (e.g. dense fog) or a corrupted file
+            cause = "no reading saturated, so noise (e.g. dense fog or strong background) or corruption"
+        else:
+            cause = "saturated or corrupted (or noise-dominated)"
         warnings.warn(
             f"{solver}: {int(over.sum())} measurement(s) exceed {bound_text} "
-            f"(pattern {int(idx[worst])} reads {c[worst]:.3g}): saturated or corrupted; the image "
+            f"(pattern {int(idx[worst])} reads {c[worst]:.3g}): {cause}; the image "
             "carries that pattern as an artefact and is not meaningful",
             stacklevel=3,
         )
