@@ -12,13 +12,13 @@ from hypothesis import strategies as st
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.itof.cw4 import C_M_S, ContinuousWave4, ambiguity_range_m, demodulate_4phase, laser_directions
 from nirspi_pipe.scene.objects import Sphere
-from nirspi_pipe.types import Acquisition, Camera
+from nirspi_pipe.types import Acquisition, Camera, Medium
 
 F = 4.8e6
 
 
-def _acq(**derived: float) -> Acquisition:
-    return Acquisition(n=64, indices=np.arange(1), y_pos=np.zeros(1), derived=derived)
+def _acq(**medium: float) -> Acquisition:
+    return Acquisition(n=64, indices=np.arange(1), y_pos=np.zeros(1), medium=Medium(**medium))
 
 
 @pytest.fixture(scope="module")

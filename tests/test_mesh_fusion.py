@@ -64,7 +64,8 @@ def test_fused_depth_is_smoother_than_sfs(scene):
     fusion = ItofFusion()
     cloud = fusion.fuse(depth, itof, scene.camera)
     # SFS made metric with the same global scale and offset (what Metrics3D calls "before")
-    z = cloud.info["scale"] * depth.depth_m + cloud.info["offset_m"]
+    assert cloud.depth_scale == cloud.info["scale"] and cloud.depth_offset_m == cloud.info["offset_m"]
+    z = cloud.depth_scale * depth.depth_m + cloud.depth_offset_m
     zf = _interpolate_depth(cloud.points_m, scene.camera)
     m = depth.mask & scene.mask & np.isfinite(zf)
     before = np.sqrt(np.mean((z[m] - scene.depth_m[m]) ** 2))

@@ -5,7 +5,8 @@ method named here. Stages are pure with respect to their inputs: they never muta
 take randomness only from the ``numpy.random.Generator`` they are handed, and they do not time
 themselves (the runner in :mod:`nirspi_pipe.pipeline` does). Bookkeeping a stage wants in the
 record goes into the ``info`` mapping of the dataclass it returns; physical quantities a source
-used go into ``Acquisition.derived``. Problems that make a result meaningless are reported with
+used go into ``Acquisition.derived``. Both are for the record only: what a later stage needs
+is a typed field (``Acquisition.medium``, ``PointCloud.depth_scale``/``depth_offset_m``). Problems that make a result meaningless are reported with
 ``warnings.warn``; the runner stores them in the record.
 
 =========  ==============================================  ==========================
@@ -116,8 +117,8 @@ class Itof(Protocol):
     """Measures the four iToF reference points.
 
     The iToF lasers look through the same medium as the single-pixel camera: the fog
-    extinction and background light the source used are in ``acquisition.derived``
-    (``beta_per_m``, ``background_irradiance_w_m2``; absent means none)."""
+    extinction and background light the source used are the typed ``acquisition.medium``
+    (:class:`~nirspi_pipe.types.Medium`; clear and dark when the source does not know)."""
 
     def measure(
         self, scene: Scene | None, acquisition: Acquisition, rng: np.random.Generator

@@ -17,6 +17,7 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import is_power_of_two
 
 __all__ = [
+    "Medium",
     "Camera",
     "Scene",
     "Acquisition",
@@ -119,6 +120,20 @@ class Scene:
 
 
 @dataclass(frozen=True)
+class Medium:
+    """What the medium between camera and scene was during an acquisition, for the stages that
+    look through it too (the iToF lasers). Clear, dark air by default.
+
+    Attributes:
+        beta_per_m: fog extinction coefficient β, 1/m (Eq. 6; 0 = clear air).
+        background_irradiance_w_m2: in-band background irradiance on the scene, W/m² (0 = dark).
+    """
+
+    beta_per_m: float = 0.0
+    background_irradiance_w_m2: float = 0.0
+
+
+@dataclass(frozen=True)
 class Acquisition:
     """Single-pixel measurements of one acquisition, in the order they were taken.
 
@@ -140,7 +155,10 @@ class Acquisition:
         patterns: ``(m, n²)`` explicit ±1-equivalent patterns (row-major pixels) when the
             acquisition is not on the Hadamard basis; None for Hadamard acquisitions.
         timestamps_s: ``(m,)`` acquisition time of each ±1 measurement, seconds, or None.
-        derived: physical quantities the source used (``beta_per_m``, ``snr_db``, …).
+        medium: the fog and background light the source measured through (typed hand-off to
+            the iToF stage); clear and dark when the source does not know.
+        derived: physical quantities the source used (``beta_per_m``, ``snr_db``, …), for the
+            record only: stages read typed fields, never this mapping.
         info: source bookkeeping (counts, flags) for the record.
     """
 
@@ -152,6 +170,7 @@ class Acquisition:
     truth: Scene | None = None
     patterns: np.ndarray | None = None
     timestamps_s: np.ndarray | None = None
+    medium: Medium = field(default_factory=Medium)
     derived: Info = field(default_factory=dict)
     info: Info = field(default_factory=dict)
 
@@ -210,10 +229,17 @@ class ItofSample:
 
 @dataclass(frozen=True)
 class PointCloud:
-    """``points_m`` ``(p, 3)`` camera-frame points in metres, optional ``normals`` ``(p, 3)``."""
+    """``points_m`` ``(p, 3)`` camera-frame points in metres, optional ``normals`` ``(p, 3)``.
+
+    ``depth_scale`` and ``depth_offset_m``: the global affine map ``z = scale · z_sfs + offset``
+    the fusion fitted from relative SFS depth to metres (typed hand-off to the metrics); None
+    when the cloud was not made from relative SFS depth. ``info`` is for the record only.
+    """
 
     points_m: np.ndarray
     normals: np.ndarray | None = None
+    depth_scale: float | None = None
+    depth_offset_m: float | None = None
     info: Info = field(default_factory=dict)
 
 

@@ -248,8 +248,8 @@ class ContinuousWave4:
         """
         if scene is None:
             raise NirspiError("itof=cw4 simulates the lasers and needs the ground-truth scene")
-        beta = float(acquisition.derived.get("beta_per_m", 0.0))
-        e_bg = float(acquisition.derived.get("background_irradiance_w_m2", 0.0))
+        beta = float(acquisition.medium.beta_per_m)
+        e_bg = float(acquisition.medium.background_irradiance_w_m2)
         if not (np.isfinite(beta) and beta >= 0 and np.isfinite(e_bg) and e_bg >= 0):
             raise NirspiError(f"itof: invalid fog/background in acquisition.derived (beta={beta}, E={e_bg})")
         f = self.f_mod_hz

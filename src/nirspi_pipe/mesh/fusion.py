@@ -547,4 +547,6 @@ class ItofFusion:
             "voxel_m": voxel,
             "time_step": float(self.time_step),
         }
-        return PointCloud(points_m=cloud, normals=normals, info=info)
+        return PointCloud(
+            points_m=cloud, normals=normals, depth_scale=float(fit["scale"]), depth_offset_m=float(fit["offset_m"]), info=info
+        )

@@ -2,7 +2,7 @@
 surface distances.
 
 * ``depth_rmse_sfs_mm``: Eq. (16) between the true z-depth and the SFS depth made metric with the
-  fusion's global scale and offset (``cloud.info``: ``scale``, ``offset_m``) — the paper's
+  fusion's global scale and offset (``cloud.depth_scale``, ``cloud.depth_offset_m``) — the paper's
   RMSE of Alg. A2 — over the pixels where both exist.
 * ``depth_rmse_fused_mm``: Eq. (16) between the true z-depth and the fused cloud (output of
   Alg. A3), interpolated on the same pixels (linear over the Delaunay triangulation of the
@@ -200,12 +200,13 @@ class Metrics3D:
         tmask = truth.mask & np.isfinite(truth.depth_m)
         depth, cloud, mesh = products.depth, products.cloud, products.mesh
         z_sfs = None
-        if depth is not None and (depth.metric or (cloud is not None and "scale" in cloud.info)):
+        if depth is not None and (depth.metric or (cloud is not None and cloud.depth_scale is not None)):
             zr = np.asarray(depth.depth_m, dtype=np.float64)
             if depth.metric:
                 z_sfs = zr
             else:
-                z_sfs = float(cloud.info["scale"]) * zr + float(cloud.info["offset_m"])  # type: ignore[union-attr]
+                assert cloud is not None and cloud.depth_scale is not None
+                z_sfs = cloud.depth_scale * zr + float(cloud.depth_offset_m or 0.0)
             z_sfs = np.where(np.asarray(depth.mask, dtype=bool) & np.isfinite(z_sfs), z_sfs, np.nan)
             sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
             faces = grid_triangles(sfs_valid)

@@ -67,7 +67,7 @@ from nirspi_pipe.physics.light import Background
 __all__ = [
     "Effect",
     "Exposure",
-    "Medium",
+    "FogPath",
     "Signal",
     "Illumination",
     "FogAttenuation",
@@ -227,7 +227,7 @@ class Exposure:
 
 
 @dataclass(frozen=True)
-class Medium:
+class FogPath:
     """The fog between camera and object, as the fog effect set it up.
 
     Attributes:
@@ -255,7 +255,7 @@ class Signal:
     optical_depth: np.ndarray | None = None
     depth_scale_pos: np.ndarray | None = None
     depth_scale_neg: np.ndarray | None = None
-    medium: Medium | None = None
+    medium: FogPath | None = None
     pos_e: np.ndarray | None = None
     neg_e: np.ndarray | None = None
     background_e: float = 0.0
@@ -375,7 +375,7 @@ class FogAttenuation:
         r = exposure.range_m
         x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(r), r, 0.0), 0.0)
         albedo = float(getattr(fog, "single_scattering_albedo", 1.0))
-        medium = Medium(beta, np.minimum(r, fog.extent_m), float(fog.extent_m), albedo)
+        medium = FogPath(beta, np.minimum(r, fog.extent_m), float(fog.extent_m), albedo)
         cond = {
             **signal.conditions,
             "backscatter_gain": float(getattr(fog, "backscatter_gain", 0.0)),

@@ -29,7 +29,7 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.effects import Effect, Exposure, Illumination, Signal, modulated_split, split_measure
-from nirspi_pipe.types import Acquisition, Scene
+from nirspi_pipe.types import Acquisition, Medium, Scene
 
 __all__ = ["Simulator", "split_measure", "modulated_split"]
 
@@ -141,6 +141,7 @@ class Simulator:
             gain=float(signal.gain),
             truth=scene,
             timestamps_s=t_pos,
+            medium=Medium(beta, float(derived["background_irradiance_w_m2"])),
             derived=derived,
             info=info,
         )
