@@ -73,6 +73,30 @@ def _unwrap(exc: BaseException) -> tuple[BaseException, str | None]:
     return exc, full_key
 
 
+def _list_keys(node: Any, key: str, full_key: str | None) -> str | None:
+    """Hydra names list items without a separator (``source.effects.extra0``): spell them as a
+    user types them (``source.effects.extra.0``), by walking ``node`` (built as ``key``)."""
+    from omegaconf import DictConfig, ListConfig
+
+    if not full_key or not full_key.startswith(key + "."):
+        return full_key
+    out, sub = [key], node
+    for part in full_key[len(key) + 1 :].split("."):
+        if isinstance(sub, DictConfig) and part in sub:
+            out.append(part)
+            sub = sub._get_node(part)  # noqa: SLF001 - the raw child, unresolved
+            continue
+        head = part.rstrip("0123456789")
+        index = part[len(head):]
+        child = sub._get_node(head) if isinstance(sub, DictConfig) and head in sub else None  # noqa: SLF001
+        if index and isinstance(child, ListConfig) and int(index) < len(child):
+            out += [head, index]
+            sub = child[int(index)]
+            continue
+        return full_key  # not ours to respell
+    return ".".join(out)
+
+
 def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     """Where to report an error of node ``full_key`` built as part of group ``key``: the path the
     user types, and whether it is absolute (an effect group inside ``source.effects``)."""
@@ -98,7 +122,7 @@ def build(node: DictConfig, key: str) -> Any:
         return instantiate(node, _convert_="all")
     except Exception as exc:  # noqa: BLE001 - translated below
         inner, full_key = _unwrap(exc)
-        where, absolute = _user_key(full_key, key)
+        where, absolute = _user_key(_list_keys(node, key, full_key), key)
         if isinstance(inner, ConfigError):
             err = inner.under(where)
             raise (ConfigError(err.key, err.value, err.allowed, err.unknown_key, absolute=True) if absolute else err) from None

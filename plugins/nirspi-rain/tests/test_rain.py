@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from nirspi_rain import Rain, rain_extinction_per_m
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.effects import forward_model
@@ -13,7 +14,6 @@ from nirspi_pipe.physics.fog import MeasuredFog
 from nirspi_pipe.scene.shapes import Plane
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
-from nirspi_rain import Rain, rain_extinction_per_m
 
 N = 8
 

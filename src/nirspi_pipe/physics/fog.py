@@ -141,7 +141,8 @@ def visibility_m(beta_per_m: float, threshold: float = CONTRAST_THRESHOLD) -> fl
         raise ConfigError("threshold", threshold, "a contrast threshold in (0, 1)")
     if beta_per_m <= 0:
         return float("inf")
-    return float(-np.log(threshold) / beta_per_m)
+    with np.errstate(over="ignore"):  # a subnormal β: the visibility is simply infinite
+        return float(-np.log(threshold) / beta_per_m)
 
 
 def backscatter(gain: float, radiance: Any, beta_per_m: Any, z_m: Any) -> np.ndarray:
@@ -266,7 +267,7 @@ class MieFog:
             "q_sca": self.mie.q_sca,
             "single_scattering_albedo": self.single_scattering_albedo,
             "beta_per_m": beta,
-            **({"visibility_m": visibility_m(beta)} if beta > 0 else {}),
+            **({"visibility_m": visibility_m(beta)} if np.isfinite(visibility_m(beta)) else {}),
         }
 
 
@@ -309,4 +310,4 @@ class MeasuredFog:
     def derived(self) -> dict[str, float]:
         """Physical quantities this fog model used, for the record."""
         beta = self.extinction_per_m
-        return {"beta_per_m": beta, **({"visibility_m": visibility_m(beta)} if beta > 0 else {})}
+        return {"beta_per_m": beta, **({"visibility_m": visibility_m(beta)} if np.isfinite(visibility_m(beta)) else {})}
