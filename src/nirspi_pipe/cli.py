@@ -80,7 +80,7 @@ def execute_job(
     from nirspi_pipe.pipeline import run_pipeline
     from nirspi_pipe.records import config_hash, provenance, write_arrays, write_record
 
-    config = OmegaConf.to_container(cfg, resolve=True)
+    config: Any = OmegaConf.to_container(cfg, resolve=True)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     record: dict[str, Any] = {
         "config": config,
@@ -166,7 +166,7 @@ def _hydra_task(cfg: Any) -> None:
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
-    record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))
+    record = execute_job(cfg, out_dir, choices, overrides, job_num=getattr(hc.job, "num", None))
     quiet = bool((cfg.get("output") or {}).get("quiet", False))
     failed = record["meta"]["status"] != "ok"
     if hc.mode == RunMode.RUN:

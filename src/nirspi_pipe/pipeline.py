@@ -211,7 +211,7 @@ def _check_types(node: Any, key: str) -> None:
             return
         for k in sub.keys():
             if not str(k).startswith("_"):
-                walk(sub[k], f"{path}.{k}")  # resolved: ${fog} is the fog group's node
+                walk(sub[k], f"{path}.{k!s}")  # resolved: ${fog} is the fog group's node
         target = sub.get("_target_") if "_target_" in sub else None
         if not isinstance(target, str):
             return
@@ -295,7 +295,7 @@ class _Clock:
 
 
 def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
-    pairs = {
+    pairs: dict[str, Any] = {
         "source": products.acquisition,
         "solver": products.image,
         "upscale": products.upscaled,
@@ -316,7 +316,8 @@ def effective_seed(cfg: DictConfig) -> int:
 
     seed = cfg.get("seed", 0)
     if seed is None:
-        return int(config_hash(OmegaConf.to_container(cfg, resolve=True))[:8], 16)
+        resolved: Any = OmegaConf.to_container(cfg, resolve=True)
+        return int(config_hash(resolved)[:8], 16)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError("seed", seed, "an integer >= 0, or null (derived from the config)")
     return seed

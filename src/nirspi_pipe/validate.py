@@ -3,6 +3,8 @@ line naming the group and its allowed values instead of Hydra's multi-line repor
 
 from __future__ import annotations
 
+from typing import Any
+
 from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 
 __all__ = ["check_overrides", "rewrite_nulls", "group_options", "config_groups", "REQUIRED_GROUPS", "OFF_OPTION"]
@@ -105,7 +107,7 @@ def check_overrides(args: list[str]) -> str | None:
     return _check_keys(parsed, choices)
 
 
-def _check_keys(parsed: list, choices: list[str]) -> str | None:  # type: ignore[type-arg]
+def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones."""
     from hydra import compose, initialize_config_module
     from omegaconf import DictConfig, OmegaConf

@@ -321,9 +321,11 @@ class Signal:
 
 @runtime_checkable
 class Effect(Protocol):
-    """One physical effect of the forward model (module docstring)."""
+    """One physical effect of the forward model (module docstring). ``name`` may be a class
+    attribute (``name: ClassVar[str] = "rain"``) or a field."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def apply(self, signal: Signal, exposure: Exposure) -> Signal: ...
 
@@ -472,7 +474,7 @@ class BackgroundLight:
             obj = koschmieder_radiance(scene.reflectance, med.albedo, med.beta_per_m, path)
             wall = koschmieder_radiance(bg.surround_reflectance, med.albedo, med.beta_per_m, med.extent_m)
         else:
-            obj, wall = scene.reflectance, bg.surround_reflectance
+            obj, wall = scene.reflectance, np.asarray(bg.surround_reflectance)
         refl = float(np.mean(cov * obj + (1.0 - cov) * wall))
         bg_e = float(exposure.budget.ambient_electrons(bg.photon_irradiance, refl))
         s = signal.measured(exposure)

@@ -159,7 +159,7 @@ def max_distance_m(
 
 def paper_table2() -> dict[str, dict[float, float]]:
     """The paper's Table 2 in metres: ``{row: {R: z_max}}`` from experiments/reference/table2.csv."""
-    path = resources.files("nirspi_pipe.experiments").joinpath("reference", "table2.csv")
+    path = resources.files("nirspi_pipe.experiments").joinpath("reference").joinpath("table2.csv")
     out: dict[str, dict[float, float]] = {}
     with path.open() as fh:
         for row in csv.DictReader(fh):

@@ -105,7 +105,7 @@ def recording_to_acquisition(
             times = _pair_times(t, pos, neg)  # type: ignore[arg-type]
             gain = rec.gain * (match.high - match.low)
         elif match.kind == "signed":
-            y_pos, y_neg = match.signs * y, None  # type: ignore[operator]
+            y_pos, y_neg = match.signs * y, None
             times = t
             gain = rec.gain * match.high
             offset = 0.0

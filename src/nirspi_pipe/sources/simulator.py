@@ -42,7 +42,7 @@ def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
     so an effect switched on does not change another's noise."""
     if hasattr(rng, "spawn"):  # numpy >= 1.25
         return rng.spawn(k)
-    seq = rng.bit_generator.seed_seq  # type: ignore[attr-defined]
+    seq: Any = rng.bit_generator.seed_seq  # a SeedSequence for default_rng generators
     return [np.random.default_rng(s) for s in seq.spawn(k)]
 
 
