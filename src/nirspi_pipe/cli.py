@@ -166,7 +166,7 @@ def _hydra_task(cfg: Any) -> None:
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
-    record = execute_job(cfg, out_dir, choices, overrides, job_num=getattr(hc.job, "num", None))
+    record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))  # type: ignore[attr-defined]  # a DictConfig at run time
     quiet = bool((cfg.get("output") or {}).get("quiet", False))
     failed = record["meta"]["status"] != "ok"
     if hc.mode == RunMode.RUN:
