@@ -235,9 +235,12 @@ def read_npz(
             infos = zf.infolist()
             if len(infos) > 4096:
                 raise UnsafeInputError(f"{where}: {len(infos)} members (an NPZ of at most 4096 arrays is read)")
+            for info in infos:  # declared sizes first: nothing is decompressed yet
+                check_budget(info.file_size, f"key '{sanitize_text(info.filename.removesuffix('.npy'), 60)}'", where, limit)
             total = sum(max(0, i.file_size) for i in infos)
             if total > limit:
-                check_budget(total, "decompressing all members", where, limit)
+                big = max(infos, key=lambda i: i.file_size).filename.removesuffix(".npy")
+                check_budget(total, f"all members together (largest: key '{sanitize_text(big, 60)}')", where, limit)
             for info in infos:
                 name = info.filename
                 key = name[:-4] if name.endswith(".npy") else name
