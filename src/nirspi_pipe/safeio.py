@@ -47,7 +47,7 @@ DEFAULT_BUDGET_BYTES = 1 << 30
 MAX_DEFLATE_RATIO = 1032
 
 _CHUNK = 1 << 20
-_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069]")
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u2069]")
 
 
 class UnsafeInputError(NirspiError, ValueError):

@@ -32,8 +32,9 @@ from nirspi_pipe.device.protocol import (
     Channel,
     StreamError,
     encode_end,
+    parse_json_line,
     read_exact,
-    read_json_line,
+    read_line,
     write_json_line,
 )
 from nirspi_pipe.safeio import sanitize_text, short_repr
@@ -159,7 +160,13 @@ class Emulator:
     def handle(self, fh: BinaryIO, rng: np.random.Generator) -> bool:
         """One acquisition: read the request, send the header, the frames and the end marker.
         Returns True once a complete request was read (it then counts as served)."""
-        req = read_json_line(fh, "request")
+        raw = read_line(fh, "request")  # a timeout or a closed connection: not served
+        try:
+            req = parse_json_line(raw, "request")
+        except StreamError as exc:
+            write_json_line(fh, {"error": str(exc)})
+            fh.flush()
+            return True
         n, count = req.get("n"), req.get("count")
         problem = None
         if req.get("protocol") != PROTOCOL:

@@ -43,6 +43,7 @@ __all__ = [
     "Channel",
     "read_line",
     "read_json_line",
+    "parse_json_line",
     "read_exact",
     "write_json_line",
     "encode_end",
@@ -161,7 +162,11 @@ def read_line(fh: BinaryIO | Channel, field: str, where: str = "") -> bytes:
 
 def read_json_line(fh: BinaryIO | Channel, field: str, where: str = "") -> dict[str, Any]:
     """A JSON object on one line, nested at most :data:`MAX_DEPTH` deep."""
-    raw = read_line(fh, field, where)
+    return parse_json_line(read_line(fh, field, where), field, where)
+
+
+def parse_json_line(raw: bytes, field: str, where: str = "") -> dict[str, Any]:
+    """A JSON object from one line's bytes, nested at most :data:`MAX_DEPTH` deep."""
     depth = json_depth(raw)
     if depth > MAX_DEPTH:
         raise StreamError(field, f"JSON nested {depth} deep (at most {MAX_DEPTH})", where)
