@@ -149,7 +149,7 @@ def run_isolated(kind: str, paths: list[Path], budget_mb: float | None = None, t
     if budget_mb is not None:
         env["NIRSPI_READ_BUDGET_MB"] = str(budget_mb)
     res = subprocess.run([sys.executable, "-c", ISOLATED_RUNNER, kind, *map(str, paths)],
-                         capture_output=True, text=True, timeout=timeout, env=env)
+                         capture_output=True, text=True, timeout=timeout, env=env, check=False)
     lines = [json.loads(ln) for ln in res.stdout.splitlines() if ln.startswith("{")]
     done = [ln for ln in lines if "result" in ln]
     if res.returncode != 0 or len(done) != len(paths):

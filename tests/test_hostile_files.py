@@ -14,9 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
 from hostile_inputs import (
     npy_bytes,
     npz_bytes,
@@ -30,6 +27,9 @@ from hostile_inputs import (
     stl_binary,
     tetra,
 )
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from nirspi_pipe.device.recording import load_recording
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.safeio import UnsafeInputError, read_npz
@@ -153,9 +153,10 @@ def test_fuzzed_npz_bytes_load_or_fail_with_one_line(tmp_path: Path, data: st.Da
 
 @pytest.mark.parametrize("exponent", [300, 200, -300])
 def test_recording_scaled_by_huge_factors_is_finite_or_a_clear_error(tmp_path: Path, exponent: int) -> None:
+    from hydra import compose, initialize_config_module
+
     from nirspi_pipe.cli import execute_job
     from nirspi_pipe.finite import is_finite_tree
-    from hydra import compose, initialize_config_module
 
     path = tmp_path / "scaled.npz"
     path.write_bytes(npz_bytes(recording_members(8, 10.0**exponent)))

@@ -8,9 +8,9 @@ import json
 import math
 from pathlib import Path
 
+from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from hydra import compose, initialize_config_module
 
 from nirspi_pipe.cli import execute_job
 from nirspi_pipe.finite import drop_nonfinite, is_finite_tree

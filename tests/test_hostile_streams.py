@@ -140,7 +140,7 @@ def talk(port: int, payload: bytes, read_s: float = 2.0) -> bytes:
         while time.monotonic() < end:
             try:
                 chunk = s.recv(1 << 16)
-            except (socket.timeout, OSError):
+            except (TimeoutError, OSError):
                 break
             if not chunk:
                 break

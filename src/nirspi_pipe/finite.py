@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SECTIONS", "REASONS", "drop_nonfinite", "is_finite_tree"]
+__all__ = ["REASONS", "SECTIONS", "drop_nonfinite", "is_finite_tree"]
 
 #: The record sections that hold results (``config`` is the user's input, ``meta`` bookkeeping).
 SECTIONS = ("metrics", "derived", "timings_ms", "info")

@@ -19,7 +19,7 @@ import struct
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -29,13 +29,13 @@ __all__ = [
     "DEFAULT_BUDGET_BYTES",
     "MAX_DEFLATE_RATIO",
     "UnsafeInputError",
-    "read_budget",
     "check_budget",
+    "json_depth",
+    "max_safe_reading",
+    "read_budget",
     "read_npz",
     "sanitize_text",
     "short_repr",
-    "json_depth",
-    "max_safe_reading",
 ]
 
 #: Assumed: 1 GiB, four times the largest input the docs describe (a 64×64 recording with 8,192
@@ -216,7 +216,7 @@ def read_npz(
     limit = read_budget(budget)
     try:
         file_len = path.stat().st_size
-        fh = open(path, "rb")
+        fh = open(path, "rb")  # noqa: SIM115 - closed by the `with fh` below
     except FileNotFoundError:
         raise UnsafeInputError(f"{where}: file does not exist") from None
     except OSError as exc:
@@ -243,7 +243,7 @@ def read_npz(
                 check_budget(total, f"all members together (largest: key '{sanitize_text(big, 60)}')", where, limit)
             for info in infos:
                 name = info.filename
-                key = name[:-4] if name.endswith(".npy") else name
+                key = name.removesuffix(".npy")
                 skey = sanitize_text(key, 60)
                 if not name.endswith(".npy") or info.is_dir():
                     raise UnsafeInputError(f"{where}: member '{skey}' is not a .npy array")
@@ -282,7 +282,7 @@ def _read_member(
                     f"{where}: key '{key}': header declares shape {short_repr(shape)} of {dtype} ({nbytes} bytes), "
                     f"the member holds {info.file_size - header_len}"
                 )
-            order = "F" if fortran else "C"
+            order: Literal["C", "F"] = "F" if fortran else "C"
             if mmap and info.compress_type == zipfile.ZIP_STORED and nbytes > 0:
                 start = _stored_data_offset(path, info, key, where)
                 offset = start + header_len

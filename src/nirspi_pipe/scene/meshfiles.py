@@ -18,13 +18,14 @@ from __future__ import annotations
 import re
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.safeio import check_budget, read_budget, sanitize_text
 
-__all__ = ["MESH_SUFFIXES", "MeshFileError", "read_mesh_file", "parse_mesh"]
+__all__ = ["MESH_SUFFIXES", "MeshFileError", "parse_mesh", "read_mesh_file"]
 
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
@@ -222,7 +223,7 @@ def _ply_uniform_faces(
         off += np.dtype(p[1]).itemsize
     if not 3 <= k <= _MAX_POLYGON:
         return None
-    fields = []
+    fields: list[tuple[Any, ...]] = []
     for i, p in enumerate(props):
         if p[1] == "list":
             fields += [("count", endian + p[2]), ("idx", endian + p[3], (k,))] if p[0] in ("vertex_indices", "vertex_index") \
@@ -233,7 +234,7 @@ def _ply_uniform_faces(
     if pos + count * dt.itemsize > len(data):
         return None
     rows = np.frombuffer(data, dtype=dt, count=count, offset=pos)
-    if not np.all(rows["count"] == k) or any(f[0].startswith("c") and not np.all(rows[f[0]] == k) for f in fields):
+    if not np.all(rows["count"] == k) or any(str(f[0]).startswith("c") and not np.all(rows[f[0]] == k) for f in fields):
         return None
     idx = rows["idx"].astype(np.int64)
     tris = np.concatenate([idx[:, [0, i, i + 1]] for i in range(1, k - 1)]) if k > 3 else idx

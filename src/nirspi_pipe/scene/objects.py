@@ -101,9 +101,10 @@ def _read_image_bounded(file: Path, path: str, budget: int | None = None) -> np.
                 bands = max(1, len(im.getbands()))
                 # the decoded pixels, then float64 grey conversion of up to 3 channels and its result
                 check_budget(w * h * (bands * 4 + 4 * 8), f"a {w}x{h} image with {bands} band(s)", f"image {path}", budget)
+                decoded: Image.Image = im
                 if im.mode in ("P", "PA", "1", "CMYK", "YCbCr", "LAB", "HSV"):
-                    im = im.convert("RGBA" if "A" in im.mode or "transparency" in im.info else "RGB")
-                img = np.asarray(im)
+                    decoded = im.convert("RGBA" if "A" in im.mode or "transparency" in im.info else "RGB")
+                img = np.asarray(decoded)
     except UnsafeInputError as exc:
         raise ConfigError("path", path, f"an image within the read budget ({str(exc).split(': ', 1)[-1]})") from None
     except Exception as exc:  # noqa: BLE001 - unreadable, truncated or not an image
