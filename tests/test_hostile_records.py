@@ -17,7 +17,7 @@ from nirspi_pipe.finite import drop_nonfinite, is_finite_tree
 
 leaf = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(), st.text(max_size=5), st.booleans(), st.none(),
                  st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=3))
-tree = st.recursive(leaf, lambda inner: st.dictionaries(st.text(min_size=1, max_size=6), inner, max_size=4), max_leaves=20)
+tree = st.recursive(leaf, lambda inner: st.dictionaries(st.text(min_size=1, max_size=6), inner, max_size=4), max_leaves=8)
 
 
 def count_bad(node: object) -> int:
@@ -26,8 +26,8 @@ def count_bad(node: object) -> int:
     return 0 if is_finite_tree(node) else 1
 
 
-@settings(max_examples=80, deadline=None)
-@given(sections=st.fixed_dictionaries({k: st.dictionaries(st.text(min_size=1, max_size=6), tree, max_size=5)
+@settings(max_examples=40, deadline=None)
+@given(sections=st.fixed_dictionaries({k: st.dictionaries(st.text(min_size=1, max_size=6), tree, max_size=3)
                                        for k in ("metrics", "derived", "info", "timings_ms")}))
 def test_guard_leaves_only_finite_values_and_says_what_it_removed(sections: dict) -> None:
     record = {"config": {"x": float("nan")}, **copy.deepcopy(sections)}

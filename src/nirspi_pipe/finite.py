@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe.safeio import sanitize_text
+
 __all__ = ["REASONS", "SECTIONS", "drop_nonfinite", "is_finite_tree"]
 
 #: The record sections that hold results (``config`` is the user's input, ``meta`` bookkeeping).
@@ -63,7 +65,7 @@ def _scrub(node: MutableMapping[str, Any], path: str, out: list[str]) -> None:
         elif not is_finite_tree(value):
             del node[key]
             reason = REASONS.get(str(key).split(".")[-1].split("_")[0], "not a finite number")
-            out.append(f"{where}={_describe(value)} left out of the record: {reason}")
+            out.append(f"{sanitize_text(where, 120)}={_describe(value)} left out of the record: {reason}")
 
 
 def drop_nonfinite(record: MutableMapping[str, Any]) -> list[str]:
