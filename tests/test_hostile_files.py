@@ -111,6 +111,21 @@ def test_hostile_npy_headers_name_the_key(tmp_path: Path, case: str, member: byt
     assert "h.npz" in one_line(err.value) and "'measurements'" in str(err.value) and expect in str(err.value), case
 
 
+def test_strings_from_a_recording_reach_the_terminal_sanitised(tmp_path: Path) -> None:
+    import warnings
+
+    members = recording_members()
+    members["device"] = npy_bytes(np.array("\x1b[2Jrig\x07"))
+    members["\x1b[31mevil"] = npy_bytes(np.zeros(1))
+    path = tmp_path / "s.npz"
+    path.write_bytes(npz_bytes(members))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = load_recording(path)
+    assert rec.meta["device"] == "?[2Jrig?"
+    assert caught and all("\x1b" not in str(w.message) for w in caught)
+
+
 @pytest.mark.parametrize("method", [zipfile.ZIP_BZIP2, zipfile.ZIP_LZMA])
 def test_compression_methods_numpy_does_not_write_are_refused(tmp_path: Path, method: int) -> None:
     path = tmp_path / "m.npz"

@@ -37,7 +37,7 @@ import numpy as np
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.patterns.hadamard import is_power_of_two, sylvester
-from nirspi_pipe.safeio import max_safe_reading, read_npz
+from nirspi_pipe.safeio import max_safe_reading, read_npz, sanitize_text
 
 __all__ = [
     "FORMAT_VERSION",
@@ -164,7 +164,7 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     """
     unknown = sorted(set(arrays) - KNOWN_KEYS)
     if unknown:
-        warnings.warn(f"{where}: ignoring unknown key(s) {', '.join(unknown)}", stacklevel=2)
+        warnings.warn(f"{where}: ignoring unknown key(s) {sanitize_text(', '.join(unknown))}", stacklevel=2)
     version = _scalar(arrays, "format_version", where, "iu")
     if version is not None and int(version) > FORMAT_VERSION:
         raise _fail("format_version", f"{int(version)} is newer than this reader ({FORMAT_VERSION})", where)
@@ -270,7 +270,7 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     if fov is not None and not 0 < fov < 170:
         raise _fail("fov_deg", f"{fov} is not in (0, 170) degrees", where)
     _check_magnitudes(y, 1.0 if gain is None else gain, n, optional, where)
-    meta = {k: v for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
+    meta = {k: sanitize_text(v, 100) for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
     return Recording(
         measurements=y,
         n=n,
