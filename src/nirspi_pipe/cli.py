@@ -77,6 +77,7 @@ def execute_job(
     traceback goes to ``error.txt``. Returns the record."""
     from omegaconf import OmegaConf
 
+    from nirspi_pipe.finite import drop_nonfinite
     from nirspi_pipe.pipeline import run_pipeline
     from nirspi_pipe.records import config_hash, provenance, write_arrays, write_record
 
@@ -118,6 +119,7 @@ def execute_job(
             info=output.info,
         )
         record["meta"].update(status="ok", warnings=output.warnings)
+        record["meta"]["warnings"] += drop_nonfinite(record)  # no NaN/Inf in an ok record (finite.py)
     record["meta"]["wall_s"] = time.perf_counter() - t0
     if output is not None:
         p = output.products

@@ -133,8 +133,9 @@ def load_any(path: Path) -> dict[str, np.ndarray]:
         from scipy.io import loadmat
 
         return {k: v for k, v in loadmat(path).items() if not k.startswith("__")}
-    with np.load(path, allow_pickle=False) as npz:
-        return {k: npz[k] for k in npz.files}
+    from nirspi_pipe.safeio import read_npz
+
+    return read_npz(path, str(path), mmap=False)
 
 
 def main(argv: list[str] | None = None) -> None:

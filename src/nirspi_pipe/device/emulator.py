@@ -6,7 +6,10 @@ requested Hadamard patterns in the split convention (noise-free readings from
 and optional Gaussian detector noise) and streams them back frame by frame.
 
 It listens on 127.0.0.1 only, serves at most ``--connections`` acquisitions, and stops by
-itself after ``--lifetime-s`` seconds in any case. ``--fault`` injects protocol errors
+itself after ``--lifetime-s`` seconds in any case, slow clients included: every connection has
+one total deadline (``io_timeout_s`` after it is accepted, and never past the lifetime), so an
+idle or trickling client is dropped. Only connections that sent a complete request count as
+served. A malformed request gets an ``{"error": ...}`` line, never a crash. ``--fault`` injects protocol errors
 (truncated stream, NaN reading, stalled device, garbled header, wrong sequence) for tests.
 """
 
@@ -26,12 +29,15 @@ import numpy as np
 from nirspi_pipe.device.protocol import (
     FRAME_DTYPE,
     PROTOCOL,
+    Channel,
     StreamError,
     encode_end,
+    parse_json_line,
     read_exact,
-    read_json_line,
+    read_line,
     write_json_line,
 )
+from nirspi_pipe.safeio import sanitize_text, short_repr
 from nirspi_pipe.sources.simulator import split_measure
 
 __all__ = ["FAULTS", "Emulator", "main"]
@@ -54,7 +60,8 @@ class Emulator:
         differential: send ``y_pos − y_neg`` in ``y_pos`` and NaN in ``y_neg`` (a device that
             subtracts the halves itself).
         fault: one of :data:`FAULTS`.
-        io_timeout_s: socket timeout per read/write, seconds.
+        io_timeout_s: total seconds one connection may take from accept to the end marker
+            (an idle client is dropped after this; the lifetime cuts it shorter).
         device: name sent in the header.
     """
 
@@ -86,7 +93,8 @@ class Emulator:
 
     def serve(self, connections: int = 1, lifetime_s: float = 60.0) -> int:
         """Serve up to ``connections`` acquisitions, stopping after ``lifetime_s`` in any case.
-        Returns the number served. Call :meth:`bind` first."""
+        Returns the number served (connections that sent a complete request; idle ones do not
+        count). Call :meth:`bind` first."""
         if self._sock is None:
             self.bind()
         assert self._sock is not None
@@ -102,15 +110,16 @@ class Emulator:
                     conn, _ = self._sock.accept()
                 except TimeoutError:
                     continue
-                served += 1
                 with conn:
-                    conn.settimeout(self.io_timeout_s)
+                    fh = Channel(conn, min(deadline, time.monotonic() + self.io_timeout_s))
                     rng = np.random.default_rng(self._seeds.spawn(1)[0])
                     try:
-                        with conn.makefile("rwb") as fh:
-                            self.handle(fh, rng)
+                        if self.handle(fh, rng):  # type: ignore[arg-type]
+                            served += 1
                     except (OSError, StreamError):
-                        pass  # the client went away or broke the protocol: next connection
+                        pass  # the client went away, stalled or broke the protocol: next connection
+                    except Exception as exc:  # noqa: BLE001 - a bad request never stops the device
+                        print(f"nirspi-device-emulator: request failed: {sanitize_text(exc)}", file=sys.stderr)
         return served
 
     def serve_in_thread(self, connections: int = 1, lifetime_s: float = 60.0) -> tuple[int, threading.Thread]:
@@ -131,26 +140,33 @@ class Emulator:
             y_neg = y_neg + rng.normal(0.0, self.gain * sigma, y_neg.shape)
         return y_pos, y_neg
 
-    def handle(self, fh: BinaryIO, rng: np.random.Generator) -> None:
-        """One acquisition: read the request, send the header, the frames and the end marker."""
-        req = read_json_line(fh, "request")
+    def handle(self, fh: BinaryIO, rng: np.random.Generator) -> bool:
+        """One acquisition: read the request, send the header, the frames and the end marker.
+        Returns True once a complete request was read (it then counts as served)."""
+        raw = read_line(fh, "request")  # a timeout or a closed connection: not served
+        try:
+            req = parse_json_line(raw, "request")
+        except StreamError as exc:
+            write_json_line(fh, {"error": str(exc)})
+            fh.flush()
+            return True
         n, count = req.get("n"), req.get("count")
         problem = None
         if req.get("protocol") != PROTOCOL:
-            problem = f"protocol must be {PROTOCOL!r}"
-        elif n != self.n:
-            problem = f"this device has {self.n}x{self.n} patterns, not {n}"
-        elif not isinstance(count, int) or not 1 <= count <= self.n * self.n:
-            problem = f"count must be an integer in [1, {self.n * self.n}]"
+            problem = f"protocol must be {PROTOCOL!r}, got {short_repr(req.get('protocol'), 40)}"
+        elif isinstance(n, bool) or not isinstance(n, int) or n != self.n:
+            problem = f"this device has {self.n}x{self.n} patterns, not {short_repr(n, 40)}"
+        elif isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= self.n * self.n:
+            problem = f"count must be an integer in [1, {self.n * self.n}], got {short_repr(count, 40)}"
         if problem is not None:
             write_json_line(fh, {"error": problem})
             fh.flush()
-            return
+            return True
         indices = np.frombuffer(read_exact(fh, 8 * count, "indices"), dtype="<i8").astype(np.int64)
         if indices.min() < 0 or indices.max() >= self.n * self.n:
             write_json_line(fh, {"error": f"indices must lie in [0, {self.n * self.n})"})
             fh.flush()
-            return
+            return True
         y_pos, y_neg = self.readings(indices, rng)
         frames = np.zeros(count, dtype=FRAME_DTYPE)
         frames["seq"] = np.arange(count)
@@ -166,7 +182,7 @@ class Emulator:
         if self.fault == "bad-header":
             fh.write(b'{"protocol": "nirspi-stream/1", "n": \n')
             fh.flush()
-            return
+            return True
         if self.fault == "nan":
             frames["y_pos"][count // 2] = np.nan
         if self.fault == "seq" and count > 2:
@@ -176,16 +192,18 @@ class Emulator:
         if self.fault == "truncate":
             fh.write(payload[: len(payload) // 2])
             fh.flush()
-            return
+            return True
         if self.fault == "stall":
             fh.write(payload[: len(payload) // 2])
             fh.flush()
-            time.sleep(self.io_timeout_s)
-            return
+            wake = getattr(fh, "deadline", time.monotonic() + self.io_timeout_s)
+            time.sleep(max(0.0, min(self.io_timeout_s, wake - time.monotonic())))
+            return True
         fh.write(payload)
         if self.fault != "no-end":
             fh.write(encode_end(count))
         fh.flush()
+        return True
 
 
 def main(argv: list[str] | None = None) -> None:

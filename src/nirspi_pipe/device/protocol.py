@@ -24,20 +24,25 @@ from __future__ import annotations
 
 import json
 import struct
+import time
 from typing import Any, BinaryIO
 
 import numpy as np
 
 from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.safeio import json_depth, sanitize_text
 
 __all__ = [
     "PROTOCOL",
     "FRAME_DTYPE",
     "END_MARKER",
     "MAX_LINE",
+    "MAX_DEPTH",
     "StreamError",
+    "Channel",
     "read_line",
     "read_json_line",
+    "parse_json_line",
     "read_exact",
     "write_json_line",
     "encode_end",
@@ -50,6 +55,9 @@ FRAME_DTYPE = np.dtype(
 assert FRAME_DTYPE.itemsize == 36
 END_MARKER = b"NEND"
 MAX_LINE = 64 * 1024
+#: Assumed: the protocol's request and header are flat JSON objects (depth 1); 8 leaves room for
+#: nested extensions while keeping the parser far from Python's recursion limit.
+MAX_DEPTH = 8
 
 
 class StreamError(NirspiError):
@@ -58,12 +66,68 @@ class StreamError(NirspiError):
     def __init__(self, field: str, problem: str, where: str = "") -> None:
         self.field = field
         prefix = f"{where}: " if where else ""
-        super().__init__(f"{prefix}stream field '{field}': {problem}")
+        super().__init__(f"{prefix}stream field '{field}': {sanitize_text(problem, 300)}")
 
 
-def read_exact(fh: BinaryIO, size: int, field: str, where: str = "") -> bytes:
-    """Read exactly ``size`` bytes or raise :class:`StreamError` (truncated stream)."""
-    chunks, got = [], 0
+class Channel:
+    """A connected socket whose reads and writes all share one **total** deadline.
+
+    Every ``recv``/``sendall`` gets the time left until ``deadline`` (``time.monotonic()``
+    seconds) as its timeout, so a peer trickling one byte at a time cannot hold the connection
+    past the deadline (a per-read timeout would be reset by every byte). Past the deadline each
+    call raises ``socket.timeout``. ``read``/``readline``/``write``/``flush`` make it a drop-in
+    for the binary file object of ``socket.makefile``.
+    """
+
+    def __init__(self, sock: socket.socket, deadline: float) -> None:
+        self.sock = sock
+        self.deadline = deadline
+        self._buf = bytearray()
+
+    def _arm(self) -> None:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise socket.timeout("deadline passed")
+        self.sock.settimeout(left)
+
+    def _recv(self, size: int) -> bytes:
+        self._arm()
+        return self.sock.recv(max(1, min(size, 1 << 20)))
+
+    def read(self, size: int) -> bytes:
+        """Up to ``size`` bytes (at least one unless the peer closed): b"" at end of stream."""
+        if self._buf:
+            out = bytes(self._buf[:size])
+            del self._buf[:size]
+            return out
+        return self._recv(size)
+
+    def readline(self, limit: int) -> bytes:
+        """Bytes up to and including ``\n``, at most ``limit`` bytes; fewer at end of stream."""
+        while b"\n" not in self._buf and len(self._buf) < limit:
+            chunk = self._recv(limit - len(self._buf))
+            if not chunk:
+                break
+            self._buf += chunk
+        cut = self._buf.find(b"\n")
+        end = min(limit, cut + 1) if cut >= 0 else min(limit, len(self._buf))
+        out = bytes(self._buf[:end])
+        del self._buf[:end]
+        return out
+
+    def write(self, data: bytes) -> int:
+        self._arm()
+        self.sock.sendall(data)
+        return len(data)
+
+    def flush(self) -> None:
+        """Writes are unbuffered."""
+
+
+def read_exact(fh: BinaryIO | Channel, size: int, field: str, where: str = "") -> bytes:
+    """Read exactly ``size`` bytes or raise :class:`StreamError` (truncated or too slow)."""
+    buf = bytearray(size)
+    got = 0
     while got < size:
         try:
             chunk = fh.read(size - got)
@@ -73,13 +137,13 @@ def read_exact(fh: BinaryIO, size: int, field: str, where: str = "") -> bytes:
             raise StreamError(field, f"connection failed after {got} of {size} bytes ({exc})", where) from None
         if not chunk:
             raise StreamError(field, f"stream truncated: connection closed after {got} of {size} bytes", where)
-        chunks.append(chunk)
+        buf[got : got + len(chunk)] = chunk
         got += len(chunk)
-    return b"".join(chunks)
+    return bytes(buf)
 
 
-def read_line(fh: BinaryIO, field: str, where: str = "") -> bytes:
-    """One ``\\n``-terminated line (at most :data:`MAX_LINE` bytes), without the newline."""
+def read_line(fh: BinaryIO | Channel, field: str, where: str = "") -> bytes:
+    """One ``\n``-terminated line (at most :data:`MAX_LINE` bytes), without the newline."""
     try:
         line = fh.readline(MAX_LINE + 1)
     except TimeoutError:
@@ -95,13 +159,20 @@ def read_line(fh: BinaryIO, field: str, where: str = "") -> bytes:
     return line[:-1]
 
 
-def read_json_line(fh: BinaryIO, field: str, where: str = "") -> dict[str, Any]:
-    """A JSON object on one line."""
-    raw = read_line(fh, field, where)
+def read_json_line(fh: BinaryIO | Channel, field: str, where: str = "") -> dict[str, Any]:
+    """A JSON object on one line, nested at most :data:`MAX_DEPTH` deep."""
+    return parse_json_line(read_line(fh, field, where), field, where)
+
+
+def parse_json_line(raw: bytes, field: str, where: str = "") -> dict[str, Any]:
+    """A JSON object from one line's bytes, nested at most :data:`MAX_DEPTH` deep."""
+    depth = json_depth(raw)
+    if depth > MAX_DEPTH:
+        raise StreamError(field, f"JSON nested {depth} deep (at most {MAX_DEPTH})", where)
     try:
         obj = json.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise StreamError(field, f"not a JSON line ({exc})", where) from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise StreamError(field, f"not a JSON line ({type(exc).__name__}: {exc})", where) from None
     if not isinstance(obj, dict):
         raise StreamError(field, "not a JSON object", where)
     return obj

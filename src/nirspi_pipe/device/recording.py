@@ -29,7 +29,6 @@ Every problem raises :class:`RecordingError` with one line naming the key.
 from __future__ import annotations
 
 import warnings
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +37,7 @@ import numpy as np
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.patterns.hadamard import is_power_of_two, sylvester
+from nirspi_pipe.safeio import max_safe_reading, read_npz, sanitize_text
 
 __all__ = [
     "FORMAT_VERSION",
@@ -95,62 +95,13 @@ def _fail(key: str, problem: str, where: str) -> RecordingError:
     return RecordingError(key, problem, where)
 
 
-def _stored_member(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo) -> np.ndarray | None:
-    """Memory-map an uncompressed ``.npy`` member of an NPZ (no copy, no pickle); None when the
-    member is compressed or not a plain array (the caller falls back to ``np.load``)."""
-    if info.compress_type != zipfile.ZIP_STORED:
-        return None
-    with open(path, "rb") as fh:
-        fh.seek(info.header_offset)
-        local = fh.read(30)
-        if len(local) < 30 or local[:4] != b"PK\x03\x04":
-            return None
-        name_len = int.from_bytes(local[26:28], "little")
-        extra_len = int.from_bytes(local[28:30], "little")
-        start = info.header_offset + 30 + name_len + extra_len
-        fh.seek(start)
-        version = np.lib.format.read_magic(fh)
-        if version == (1, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_1_0(fh)
-        elif version == (2, 0):
-            shape, fortran, dtype = np.lib.format.read_array_header_2_0(fh)
-        else:
-            return None
-        if dtype.hasobject:
-            return None  # np.load refuses it below, naming the key
-        offset = fh.tell()
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    if offset - start + nbytes != info.file_size or nbytes == 0:
-        return None
-    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
-
-
 def _read_npz(path: Path, where: str) -> dict[str, np.ndarray]:
-    """All arrays of an NPZ, loaded without pickle; each failure names its key."""
-    try:
-        fh = open(path, "rb")  # opened here so that it is closed even when np.load fails
-    except FileNotFoundError:
-        raise _fail("path", "file does not exist", where) from None
-    out: dict[str, np.ndarray] = {}
-    with fh:
-        try:
-            npz = np.load(fh, allow_pickle=False)
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
-            raise NirspiError(f"{where}: not a readable NPZ file ({type(exc).__name__}: {exc})") from None
-        if not isinstance(npz, np.lib.npyio.NpzFile):
-            raise NirspiError(f"{where}: a single .npy array, not an NPZ archive of named arrays")
-        for key in npz.files:
-            try:
-                member = npz.zip.getinfo(f"{key}.npy") if f"{key}.npy" in npz.zip.namelist() else None
-                mapped = _stored_member(path, npz.zip, member) if member is not None else None
-                out[key] = mapped if mapped is not None else npz[key]
-            except ValueError as exc:
-                if "allow_pickle" in str(exc):
-                    raise _fail(key, "holds pickled Python objects, which are never loaded (store numbers or strings)", where) from None
-                raise _fail(key, f"unreadable ({exc})", where) from None
-            except (zipfile.BadZipFile, EOFError, OSError) as exc:
-                raise _fail(key, f"truncated or corrupt data ({type(exc).__name__}: {exc})", where) from None
-    return out
+    """All arrays of an NPZ, read within the memory budget and never unpickled
+    (:func:`nirspi_pipe.safeio.read_npz`); uncompressed members are memory-mapped. Each failure
+    names the file and the key."""
+    if not path.is_file():
+        raise _fail("path", "file does not exist", where)
+    return read_npz(path, where)
 
 
 def _string(arrays: dict[str, np.ndarray], key: str, where: str) -> str | None:
@@ -189,6 +140,21 @@ def _float_array(a: np.ndarray, key: str, where: str, ndim: int | None, kinds: s
     return out
 
 
+def _check_magnitudes(y: np.ndarray, gain: float, n: int, optional: dict[str, Any], where: str) -> None:
+    """Readings (and offsets, and the truth image) so large that the reconstruction or its
+    metrics would overflow float64 are refused (:func:`~nirspi_pipe.safeio.max_safe_reading`)."""
+    limit = max_safe_reading(y.size, n * n)
+    for key, arr, scale in (("measurements", y, gain), ("dark", optional.get("dark"), gain),
+                            ("background", optional.get("background"), gain), ("image", optional.get("image"), 1.0)):
+        if arr is None or arr.size == 0:
+            continue
+        peak = float(np.max(np.abs(arr)))
+        if peak / scale > limit or not np.isfinite(peak / scale):
+            per = "|value| / gain" if scale != 1.0 or key != "image" else "|value|"
+            raise _fail(key, f"{per} reaches {peak / scale:.3g}; the reconstruction would overflow float64 "
+                        f"(at most {limit:.3g} for {y.size} readings of {n}x{n})", where)
+
+
 def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_from_order: Any = None) -> Recording:
     """Check every key, shape, dtype and value of a recording's arrays and return it.
 
@@ -198,7 +164,7 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     """
     unknown = sorted(set(arrays) - KNOWN_KEYS)
     if unknown:
-        warnings.warn(f"{where}: ignoring unknown key(s) {', '.join(unknown)}", stacklevel=2)
+        warnings.warn(f"{where}: ignoring unknown key(s) {sanitize_text(', '.join(unknown))}", stacklevel=2)
     version = _scalar(arrays, "format_version", where, "iu")
     if version is not None and int(version) > FORMAT_VERSION:
         raise _fail("format_version", f"{int(version)} is newer than this reader ({FORMAT_VERSION})", where)
@@ -303,7 +269,8 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     fov = _scalar(arrays, "fov_deg", where)
     if fov is not None and not 0 < fov < 170:
         raise _fail("fov_deg", f"{fov} is not in (0, 170) degrees", where)
-    meta = {k: v for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
+    _check_magnitudes(y, 1.0 if gain is None else gain, n, optional, where)
+    meta = {k: sanitize_text(v, 100) for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
     return Recording(
         measurements=y,
         n=n,

@@ -59,7 +59,7 @@ def load_gray_image(path: str) -> np.ndarray:
     """Load a grayscale image in [0, 1] from a file, or ``skimage:<name>`` for a scikit-image
     sample (``skimage:camera``, ``skimage:astronaut``, …). Raises :class:`ConfigError` on
     ``path`` when it cannot be read."""
-    from skimage import color, data, io, util
+    from skimage import color, data, util
 
     if path.startswith("skimage:"):
         name = path.split(":", 1)[1]
@@ -71,10 +71,7 @@ def load_gray_image(path: str) -> np.ndarray:
         file = Path(path).expanduser()
         if not file.is_file():
             raise ConfigError("path", path, "an existing image file or skimage:<sample name>")
-        try:
-            img = io.imread(file)
-        except Exception as exc:  # noqa: BLE001 - unreadable or not an image: one-line error
-            raise ConfigError("path", path, f"a readable image file ({type(exc).__name__})") from None
+        img = _read_image_bounded(file, path)
     img = np.asarray(img)
     if img.ndim == 3:
         img = color.rgb2gray(img[..., :3]) if img.shape[-1] >= 3 else img[..., 0]
@@ -83,6 +80,38 @@ def load_gray_image(path: str) -> np.ndarray:
     if not np.isfinite(lo) or not np.isfinite(hi):
         raise ConfigError("path", path, "an image with finite pixel values")
     return np.clip(img, 0.0, 1.0)
+
+
+def _read_image_bounded(file: Path, path: str, budget: int | None = None) -> np.ndarray:
+    """Decode an image file with Pillow after checking its declared size against the memory
+    budget (:mod:`nirspi_pipe.safeio`): the header is read lazily, so a small file that declares
+    a gigapixel image is refused before any pixel is decoded. Raises :class:`ConfigError` on
+    ``path`` naming the file."""
+    import warnings
+
+    from PIL import Image
+
+    from nirspi_pipe.safeio import UnsafeInputError, check_budget, sanitize_text
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            with Image.open(file) as im:
+                w, h = im.size
+                bands = max(1, len(im.getbands()))
+                # the decoded pixels, then float64 grey conversion of up to 3 channels and its result
+                check_budget(w * h * (bands * 4 + 4 * 8), f"a {w}x{h} image with {bands} band(s)", f"image {path}", budget)
+                decoded: Image.Image = im
+                if im.mode in ("P", "PA", "1", "CMYK", "YCbCr", "LAB", "HSV"):
+                    decoded = im.convert("RGBA" if "A" in im.mode or "transparency" in im.info else "RGB")
+                img = np.asarray(decoded)
+    except UnsafeInputError as exc:
+        raise ConfigError("path", path, f"an image within the read budget ({str(exc).split(': ', 1)[-1]})") from None
+    except Exception as exc:  # noqa: BLE001 - unreadable, truncated or not an image
+        raise ConfigError("path", path, f"a readable image file ({type(exc).__name__}: {sanitize_text(exc, 100)})") from None
+    if img.ndim not in (2, 3) or img.size == 0:
+        raise ConfigError("path", path, f"a 2-D image (got an array of shape {img.shape})")
+    return img
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@
 * ``u_shape``: 65 × 40 × 17 mm, a bar and two arms (15 mm thick; the paper does not give it),
   the union of three boxes.
 * ``plane``: a flat Lambertian board filling the view (the reflectance targets of Table 2).
-* ``mesh``: any triangle mesh file (PLY, STL, OBJ; read by pyvista), placed at the distance and
+* ``mesh``: any triangle mesh file (PLY, STL, OBJ; read by our bounded parser, :mod:`~nirspi_pipe.scene.meshfiles`), placed at the distance and
   scaled; Möller–Trumbore ray–triangle tests, vectorised, accelerated by binning each triangle
   into the pixels its projection covers (a pinhole camera at the origin makes that exact).
 
@@ -18,7 +18,6 @@ rotated by ``Rx·Ry·Rz`` about its centre), and renders through
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -319,28 +318,23 @@ def _orientation_cached(path: str, size: int, mtime_ns: int) -> int:
 
 @lru_cache(maxsize=8)
 def _load_mesh_file(path: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Read a triangle mesh file (PLY, STL, OBJ, or anything pyvista reads) → ``(vertices
-    (v, 3) float64, faces (f, 3) int64)`` in the file's units. Non-triangle faces are
-    triangulated. Raises :class:`ConfigError` on ``path`` when it cannot be read."""
+    """Read a triangle mesh file (PLY, STL, OBJ) → ``(vertices (v, 3) float64, faces (f, 3)
+    int64)`` in the file's units, with our own bounded parser
+    (:mod:`nirspi_pipe.scene.meshfiles`: declared counts checked against the file's length and
+    the memory budget, face indices checked). Polygons are fan-triangulated. Raises
+    :class:`ConfigError` on ``path`` when the file is missing, and
+    :class:`~nirspi_pipe.scene.meshfiles.MeshFileError` naming the file when it is malformed."""
     file = Path(path).expanduser()
     if not file.is_file():
         raise ConfigError("path", path, "an existing mesh file (.ply, .stl, .obj)")
-    import pyvista as pv
+    from nirspi_pipe.safeio import UnsafeInputError
+    from nirspi_pipe.scene.meshfiles import MeshFileError, read_mesh_file
 
     try:
-        with warnings.catch_warnings():  # VTK readers warn, then return an empty mesh: checked below
-            warnings.simplefilter("ignore")
-            mesh = pv.read(str(file))
-    except Exception as exc:  # noqa: BLE001 - unreadable or unknown format: one-line error
-        raise ConfigError("path", path, f"a readable mesh file .ply/.stl/.obj ({type(exc).__name__})") from None
-    if not isinstance(mesh, pv.PolyData):
-        mesh = mesh.extract_surface()
-    mesh = mesh.triangulate()
-    faces = np.asarray(mesh.faces).reshape(-1, 4)[:, 1:].astype(np.int64) if mesh.n_cells else np.zeros((0, 3), np.int64)
-    verts = np.asarray(mesh.points, dtype=np.float64)
-    if faces.size == 0 or not np.isfinite(verts).all():
-        raise ConfigError("path", path, "a mesh with at least one triangle and finite vertices")
-    return verts, faces
+        return read_mesh_file(file)
+    except (MeshFileError, UnsafeInputError) as exc:
+        problem = str(exc).split(": ", 1)[-1]
+        raise ConfigError("path", path, f"a valid mesh file .ply/.stl/.obj, but {problem}") from None
 
 
 def closed_orientation(faces: np.ndarray, vertices: np.ndarray) -> int:
@@ -390,7 +384,9 @@ def raycast_mesh(
     v = np.asarray(vertices_m, dtype=np.float64)
     fc = np.asarray(faces, dtype=np.int64)
     if (v[:, 2] <= 1e-6).any():
-        raise ConfigError("distance_mm", None, "a distance that keeps the whole mesh in front of the camera")
+        nearest_mm = float(v[:, 2].min()) * 1e3
+        raise ConfigError("distance_mm", "?", f"a distance that keeps the whole mesh in front of the camera "
+                          f"(its nearest vertex is at z = {nearest_mm:.3g} mm)")
     f = camera.focal_px
     col = f * v[:, 0] / v[:, 2] + n / 2.0
     row = n / 2.0 - f * v[:, 1] / v[:, 2]
@@ -456,7 +452,7 @@ class MeshScene:
     """Scene ``mesh``: a triangle mesh file, placed and scaled by config.
 
     Attributes:
-        path: a .ply, .stl or .obj file (anything pyvista reads).
+        path: a .ply, .stl or .obj file.
         distance_mm: camera to the centre of the mesh's bounding box, mm.
         size_mm: the largest side of the bounding box after scaling, mm; null: use ``scale``.
         scale: file units → mm when ``size_mm`` is null (1: the file is in mm).
@@ -500,6 +496,11 @@ class MeshScene:
         """Ray-cast the mesh; normals face the camera (two-sided shading)."""
         verts, faces = load_mesh(self.path)
         vm = self.placed_vertices(verts)
+        nearest_mm = float(vm[:, 2].min()) * 1e3
+        if nearest_mm <= 1e-3:  # behind or at the pinhole: the projection is undefined
+            reach = self.distance_mm - nearest_mm
+            raise ConfigError("distance_mm", self.distance_mm, f"a distance above {reach:.4g} mm, which keeps the whole mesh "
+                              f"in front of the camera (or a smaller size_mm/scale)")
         rays, t, tri, u, v = raycast_mesh(camera, self.supersample, vm, faces, orientation=_orientation(self.path))
         hit = tri >= 0
         e1 = vm[faces[:, 1]] - vm[faces[:, 0]]

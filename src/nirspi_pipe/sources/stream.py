@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import socket
 import struct
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -17,12 +18,14 @@ from nirspi_pipe.device.protocol import (
     END_MARKER,
     FRAME_DTYPE,
     PROTOCOL,
+    Channel,
     StreamError,
     read_exact,
     read_json_line,
     write_json_line,
 )
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.safeio import check_budget, max_safe_reading, sanitize_text, short_repr
 from nirspi_pipe.types import Acquisition, Scene
 
 __all__ = ["Stream", "receive_acquisition"]
@@ -33,7 +36,7 @@ def _header_int(header: dict[str, Any], key: str, where: str) -> int:
         raise StreamError(key, "missing from the header", where)
     v = header[key]
     if isinstance(v, bool) or not isinstance(v, int):
-        raise StreamError(key, f"expected an integer, got {v!r}", where)
+        raise StreamError(key, f"expected an integer, got {short_repr(v)}", where)
     return v
 
 
@@ -42,9 +45,9 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
     and check each against the request. Raises :class:`StreamError` naming the field."""
     header = read_json_line(fh, "header", where)
     if "error" in header:
-        raise StreamError("error", f"device refused the request: {header['error']}", where)
+        raise StreamError("error", f"device refused the request: {sanitize_text(header['error'])}", where)
     if header.get("protocol") != PROTOCOL:
-        raise StreamError("protocol", f"expected {PROTOCOL!r}, got {header.get('protocol')!r}", where)
+        raise StreamError("protocol", f"expected {PROTOCOL!r}, got {short_repr(header.get('protocol'))}", where)
     if _header_int(header, "n", where) != n:
         raise StreamError("n", f"device answers for {header['n']}x{header['n']}, requested {n}x{n}", where)
     count = _header_int(header, "count", where)
@@ -54,7 +57,8 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
         raise StreamError("frame_bytes", f"{header['frame_bytes']} != {FRAME_DTYPE.itemsize} (protocol mismatch)", where)
     gain = header.get("gain", 1.0)
     if isinstance(gain, bool) or not isinstance(gain, (int, float)) or not np.isfinite(gain) or gain <= 0:
-        raise StreamError("gain", f"expected a number > 0, got {gain!r}", where)
+        raise StreamError("gain", f"expected a number > 0, got {short_repr(gain)}", where)
+    check_budget(count * FRAME_DTYPE.itemsize, f"{count} frames", where)
     raw = read_exact(fh, count * FRAME_DTYPE.itemsize, "frames", where)
     frames = np.frombuffer(raw, dtype=FRAME_DTYPE)
     seq = frames["seq"].astype(np.int64)
@@ -71,6 +75,17 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
             raise StreamError(name, f"{bad.size} non-finite value(s), first in frame {bad[0]}", where)
+    back = np.flatnonzero(np.diff(frames["t_s"]) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise StreamError("t_s", f"timestamps must not decrease (as in recorded files): frame {i} at "
+                          f"{frames['t_s'][i]:g} s after frame {i - 1} at {frames['t_s'][i - 1]:g} s", where)
+    limit = max_safe_reading(count, n * n)
+    for name, arr in (("y_pos", y_pos),) + (() if differential else (("y_neg", y_neg),)):
+        peak = float(np.max(np.abs(arr))) / float(gain) if count else 0.0
+        if not peak <= limit:
+            raise StreamError(name, f"|reading| / gain reaches {peak:.3g}; the reconstruction would overflow "
+                              f"float64 (at most {limit:.3g} for {count} readings of {n}x{n})", where)
     end = read_exact(fh, len(END_MARKER) + 4, "end", where)
     if end[:4] != END_MARKER:
         raise StreamError("end", f"expected the end marker {END_MARKER!r}, got {end[:4]!r}", where)
@@ -87,8 +102,8 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
         timestamps_s=frames["t_s"].astype(np.float64),
         derived={},
         info={
-            "device": str(header.get("device", "?")),
-            "units": str(header.get("units", "")),
+            "device": sanitize_text(header.get("device", "?"), 100),
+            "units": sanitize_text(header.get("units", ""), 40),
             "frames": int(count),
             "bytes": int(len(raw)),
             "differential": differential,
@@ -103,7 +118,10 @@ class Stream:
     Attributes:
         host: device address (the emulator listens on 127.0.0.1).
         port: TCP port of the device (1–65535).
-        timeout_s: seconds to wait for the connection and for each read before giving up.
+        timeout_s: total seconds for one acquisition (connect, request, header, every frame and
+            the end marker); a device that has not finished by then fails with field
+            ``frames`` (or the part it was sending). A total, not a per-read, deadline: a
+            device trickling bytes cannot hold the run.
     """
 
     host: str = "127.0.0.1"
@@ -126,17 +144,20 @@ class Stream:
         """Send the pattern ``indices`` and receive one frame per pattern (``scene``, ``rng`` unused)."""
         where = f"stream {self.host}:{self.port} (timeout_s={self.timeout_s:g})"
         idx = np.ascontiguousarray(indices, dtype="<i8")
+        deadline = time.monotonic() + float(self.timeout_s)
         try:
             sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
         except TimeoutError:
             raise StreamError("connect", f"no answer within {self.timeout_s:g} s (source.timeout_s)", where) from None
         except OSError as exc:
             raise StreamError("connect", f"cannot connect ({exc.strerror or exc})", where) from None
-        with sock, sock.makefile("rwb") as fh:
+        with sock:
+            fh = Channel(sock, deadline)
             try:
-                write_json_line(fh, {"protocol": PROTOCOL, "n": int(n), "count": int(idx.size)})
+                write_json_line(fh, {"protocol": PROTOCOL, "n": int(n), "count": int(idx.size)})  # type: ignore[arg-type]
                 fh.write(idx.tobytes())
-                fh.flush()
+            except socket.timeout:
+                raise StreamError("request", f"not sent within {self.timeout_s:g} s (source.timeout_s)", where) from None
             except OSError as exc:
                 raise StreamError("request", f"sending failed ({exc})", where) from None
             return receive_acquisition(fh, idx.astype(np.int64), n, where)

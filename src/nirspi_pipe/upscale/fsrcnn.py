@@ -188,20 +188,62 @@ def save_weights(path: str | Path, weights: FsrcnnWeights) -> None:
 
 
 def _read_weights(path: str | Path) -> FsrcnnWeights:
-    with np.load(path, allow_pickle=False) as z:
-        n = sum(1 for k in z.files if k.startswith("conv") and k.endswith("_w"))
-        layers = tuple(
-            ConvLayer(z[f"conv{i}_w"], z[f"conv{i}_b"], z[f"conv{i}_a"]) for i in range(n)
-        )
-        return FsrcnnWeights(
-            scale=int(z["scale"]),
-            layers=layers,
-            deconv_w=z["deconv_w"],
-            deconv_b=z["deconv_b"],
-            residual=bool(z["residual"]),
-            border=int(z["border"]),
-            meta=json.loads(str(z["meta"])),
-        )
+    """Read and check a weights file: bounded NPZ reading (:func:`nirspi_pipe.safeio.read_npz`,
+    weights are small: 64 MB at most), then every array's shape against the architecture, so a
+    hostile file fails here with one line instead of deep inside the forward pass."""
+    from nirspi_pipe.safeio import read_npz
+
+    z = read_npz(path, str(path), budget=64 << 20, mmap=False)
+
+    def get(key: str, ndim: int) -> np.ndarray:
+        if key not in z:
+            raise ValueError(f"key '{key}' missing")
+        a = z[key]
+        if a.dtype.kind not in "fiub" or a.ndim != ndim:
+            raise ValueError(f"key '{key}': expected a {ndim}-D numeric array, got {a.dtype} of shape {a.shape}")
+        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+            raise ValueError(f"key '{key}': non-finite values")
+        return np.asarray(a)
+
+    n = sum(1 for k in z if k.startswith("conv") and k.endswith("_w"))
+    if not 2 <= n <= 64:
+        raise ValueError(f"{n} conv layers (expected 2-64: conv0_w, conv1_w, ...)")
+    layers = []
+    channels = 1
+    for i in range(n):
+        w, b, a = get(f"conv{i}_w", 4), get(f"conv{i}_b", 1), get(f"conv{i}_a", 1)
+        out, cin, k1, k2 = w.shape
+        if cin != channels or k1 != k2 or k1 % 2 != 1 or b.shape != (out,) or a.shape != (out,):
+            raise ValueError(f"key 'conv{i}_w': shape {w.shape} does not follow {channels} input channels "
+                             "(odd square kernels; bias and PReLU slopes of one value per output)")
+        layers.append(ConvLayer(w, b, a))
+        channels = out
+    deconv_w, deconv_b = get("deconv_w", 4), get("deconv_b", 1)
+    if deconv_w.shape != (channels, 1, DECONV_KERNEL, DECONV_KERNEL) or deconv_b.shape != (1,):
+        raise ValueError(f"key 'deconv_w': shape {deconv_w.shape}, expected {(channels, 1, DECONV_KERNEL, DECONV_KERNEL)}")
+    scalars = {}
+    for key in ("scale", "residual", "border"):
+        v = get(key, 0)
+        scalars[key] = v.item()
+    if not (isinstance(scalars["scale"], int) and 2 <= scalars["scale"] <= 8):
+        raise ValueError(f"key 'scale': {scalars['scale']!r} is not an integer 2-8")
+    if not (isinstance(scalars["border"], int) and 0 <= scalars["border"] <= 64):
+        raise ValueError(f"key 'border': {scalars['border']!r} is not an integer 0-64")
+    meta_raw = z.get("meta")
+    meta: Any = {}
+    if meta_raw is not None:
+        if meta_raw.dtype.kind not in "US" or meta_raw.ndim != 0:
+            raise ValueError("key 'meta': expected a JSON string")
+        meta = json.loads(str(meta_raw.item()))
+    return FsrcnnWeights(
+        scale=int(scalars["scale"]),
+        layers=tuple(layers),
+        deconv_w=deconv_w,
+        deconv_b=deconv_b,
+        residual=bool(scalars["residual"]),
+        border=int(scalars["border"]),
+        meta=meta if isinstance(meta, dict) else {"meta": meta},
+    )
 
 
 @lru_cache(maxsize=8)
@@ -226,7 +268,9 @@ def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
     try:
         weights = _load_cached(str(file.resolve()))
     except Exception as exc:  # noqa: BLE001 - any unreadable file is a config problem
-        raise ConfigError("weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({exc})") from None
+        from nirspi_pipe.safeio import sanitize_text
+
+        raise ConfigError("weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({sanitize_text(exc)})") from None
     if weights.scale != int(scale):
         raise ConfigError("weights", str(file), f"weights trained for scale {scale} (this file is ×{weights.scale})")
     return weights
