@@ -70,18 +70,23 @@ def _summary(record: dict[str, Any], out_dir: Path) -> str:
 
 
 def execute_job(
-    cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str], job_num: int | None = None
+    cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str], job_num: int | None = None,
+    attempt: int | None = None,
 ) -> dict[str, Any]:
     """Run one job and write its record and arrays into ``out_dir``. Never raises for a failing
     pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
-    traceback goes to ``error.txt``. Returns the record."""
+    traceback goes to ``error.txt``. Returns the record. Raises
+    :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written."""
     from omegaconf import OmegaConf
 
     from nirspi_pipe.finite import drop_nonfinite
     from nirspi_pipe.pipeline import run_pipeline
-    from nirspi_pipe.records import config_hash, provenance, write_arrays, write_record
+    from nirspi_pipe.records import (
+        InputHasher, OutputError, atomic_write, config_hash, job_key_of, provenance, write_record,
+    )
 
     config: Any = OmegaConf.to_container(cfg, resolve=True)
+    inputs = InputHasher().hashes(config)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     record: dict[str, Any] = {
         "config": config,
@@ -92,13 +97,16 @@ def execute_job(
         "info": {},
         "meta": {
             "config_hash": config_hash(config),
+            "job_key": job_key_of(config, inputs),
+            "inputs": inputs,  # sha256 of every input file the config names
             "seed": _seed_or_none(cfg),
-            **provenance((os.getcwd(),)),
+            **provenance(),
             "status": "failed",
             "error": None,
             "warnings": [],
             "overrides": overrides,
             "job_num": job_num,
+            "attempt": attempt,
             "started": started,
         },
     }
@@ -109,8 +117,10 @@ def execute_job(
     except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
         record["meta"]["error"] = _one_line(exc)
         record["meta"]["error_type"] = "ConfigError" if isinstance(exc, ConfigError) else type(exc).__name__
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "error.txt").write_text(traceback.format_exc())
+        try:
+            atomic_write(out_dir / "error.txt", traceback.format_exc())
+        except OutputError:
+            pass  # the record below says what failed; it raises if the folder is unwritable
     else:
         record.update(
             metrics=output.metrics,
@@ -122,33 +132,46 @@ def execute_job(
         record["meta"]["warnings"] += drop_nonfinite(record)  # no NaN/Inf in an ok record (finite.py)
     record["meta"]["wall_s"] = time.perf_counter() - t0
     if output is not None:
-        p = output.products
-        truth = p.truth
-        out_cfg = cfg.get("output", {}) or {}
-        arrays = {
-            "reconstruction": p.image.data,
-            "upscaled": p.upscaled.data if p.upscaled is not None else None,
-            "truth_radiance": truth.radiance if truth is not None else None,
-            "truth_depth_m": truth.depth_m if truth is not None else None,
-            "truth_mask": truth.mask if truth is not None else None,
-            "indices": p.acquisition.indices,
-            "y_pos": p.acquisition.y_pos,
-            "y_neg": p.acquisition.y_neg,
-            "depth_m": p.depth.depth_m if p.depth is not None else None,
-        }
-        images = {"reconstruction": p.image.data, "truth": truth.radiance if truth is not None else None}
-        write_arrays(
-            out_dir,
-            arrays if out_cfg.get("arrays", True) else {},
-            images if out_cfg.get("images", True) else {},
-        )
-        if p.mesh is not None:
-            from nirspi_pipe.mesh.outputs import write_mesh_outputs
-
-            # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
-            write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
+        try:
+            _write_products(cfg, out_dir, output)
+        except OutputError as exc:  # disk full, unwritable folder: the job failed, say where
+            record["meta"].update(status="failed", error=str(exc), error_type="OutputError")
+        except OSError as exc:  # a writer that does not go through atomic_write (mesh.ply)
+            where = f" {exc.filename}" if exc.filename else f" into {out_dir}"
+            record["meta"].update(status="failed", error=f"cannot write{where}: {exc.strerror or exc}",
+                                  error_type="OutputError")
     write_record(out_dir, record)
     return record
+
+
+def _write_products(cfg: Any, out_dir: Path, output: Any) -> None:
+    from nirspi_pipe.records import write_arrays
+
+    p = output.products
+    truth = p.truth
+    out_cfg = cfg.get("output", {}) or {}
+    arrays = {
+        "reconstruction": p.image.data,
+        "upscaled": p.upscaled.data if p.upscaled is not None else None,
+        "truth_radiance": truth.radiance if truth is not None else None,
+        "truth_depth_m": truth.depth_m if truth is not None else None,
+        "truth_mask": truth.mask if truth is not None else None,
+        "indices": p.acquisition.indices,
+        "y_pos": p.acquisition.y_pos,
+        "y_neg": p.acquisition.y_neg,
+        "depth_m": p.depth.depth_m if p.depth is not None else None,
+    }
+    images = {"reconstruction": p.image.data, "truth": truth.radiance if truth is not None else None}
+    write_arrays(
+        out_dir,
+        arrays if out_cfg.get("arrays", True) else {},
+        images if out_cfg.get("images", True) else {},
+    )
+    if p.mesh is not None:
+        from nirspi_pipe.mesh.outputs import write_mesh_outputs
+
+        # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
+        write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
 
 
 def _seed_or_none(cfg: Any) -> int | None:
@@ -168,7 +191,23 @@ def _hydra_task(cfg: Any) -> None:
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
-    record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))  # type: ignore[attr-defined]  # a DictConfig at run time
+    from nirspi_pipe.records import OutputError
+
+    if hc.mode == RunMode.MULTIRUN:  # crash-isolated, locked and counted (nirspi_pipe.jobs)
+        from nirspi_pipe.jobs import run_sweep_job
+        from nirspi_pipe.sweeper import SWEEP_FILE
+
+        sweep_file = Path(str(hc.sweep.dir)) / SWEEP_FILE
+        ours = "nirspi" in str(hc.sweeper.get("_target_", ""))  # keyed folders (basic: numbered)
+        record = run_sweep_job(execute_job, cfg, out_dir, choices, overrides, job_num=hc.job.get("num"),
+                               sweep_file=sweep_file if sweep_file.is_file() else None,
+                               resume=ours and bool(hc.sweeper.get("resume", False)))
+    else:
+        try:
+            record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))
+        except OutputError as exc:
+            print(f"nirspi-run: error: {exc}", file=sys.stderr)
+            raise SystemExit(1) from None
     quiet = bool((cfg.get("output") or {}).get("quiet", False))
     failed = record["meta"]["status"] != "ok"
     if hc.mode == RunMode.RUN:
@@ -245,11 +284,17 @@ def collect(argv: list[str] | None = None) -> None:
         help="paper tables to rebuild (default: those the sweep's experiments list)",
     )
     ns = parser.parse_args(argv)
+    from nirspi_pipe.records import OutputError
+    from nirspi_pipe.sweeper import SweepFileError
+
     try:
         frame = finish_sweep(ns.sweep_dir, ns.tables)
-    except FileNotFoundError as exc:
+    except (FileNotFoundError, SweepFileError) as exc:
         print(f"nirspi-collect: error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+    except OutputError as exc:  # unwritable sweep folder, disk full
+        print(f"nirspi-collect: error: {exc}", file=sys.stderr)
+        raise SystemExit(1) from None
     if not ns.quiet:
         import pandas as pd
 

@@ -8,18 +8,28 @@ Record format (one JSON object)::
      "timings_ms": {stage: float},            # measured by the runner, "total" included
      "derived":   {name: float},              # physical quantities the source used
      "info":      {stage: {name: value}},     # stage bookkeeping (iterations, stop reason)
-     "meta":      {"config_hash", "seed", "versions", "git_sha", "git_dirty", "platform",
-                   "opencl_devices", "status": "ok" | "failed", "error", "error_type",
-                   "warnings", "overrides", "job_num", "started", "wall_s"}}
+     "meta":      {"config_hash", "job_key", "inputs": {key: sha256 of the file it names},
+                   "seed", "versions", "nirspi_pipe_version", "git_sha", "git_dirty",
+                   "source_hash", "code", "platform", "opencl_devices",
+                   "status": "ok" | "failed", "error", "error_type", "exit_code", "signal",
+                   "attempt", "warnings", "overrides", "job_num", "started", "wall_s"}}
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
+import io
 import json
 import math
+import os
 import platform
+import socket
 import subprocess
+import sys
+import tempfile
+import time
 from collections.abc import Mapping
 from functools import lru_cache
 from importlib import metadata
@@ -28,13 +38,23 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe.errors import NirspiError
+
 __all__ = [
     "RECORD_NAME",
+    "InputHasher",
+    "JobLock",
+    "OutputError",
+    "atomic_write",
+    "code_identity",
     "config_hash",
+    "input_files",
+    "job_key_of",
     "provenance",
-    "write_record",
     "read_record",
+    "source_hash",
     "write_arrays",
+    "write_record",
 ]
 
 RECORD_NAME = "record.json"
@@ -77,32 +97,267 @@ def config_hash(config: Mapping[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _git(args: list[str], cwd: Path) -> str | None:
+class OutputError(NirspiError):
+    """An output file could not be written (unwritable folder, disk full): one line naming it."""
+
+
+def _write_failure(path: Path, exc: OSError) -> OutputError:
+    reason = exc.strerror or str(exc)
+    if exc.errno == errno.ENOSPC:
+        reason = "no space left on device"
+    return OutputError(f"cannot write {path}: {reason}")
+
+
+def atomic_write(path: Path, data: bytes | str) -> Path:
+    """Write ``data`` to ``path`` atomically: into a uniquely named temporary file in the same
+    folder (``tempfile.mkstemp``), flushed to disk, then renamed over ``path``. Concurrent writers
+    never share a temporary file, and readers see the old or the new file, never a torn one.
+
+    Raises :class:`OutputError` (one line naming ``path``) when the folder is unwritable or the
+    disk is full; the temporary file is removed, and ``path`` keeps its previous content.
+    """
+    path = Path(path)
+    payload = data.encode() if isinstance(data, str) else bytes(data)
     try:
-        out = subprocess.run(
-            ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=5, check=True
-        )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:
+        raise _write_failure(path, exc) from None
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp_name, 0o644)  # mkstemp makes 0600; records are shared (cluster file systems)
+        os.replace(tmp_name, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp_name)
+        if isinstance(exc, OSError):
+            raise _write_failure(path, exc) from None
+        raise
+    return path
+
+
+class JobLock:
+    """An exclusive lock on a job folder (``.lock``, POSIX ``fcntl.lockf``), so that two sweeps
+    writing into one folder never run the same job at once.
+
+    The kernel releases the lock when its holder exits, however it dies (even ``SIGKILL``), so a
+    lock is never stale. ``acquire(wait=False)`` returns False when another process holds it;
+    ``acquire()`` waits for it. Where ``fcntl`` does not exist (Windows) the lock is a no-op.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.path = Path(folder) / ".lock"
+        self._fd: int | None = None
+
+    def acquire(self, wait: bool = True, poll_s: float = 0.2) -> bool:
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - Windows
+            return True
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        while True:
+            try:
+                fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno not in (errno.EACCES, errno.EAGAIN):
+                    os.close(fd)
+                    raise
+                if not wait:
+                    os.close(fd)
+                    return False
+                time.sleep(poll_s)
+                continue
+            self._fd = fd
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{socket.gethostname()} {os.getpid()}\n".encode())
+            return True
+
+    def release(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor drops the lock
+            self._fd = None
+
+
+# ---------------------------------------------------------------------------------------------
+# Input files: their content is part of a job's key.
+
+_MAX_PATH_TEXT = 4096
+
+
+def input_files(config: Mapping[str, Any], base: Path | None = None) -> dict[str, Path]:
+    """``{dotted.key: path}`` for every string leaf of ``config`` (the ``hydra`` node left out)
+    that names an existing regular file, relative paths taken from ``base`` (default: the
+    working directory, which Hydra keeps since ``hydra.job.chdir=false``).
+
+    Any key counts, not only ``path``: recordings, meshes, images, weights and whatever a plugin
+    reads are all inputs whose content must key the job."""
+    base = Path.cwd() if base is None else Path(base)
+    found: dict[str, Path] = {}
+
+    def walk(prefix: str, node: Any) -> None:
+        if isinstance(node, Mapping):
+            for k, v in node.items():
+                if not prefix and k == "hydra":
+                    continue
+                walk(f"{prefix}.{k}" if prefix else str(k), v)
+        elif isinstance(node, (list, tuple)):
+            for i, v in enumerate(node):
+                walk(f"{prefix}[{i}]", v)
+        elif isinstance(node, str) and 0 < len(node) < _MAX_PATH_TEXT and "\n" not in node and "\0" not in node:
+            candidate = Path(node).expanduser()
+            candidate = candidate if candidate.is_absolute() else base / candidate
+            try:
+                if candidate.is_file():
+                    found[prefix] = candidate.resolve()
+            except OSError:  # a name too long, a permission problem: not an input we can read
+                pass
+
+    walk("", config)
+    return found
+
+
+class InputHasher:
+    """SHA-256 of input files, cached by ``(path, size, mtime_ns, inode)`` so that a sweep of
+    hundreds of jobs naming the same recording reads it once, and a file replaced in place (new
+    size or mtime) is read again."""
+
+    def __init__(self) -> None:
+        self._cache: dict[tuple[str, int, int, int], str] = {}
+
+    def digest(self, path: Path) -> str:
+        st = os.stat(path)
+        stamp = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+        if stamp not in self._cache:
+            h = hashlib.sha256()
+            with open(path, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            self._cache[stamp] = h.hexdigest()
+        return self._cache[stamp]
+
+    def hashes(self, config: Mapping[str, Any], base: Path | None = None) -> dict[str, str]:
+        """``{dotted.key: sha256}`` of every input file ``config`` names (see :func:`input_files`)."""
+        out = {}
+        for key, path in sorted(input_files(config, base).items()):
+            try:
+                out[key] = self.digest(path)
+            except OSError as exc:  # unreadable: the job will say so; key it by the reason
+                out[key] = f"unreadable: {exc.strerror or exc}"
+        return out
+
+
+def job_key_of(config: Mapping[str, Any], inputs: Mapping[str, str]) -> str:
+    """A job's folder key: :func:`config_hash` of the resolved config alone when it names no input
+    file, else of the config together with the content hashes of its input files, so that
+    replacing a recording (same path, new content) gives the job a new key and it reruns."""
+    if not inputs:
+        return config_hash(config)
+    return config_hash({"config": config, "inputs": dict(inputs)})
+
+
+# ---------------------------------------------------------------------------------------------
+# Provenance: which code ran.
+
+_GIT_ENV_DROP = ("GIT_DIR", "GIT_WORK_TREE", "GIT_INDEX_FILE", "GIT_OBJECT_DIRECTORY", "GIT_COMMON_DIR",
+                 "GIT_CONFIG", "GIT_CONFIG_PARAMETERS", "GIT_CONFIG_COUNT", "GIT_NAMESPACE")
+_SOURCE_SUFFIXES = (".py", ".yaml", ".yml", ".cl", ".npz", ".json", ".csv", ".md")
+
+
+def package_root() -> Path:
+    """The folder the running ``nirspi_pipe`` package was imported from."""
+    return Path(__file__).resolve().parent
+
+
+def _git(root: Path, args: list[str]) -> str | None:
+    """``git -C root args`` with safe options: no fsmonitor hook, no optional locks, no prompt,
+    the caller's ``GIT_*`` variables dropped, never searching above ``root``. None on failure."""
+    env = {k: v for k, v in os.environ.items() if k not in _GIT_ENV_DROP}
+    env.update(GIT_OPTIONAL_LOCKS="0", GIT_TERMINAL_PROMPT="0", GIT_CEILING_DIRECTORIES=str(root.parent))
+    cmd = ["git", "-C", str(root), "-c", "core.fsmonitor=false", "-c", "core.untrackedCache=false",
+           "--no-optional-locks", *args]
+    try:
+        out = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=10,
+                             check=True, stdin=subprocess.DEVNULL)
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip()
 
 
-@lru_cache(maxsize=4)
-def _git_state(start: str) -> tuple[str | None, bool | None]:
-    cwd = Path(start)
-    sha = _git(["rev-parse", "HEAD"], cwd)
-    if not sha:
-        return None, None
-    status = _git(["status", "--porcelain", "--untracked-files=no"], cwd)
-    return sha, bool(status) if status is not None else None
+def _checkout_of(pkg: Path) -> Path | None:
+    """The git work tree that ``pkg`` is a tracked part of (an editable install), else None.
+
+    Decided from the package's own location only: the nearest folder above it holding ``.git``,
+    and only if git tracks the package's ``__init__.py`` there (a copy installed into a venv that
+    happens to sit inside some checkout is not tracked, so it does not count)."""
+    root = next((p for p in pkg.parents if (p / ".git").exists()), None)
+    if root is None:
+        return None
+    rel = (pkg / "__init__.py").relative_to(root).as_posix()
+    if _git(root, ["ls-files", "--error-unmatch", "--", rel]) is None:
+        return None
+    return root
+
+
+def _source_roots() -> dict[str, Path]:
+    """The folders of the package and of its two data packages (mapped from the repository's
+    ``conf/`` and ``experiments/`` in an editable install, nested in a wheel)."""
+    import importlib.util
+
+    roots = {"nirspi_pipe": package_root()}
+    for name in ("nirspi_pipe.conf", "nirspi_pipe.experiments"):
+        spec = importlib.util.find_spec(name)
+        if spec is not None and spec.submodule_search_locations:
+            roots[name] = Path(next(iter(spec.submodule_search_locations))).resolve()
+    return roots
+
+
+def source_hash() -> str:
+    """SHA-256 (16 hex digits) over the relative paths and contents of the package's source and
+    data files (``.py``, configs, experiments, weights), in sorted order: it names the code
+    whether it is a checkout or an installed wheel (both give the same hash for the same files)."""
+    roots = _source_roots()
+    nested = [r for n, r in roots.items() if n != "nirspi_pipe"]
+    h = hashlib.sha256()
+    for name, root in sorted(roots.items()):
+        files = sorted(
+            p for p in root.rglob("*")
+            if p.is_file() and p.suffix in _SOURCE_SUFFIXES and "__pycache__" not in p.parts
+            and (name != "nirspi_pipe" or not any(r in p.parents for r in nested))
+        )
+        for p in files:
+            h.update(f"{name}/{p.relative_to(root).as_posix()}".encode() + b"\0")
+            h.update(p.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
 
 
 @lru_cache(maxsize=1)
-def opencl_devices() -> tuple[str, ...]:
-    """``"platform / device"`` names of the OpenCL devices pyopencl sees (empty when none).
+def code_identity() -> dict[str, Any]:
+    """``{"version", "git_sha", "git_dirty", "source_hash", "code"}`` of the running package.
 
-    Cached per process: the first call costs the OpenCL platform query (~0.1–0.5 s).
-    """
+    ``git_sha``/``git_dirty`` only when the package is imported from a git checkout that tracks it
+    (git runs with ``-C <that checkout>``, never in the caller's working directory); otherwise
+    None. ``source_hash`` always (:func:`source_hash`). ``code`` is the short label reports use:
+    ``git:<sha12>[+dirty]`` or ``src:<source_hash>``. Cached per process."""
+    from nirspi_pipe import __version__
+
+    pkg = package_root()
+    sha = dirty = None
+    root = _checkout_of(pkg)
+    if root is not None:
+        sha = _git(root, ["rev-parse", "HEAD"]) or None
+        if sha:
+            status = _git(root, ["status", "--porcelain", "--untracked-files=no"])
+            dirty = bool(status) if status is not None else None
+    src = source_hash()
+    code = f"git:{sha[:12]}{'+dirty' if dirty else ''}" if sha else f"src:{src}"
+    return {"version": __version__, "git_sha": sha, "git_dirty": dirty, "source_hash": src, "code": code}
+
+def _query_opencl() -> tuple[str, ...]:
     try:
         import pyopencl as cl
 
@@ -111,12 +366,38 @@ def opencl_devices() -> tuple[str, ...]:
         return (f"unavailable: {type(exc).__name__}",)
 
 
-def provenance(search_dirs: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Package versions, platform and the git commit of the code that ran.
+@lru_cache(maxsize=1)
+def opencl_devices() -> tuple[str, ...]:
+    """``"platform / device"`` names of the OpenCL devices pyopencl sees (empty when none).
 
-    The git SHA is looked up from the installed package's folder (editable installs) and then
-    from ``search_dirs`` (e.g. the launch directory); ``None`` when neither is a checkout.
+    Cached per process: the first call costs the OpenCL platform query (~0.1–0.5 s). Where
+    ``os.fork`` exists and this process has not loaded pyopencl yet, the query runs in a forked
+    child, so that a sweep worker which forks one child per job (:mod:`nirspi_pipe.jobs`) never
+    holds an initialised OpenCL runtime, whose threads a fork would not copy.
     """
+    if not hasattr(os, "fork") or "pyopencl" in sys.modules:
+        return _query_opencl()
+    rfd, wfd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - child
+        try:
+            os.close(rfd)
+            os.write(wfd, json.dumps(list(_query_opencl())).encode())
+        finally:
+            os._exit(0)
+    os.close(wfd)
+    with os.fdopen(rfd, "rb") as fh:
+        data = fh.read()
+    _, status = os.waitpid(pid, 0)
+    try:
+        return tuple(str(d) for d in json.loads(data.decode()))
+    except ValueError:
+        return (f"unavailable: query process ended with status {status}",)
+
+
+def provenance() -> dict[str, Any]:
+    """Package versions, platform, OpenCL devices and the code that ran (:func:`code_identity`:
+    version, git SHA when imported from its own checkout, and a hash of the source files)."""
     versions = {}
     for dist in _VERSIONED:
         try:
@@ -124,29 +405,26 @@ def provenance(search_dirs: tuple[str, ...] = ()) -> dict[str, Any]:
         except metadata.PackageNotFoundError:
             versions[dist] = None
     versions["python"] = platform.python_version()
-    sha = dirty = None
-    for start in (str(Path(__file__).resolve().parent), *search_dirs):
-        sha, dirty = _git_state(start)
-        if sha:
-            break
+    ident = code_identity()
     return {
         "versions": versions,
-        "git_sha": sha,
-        "git_dirty": dirty,
+        "nirspi_pipe_version": ident["version"],
+        "git_sha": ident["git_sha"],
+        "git_dirty": ident["git_dirty"],
+        "source_hash": ident["source_hash"],
+        "code": ident["code"],
         "platform": f"{platform.system()}-{platform.machine()} ({platform.platform()})",
         "opencl_devices": list(opencl_devices()),
     }
 
 
 def write_record(folder: Path, record: Mapping[str, Any]) -> Path:
-    """Write ``record.json`` atomically (temp file, then rename) so a killed job never leaves a
-    half-written record that looks complete."""
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / RECORD_NAME
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(_jsonable(record), indent=2, allow_nan=True))
-    tmp.replace(path)
-    return path
+    """Write ``record.json`` atomically (:func:`atomic_write`: a unique temporary file, then a
+    rename), so a killed job or a full disk never leaves a half-written record, and two writers
+    never tear each other's. Raises :class:`OutputError` when it cannot be written."""
+    text = json.dumps(_jsonable(record), indent=2, allow_nan=True)
+    return atomic_write(Path(folder) / RECORD_NAME, text)
+
 
 
 def read_record(path: Path) -> dict[str, Any]:
@@ -155,11 +433,13 @@ def read_record(path: Path) -> dict[str, Any]:
 
 
 def write_arrays(folder: Path, arrays: Mapping[str, np.ndarray | None], images: Mapping[str, np.ndarray | None]) -> None:
-    """Write ``arrays.npz`` (skipping None entries) and 8-bit grayscale PNGs of ``images``."""
-    folder.mkdir(parents=True, exist_ok=True)
+    """Write ``arrays.npz`` (skipping None entries) and 8-bit grayscale PNGs of ``images``, each
+    atomically (:func:`atomic_write`); :class:`OutputError` when a file cannot be written."""
     present = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
     if present:
-        np.savez_compressed(folder / "arrays.npz", **present)
+        buf = io.BytesIO()
+        np.savez_compressed(buf, **present)
+        atomic_write(Path(folder) / "arrays.npz", buf.getvalue())
     if images:
         from matplotlib.image import imsave
 
@@ -167,7 +447,9 @@ def write_arrays(folder: Path, arrays: Mapping[str, np.ndarray | None], images: 
             if img is None:
                 continue
             a = np.nan_to_num(np.asarray(img, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
-            imsave(folder / f"{name}.png", np.clip(a, 0.0, 1.0), cmap="gray", vmin=0.0, vmax=1.0)
+            buf = io.BytesIO()
+            imsave(buf, np.clip(a, 0.0, 1.0), cmap="gray", vmin=0.0, vmax=1.0, format="png")
+            atomic_write(Path(folder) / f"{name}.png", buf.getvalue())
 
 
 def finite_or_none(x: float) -> float | None:

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from nirspi_pipe.records import atomic_write
+
 __all__ = ["write_report"]
 
 
@@ -21,9 +23,11 @@ def write_report(sweep: Path, tables: list[str], frame: pd.DataFrame) -> Path:
     ]
     if len(frame):
         status = frame["status"].value_counts().to_dict()
-        sha = frame["git_sha"].dropna().unique().tolist() if "git_sha" in frame else []
+        code = frame["code"].dropna().unique().tolist() if "code" in frame else []
+        if not code and "git_sha" in frame:  # records written before the code label existed
+            code = [f"git:{s[:12]}" for s in frame["git_sha"].dropna().unique()]
         lines.append(f"{len(frame)} jobs ({', '.join(f'{v} {k}' for k, v in status.items())}); "
-                     f"code {', '.join(s[:10] for s in sha) or 'unknown'}.")
+                     f"code {', '.join(sorted(code)) or 'unknown'}.")
         if "timings_ms.total" in frame:
             lines.append(f"Pipeline time summed over jobs: {frame['timings_ms.total'].sum() / 1e3:.1f} s.")
     for name in tables:
@@ -32,6 +36,4 @@ def write_report(sweep: Path, tables: list[str], frame: pd.DataFrame) -> Path:
         lines.append(md.read_text().strip() if md.is_file() else f"_{name}.md was not written_")
         for png in sorted(out.glob(f"{name}*.png")):
             lines += ["", f"![{png.stem}](tables/{png.name})"]
-    path = sweep / "report.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return atomic_write(sweep / "report.md", "\n".join(lines) + "\n")

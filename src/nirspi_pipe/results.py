@@ -3,7 +3,7 @@
 Columns, grouped by prefix:
 
 * identity: ``job`` (folder relative to the sweep), ``status``, ``error``, ``config_hash``,
-  ``seed``, ``git_sha``;
+  ``seed``, ``git_sha``, ``code`` (``git:<sha>`` or ``src:<hash of the package's files>``);
 * choices: one column per config group, named after the group (``scene``, ``scan``, …);
 * parameters: one column per overridden key (``scene.distance_mm``, ``seed``, …), typed, read
   from each job's resolved config;
@@ -14,14 +14,16 @@ Failed jobs are rows with ``status == "failed"`` and their ``error``; they are n
 
 from __future__ import annotations
 
+import io
 import logging
+import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import pandas as pd
 
-from nirspi_pipe.records import RECORD_NAME, read_record
+from nirspi_pipe.records import RECORD_NAME, atomic_write, read_record
 
 __all__ = ["find_records", "records_to_frame", "collect", "CollectResults", "override_keys"]
 
@@ -107,6 +109,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
             "config_hash": meta.get("config_hash"),
             "seed": meta.get("seed"),
             "git_sha": meta.get("git_sha"),
+            "code": meta.get("code"),
             "tables": ",".join(str(t) for t in (rec.get("config", {}).get("tables") or [])),
         }
         choices = rec.get("choices", {})
@@ -136,12 +139,12 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     sweep order, and a job without a record (killed, or never started) is a row with
     ``status == "missing"``. Without it, every ``record.json`` below the folder is a row.
     """
-    from nirspi_pipe.sweeper import read_sweep_file
+    from nirspi_pipe.sweeper import load_sweep_file
 
     sweep = Path(sweep_dir)
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
-    info = read_sweep_file(sweep)
+    info = load_sweep_file(sweep)  # SweepFileError (one line naming it) when malformed
     if info:
         paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]]
     else:
@@ -157,15 +160,15 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
             records.append((job, read_record(path)))
         except FileNotFoundError:
             records.append((job, {"meta": {"status": "missing", "error": "no record: killed or not run"}}))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RecursionError) as exc:
             log.warning("unreadable record %s: %s", path, exc)
             records.append((job, {"meta": {"status": "failed", "error": f"unreadable record: {exc}"}}))
     frame = records_to_frame(records)
-    if write:
-        tmp = sweep / "results.parquet.tmp"
-        frame.to_parquet(tmp, index=False)
-        tmp.replace(sweep / "results.parquet")
-        frame.to_csv(sweep / "results.csv", index=False)
+    if write:  # atomically (unique temporary names): OutputError, one line, when it cannot be written
+        buf = io.BytesIO()
+        frame.to_parquet(buf, index=False)
+        atomic_write(sweep / "results.parquet", buf.getvalue())
+        atomic_write(sweep / "results.csv", frame.to_csv(index=False))
     return frame
 
 
@@ -221,6 +224,23 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
     return frame
 
 
+def unwritable(folder: Path) -> str | None:
+    """Why ``folder`` could not be created or written (checked on its nearest existing ancestor,
+    nothing is created), or None when it can."""
+    import os
+
+    probe = Path(folder).absolute()
+    while not probe.exists():
+        if probe.parent == probe:
+            return "no existing parent folder"
+        probe = probe.parent
+    if not probe.is_dir():
+        return f"{probe} is not a folder"
+    if not os.access(probe, os.W_OK | os.X_OK):
+        return f"{probe} is not writable"
+    return None
+
+
 try:  # the callback base class is Hydra's; keep import errors out of the pure functions above
     from hydra.experimental.callback import Callback
 except ImportError:  # pragma: no cover
@@ -231,6 +251,17 @@ class CollectResults(Callback):  # type: ignore[misc]
     """Hydra callback: after a multirun, write ``results.parquet``/``results.csv`` in the sweep
     folder and log a one-line status count."""
 
+    def on_run_start(self, config: Any, **kwargs: Any) -> None:
+        """Before Hydra creates the run folder: one line, not a traceback, when it cannot."""
+        try:
+            run_dir = Path(str(config.hydra.run.dir))
+        except Exception:  # noqa: BLE001 - Hydra will say what is wrong with it
+            return
+        problem = unwritable(run_dir)
+        if problem:
+            print(f"nirspi-run: error: cannot write {run_dir}: {problem}", file=sys.stderr, flush=True)
+            raise SystemExit(1)
+
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         from nirspi_pipe.sweeper import register_hydra_plugins
 
@@ -240,7 +271,14 @@ class CollectResults(Callback):  # type: ignore[misc]
         sweep = Path(config.hydra.sweep.dir)
         if not sweep.is_dir():
             return
-        frame = finish_sweep(sweep)
+        from nirspi_pipe.records import OutputError
+        from nirspi_pipe.sweeper import SweepFileError
+
+        try:
+            frame = finish_sweep(sweep)
+        except (OutputError, SweepFileError) as exc:  # one line, no traceback
+            print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
         counts = frame["status"].value_counts().to_dict() if len(frame) else {}
         summary = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no records"
         print(f"nirspi-run: {len(frame)} jobs ({summary}) -> {sweep / 'results.parquet'}")

@@ -1,66 +1,93 @@
-"""The ``nirspi`` sweeper: Hydra's basic grid sweeper made resumable, keyed and observable.
+"""The ``nirspi`` sweeper: Hydra's basic grid sweeper made resumable, keyed, crash-proof and observable.
 
-It expands the sweep exactly like Hydra's ``basic`` sweeper (command-line sweeps plus
-``hydra.sweeper.params``), then for every job:
+It expands the sweep like Hydra's ``basic`` sweeper (command-line sweeps plus
+``hydra.sweeper.params``), using Hydra's public override parser, then for every job:
 
-* composes its config and keys its output folder by :func:`nirspi_pipe.records.config_hash`
-  of the resolved config (``hydra.sweep.subdir=<hash>``), so the same job always lands in the
-  same folder whatever its position in the sweep;
+* composes its config with Hydra's config loader and keys its output folder
+  (``hydra.sweep.subdir=<key>``) by :func:`nirspi_pipe.records.job_key_of`: the hash of the
+  resolved config, together with the content hash of every input file it names (recordings,
+  meshes, images, weights), so the same job always lands in the same folder and a changed file
+  reruns it;
 * skips the job when that folder already holds a complete record (``status == "ok"``), so
-  rerunning a sweep command recomputes only what is missing or failed;
+  rerunning a sweep command recomputes only what is missing or failed; a job that has failed
+  ``max_attempts`` times with the same code is not relaunched (a deterministic crasher cannot
+  block a sweep); a job that does not compose is a failed record naming the bad override;
 * writes ``sweep.json`` in the sweep folder (start time, totals, every job's key and
   overrides), from which a watcher thread prints progress and an ETA as records appear, and which
   :func:`nirspi_pipe.results.collect` uses to list jobs that never wrote a record.
 
-Jobs that composed badly are not launched; they are recorded as failed with the error.
+Each launched job runs through :func:`nirspi_pipe.jobs.run_sweep_job` (a lock per job folder, an
+attempt counter, and a forked child so that a segfault or a kill is a failed row). Should the
+launcher itself fail (a joblib worker killed from outside), the jobs without a record are
+launched again, at most ``max_attempts`` rounds.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
+import re
+import sys
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-from collections.abc import Sequence
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.plugins.sweeper import Sweeper
 from omegaconf import OmegaConf
 
-from nirspi_pipe.records import RECORD_NAME, config_hash, read_record
+from nirspi_pipe.records import (
+    RECORD_NAME,
+    InputHasher,
+    OutputError,
+    atomic_write,
+    config_hash,
+    job_key_of,
+    read_record,
+    write_record,
+)
 
 __all__ = [
+    "SWEEP_FILE",
     "NirspiSweeperBase",
     "ProgressWatcher",
-    "register_hydra_plugins",
-    "SWEEP_FILE",
+    "SweepFileError",
+    "expand_grid",
     "job_key",
-    "read_sweep_file",
+    "load_sweep_file",
     "progress_line",
+    "read_sweep_file",
+    "register_hydra_plugins",
 ]
 
 log = logging.getLogger(__name__)
 
 SWEEP_FILE = "sweep.json"
+_KEY = re.compile(r"^[0-9a-f]{16}$")
 
 
-def job_key(job_cfg: Any) -> str:
-    """The folder key of a composed job config: the hash of its resolved non-hydra part."""
+def _resolved(job_cfg: Any) -> dict[str, Any]:
     from omegaconf.errors import InterpolationResolutionError
 
     plain = OmegaConf.to_container(job_cfg, resolve=False)
     plain.pop("hydra", None)
     try:
-        resolved = OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+        return OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
     except InterpolationResolutionError as exc:
         raise ValueError(
             "a job config interpolates ${hydra:...} outside the hydra node, so it cannot be keyed "
             f"before it runs ({exc.full_key}); for per-job seeds use seed=null"
         ) from None
-    return config_hash(resolved)
+
+
+def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
+    """The folder key of a composed job config: the hash of its resolved non-hydra part and of
+    the content of every input file it names (:func:`nirspi_pipe.records.job_key_of`)."""
+    resolved = _resolved(job_cfg)
+    return job_key_of(resolved, (hasher or InputHasher()).hashes(resolved))
 
 
 def subdir_override(key: str) -> str:
@@ -69,20 +96,87 @@ def subdir_override(key: str) -> str:
     return f"hydra.sweep.subdir='{key}'"
 
 
-def read_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
-    """``sweep.json`` of a sweep folder, or None when there is none (e.g. a basic sweep)."""
+class SweepFileError(ValueError):
+    """``sweep.json`` exists but is not what the sweeper writes; the message names the file."""
+
+
+def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
+    """``sweep.json`` of a sweep folder, checked; None when there is none (e.g. a basic sweep).
+
+    Raises :class:`SweepFileError` (one line naming the file) when it is unreadable, not JSON, or
+    lacks a ``jobs`` list of ``{"key": <16 hex digits>, ...}`` (a key is never a path)."""
     path = Path(sweep_dir) / SWEEP_FILE
+    if not path.exists():
+        return None
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        info = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise SweepFileError(f"{path} is not readable JSON ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+    problem = None
+    if not isinstance(info, dict):
+        problem = f"expected a JSON object, got {type(info).__name__}"
+    elif not isinstance(info.get("jobs"), list):
+        problem = "expected a 'jobs' list"
+    else:
+        for i, job in enumerate(info["jobs"]):
+            if not isinstance(job, dict) or not isinstance(job.get("key"), str) or not _KEY.match(job["key"]):
+                problem = f"jobs[{i}] needs a 'key' of 16 hex digits"
+                break
+    if problem is None:
+        for name in ("started", "to_run"):
+            if name in info and not isinstance(info[name], (int, float)):
+                problem = f"'{name}' must be a number"
+    if problem:
+        raise SweepFileError(f"{path} is malformed: {problem} (it is written by `nirspi-run -m`; "
+                             "delete it to collect every record.json below the folder)")
+    return info
+
+
+def read_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
+    """``sweep.json`` of a sweep folder, or None when there is none or it is malformed."""
+    try:
+        return load_sweep_file(sweep_dir)
+    except SweepFileError:
         return None
 
 
 def _record_status(folder: Path) -> str | None:
     try:
         return read_record(folder / RECORD_NAME).get("meta", {}).get("status")
-    except (OSError, ValueError):
+    except (OSError, ValueError, AttributeError):
         return None
+
+
+def expand_grid(overrides: Sequence[Any]) -> list[list[str]]:
+    """Every job of a grid, as Hydra's basic sweeper expands it: the cartesian product of each
+    sweep override's values (in order), plain overrides kept as they are. ``overrides`` are parsed
+    :class:`hydra.core.override_parser.types.Override` objects (Hydra's public parser)."""
+    lists: list[list[str]] = []
+    for ov in overrides:
+        key = ov.get_key_element()
+        if ov.is_sweep_override():
+            if not ov.is_discrete_sweep():
+                raise ValueError(f"{key}: the nirspi sweeper takes lists, range() and choice(); "
+                                 f"not interval() ({ov.input_line})")
+            lists.append([f"{key}={val}" for val in ov.sweep_string_iterator()])
+        else:
+            lists.append([f"{key}={ov.get_value_element_as_str()}"])
+    return [list(job) for job in itertools.product(*lists)]
+
+
+def _one_line(text: str) -> str:
+    """Hydra's multi-line composition errors as one line (with the allowed options, if listed)."""
+    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
+    if not lines:
+        return "unknown error"
+    head, allowed = lines[0], []
+    for ln in lines[1:]:
+        if ln.startswith("Config search path"):
+            break
+        if not ln.startswith("Available options") and not ln.startswith("To append"):
+            allowed.append(ln)
+    return head + (f"; allowed: {', '.join(allowed)}" if allowed and "Available" in text else "")
 
 
 def progress_line(sweep_dir: Path) -> str | None:
@@ -91,10 +185,10 @@ def progress_line(sweep_dir: Path) -> str | None:
     info = read_sweep_file(sweep_dir)
     if not info:
         return None
-    started = float(info["started"])
+    started = float(info.get("started", 0.0))
     done = failed = 0
     for job in info["jobs"]:
-        if job.get("skipped") or job.get("duplicate"):
+        if job.get("skipped") or job.get("duplicate") or not job.get("launched", True):
             continue
         rec = Path(sweep_dir) / job["key"] / RECORD_NAME
         try:
@@ -103,7 +197,7 @@ def progress_line(sweep_dir: Path) -> str | None:
                 failed += _record_status(rec.parent) != "ok"
         except OSError:
             continue
-    total = int(info["to_run"])
+    total = int(info.get("to_run", len(info["jobs"])))
     elapsed = max(0.0, time.time() - started)
     eta = elapsed / done * (total - done) if done else float("nan")
 
@@ -117,28 +211,32 @@ def progress_line(sweep_dir: Path) -> str | None:
     parts = [f"{done}/{total} jobs done" + (f" ({failed} failed)" if failed else "")]
     if skipped:
         parts[0] += f", {skipped} skipped"
+    not_run = sum(bool(j.get("gave_up") or j.get("uncomposable")) for j in info["jobs"])
+    if not_run:
+        parts[0] += f", {not_run} not run (failed)"
     parts.append(f"elapsed {hms(elapsed)}")
     parts.append(f"ETA {hms(eta)}")
     return " | ".join(parts)
 
 
 class NirspiSweeperBase(Sweeper):
-    """Grid sweeper with config-hash job folders, resume and progress (see module docstring).
-
-    It reuses Hydra's basic sweeper's expansion (``BasicSweeper.split_arguments``) but does not
-    subclass it: Hydra's plugin scan re-imports core plugin modules, which breaks ``super()``
-    in subclasses of its classes.
-    """
+    """Grid sweeper with keyed job folders, resume, crash isolation and progress (see the module
+    docstring). It uses Hydra's public API only: the sweeper plugin interface, the override parser
+    and the config loader handed over in ``hydra_context``."""
 
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None,
-                 resume: bool = True, experiments: list[str] | None = None) -> None:
+                 resume: bool = True, experiments: list[str] | None = None, max_attempts: int = 3) -> None:
         self.max_batch_size = max_batch_size
         self.params = dict(params or {})
         self.resume = resume
         self.experiments = list(experiments or [])
+        if not isinstance(max_attempts, int) or max_attempts < 1:
+            raise ValueError(f"hydra.sweeper.max_attempts={max_attempts!r} is not allowed; allowed: an integer >= 1")
+        self.max_attempts = max_attempts
         self.hydra_context: Any = None
         self.config: Any = None
         self.launcher: Any = None
+        self._groups: dict[str, set[str]] = {}
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: Any) -> None:
         from hydra.core.plugins import Plugins
@@ -149,12 +247,15 @@ class NirspiSweeperBase(Sweeper):
             hydra_context=hydra_context, task_function=task_function, config=config
         )
 
+    # -- expansion ------------------------------------------------------------------------------
+
+    def _parser(self) -> OverridesParser:
+        return OverridesParser.create(config_loader=self.hydra_context.config_loader)
+
     def _grid(self, params: dict[str, str], arguments: list[str]) -> list[list[str]]:
         params_conf = [f"{k}={v}" for k, v in params.items()]
         params_conf.extend(arguments)
-        parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
-        batches = BasicSweeper.split_arguments(parser.parse_overrides(params_conf), None)
-        return [list(job) for batch in batches for job in batch]
+        return expand_grid(self._parser().parse_overrides(params_conf))
 
     def _expand(self, arguments: list[str]) -> list[list[str]]:
         """Every job's overrides. With ``experiments`` (a meta-experiment such as ``paper``),
@@ -172,32 +273,44 @@ class NirspiSweeperBase(Sweeper):
             jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))
         return jobs
 
-    def _compose(self, overrides: list[str], bases: dict[tuple[str, ...], Any]) -> Any:
-        """A job's composed config, as the launcher will compose it, but fast.
+    # -- composition ----------------------------------------------------------------------------
 
-        Hydra composes the defaults list (group choices, ``+``/``~`` overrides) and then
-        applies plain ``key=value`` overrides with ``OmegaConf.update(merge=True)``. A full
-        composition costs ~0.1 s, so for a grid of N jobs we compose once per distinct set of
-        structural overrides (cached in ``bases``) and apply the value overrides to a copy,
-        exactly as Hydra does. Anything unusual falls back to Hydra's own composition.
+    def _is_group(self, name: str) -> bool:
+        """Whether ``name`` (``scene``, ``hydra/launcher``) is a config group (public loader API)."""
+        parent, _, leaf = name.rpartition("/")
+        if parent not in self._groups:
+            self._groups[parent] = set(self.hydra_context.config_loader.list_groups(parent))
+        return leaf in self._groups[parent]
+
+    def compose(self, overrides: list[str]) -> Any:
+        """A job's config exactly as Hydra composes it for the launcher
+        (``config_loader.load_sweep_config``)."""
+        return self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+
+    def _compose(self, overrides: list[str], bases: dict[tuple[str, ...], Any]) -> Any:
+        """:meth:`compose`, fast for grids.
+
+        Hydra composes the defaults list (group choices, ``+``/``~`` overrides) and then applies
+        plain ``key=value`` overrides with ``OmegaConf.update(merge=True)``. A full composition
+        costs ~0.1 s, so for a grid of N jobs we compose once per distinct set of structural
+        overrides (cached in ``bases``) and apply the value overrides to a copy, as Hydra does.
+        Anything unusual falls back to :meth:`compose`. ``tests/test_sweeper.py`` holds that the
+        keys agree with :meth:`compose` for every shipped experiment.
         """
         import copy
 
-        loader = self.hydra_context.config_loader
-        repo = getattr(loader, "repository", None)
         try:
-            parsed = OverridesParser.create(config_loader=loader).parse_overrides(overrides)
+            parsed = self._parser().parse_overrides(overrides)
         except Exception:  # noqa: BLE001 - Hydra reports it properly below
-            return loader.load_sweep_config(self.config, overrides)
+            return self.compose(overrides)
         structural: list[str] = []
         updates: list[Any] = []
-        for ov, text in zip(parsed, overrides):
+        for ov, text in zip(parsed, overrides, strict=True):
             plain = (
-                repo is not None
-                and not (ov.is_add() or ov.is_delete() or ov.is_force_add())
+                not (ov.is_add() or ov.is_delete() or ov.is_force_add())
                 and ov.package is None
                 and not ov.key_or_group.startswith("hydra")
-                and not repo.group_exists(ov.key_or_group)
+                and not self._is_group(ov.key_or_group)
             )
             if plain:
                 updates.append(ov)
@@ -205,74 +318,178 @@ class NirspiSweeperBase(Sweeper):
                 structural.append(text)
         base_key = tuple(structural)
         if base_key not in bases:
-            bases[base_key] = loader.load_sweep_config(self.config, list(base_key))
+            bases[base_key] = self.compose(list(base_key))
         cfg = copy.deepcopy(bases[base_key])
         try:
             for ov in updates:
                 OmegaConf.update(cfg, ov.key_or_group, ov.value(), merge=True)
         except Exception:  # noqa: BLE001 - e.g. an unknown key: let Hydra say it
-            return loader.load_sweep_config(self.config, overrides)
+            return self.compose(overrides)
         return cfg
+
+    def _compose_failure(self, overrides: list[str], exc: Exception) -> str:
+        """One line naming the first override with which the job stops composing."""
+        bad = None
+        for i in range(len(overrides)):
+            try:
+                self.compose(overrides[: i + 1])
+            except Exception:  # noqa: BLE001 - found it
+                bad = overrides[i]
+                break
+        where = f"override {bad!r}" if bad else f"overrides {' '.join(overrides)!r}"
+        return f"job does not compose: {where}: {_one_line(str(exc))}"
+
+    def job_keys(self, jobs: list[list[str]], fast: bool = True) -> list[str | Exception]:
+        """The folder key of each job (or the exception that stopped it composing)."""
+        bases: dict[tuple[str, ...], Any] = {}
+        hasher = InputHasher()
+        out: list[str | Exception] = []
+        for overrides in jobs:
+            try:
+                cfg = self._compose(overrides, bases) if fast else self.compose(overrides)
+                out.append(job_key(cfg, hasher))
+            except Exception as exc:  # noqa: BLE001 - a failed row, the sweep goes on
+                out.append(exc)
+        return out
+
+    # -- the sweep ------------------------------------------------------------------------------
 
     def sweep(self, arguments: list[str]) -> Any:
         assert self.config is not None and self.launcher is not None
         assert self.hydra_context is not None
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
-        loader = self.hydra_context.config_loader
+        try:
+            return self._sweep(sweep_dir, arguments)
+        except OutputError as exc:  # unwritable sweep folder, disk full: one line, no traceback
+            print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(1) from None
+
+    def _sweep(self, sweep_dir: Path, arguments: list[str]) -> Any:
+        from nirspi_pipe.jobs import attempts_with_this_code
+
+        atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
+        try:
+            grid = self._expand(arguments)
+        except Exception as exc:  # noqa: BLE001 - a grid that cannot be expanded: nothing to run
+            print(f"nirspi-run: error: the sweep cannot be expanded: {_one_line(str(exc))}", file=sys.stderr)
+            raise SystemExit(2) from None
+        t0 = time.perf_counter()
+        keys = self.job_keys(grid)
+        keying_s = time.perf_counter() - t0
+        log.info("keyed %d jobs in %.1f s", len(grid), keying_s)
 
         started = time.time()
         jobs: list[dict[str, Any]] = []
-        to_launch: list[list[str]] = []
+        to_launch: list[tuple[str, list[str]]] = []
         seen: set[str] = set()
-        bases: dict[tuple[str, ...], Any] = {}
-        for overrides in self._expand(arguments):
-            key = job_key(self._compose(overrides, bases))
-            skipped = self.resume and _record_status(sweep_dir / key) == "ok"
-            job: dict[str, Any] = {"key": key, "overrides": overrides, "skipped": skipped}
-            if key in seen:
-                job["duplicate"] = True  # identical config (e.g. two experiments share a grid): run once
-            elif not skipped:
-                # quoted: an unquoted hex key such as 4703e54460190101 parses as a float (inf)
-                to_launch.append([*overrides, subdir_override(key)])
-            seen.add(key)
+        n_bad = 0
+        for overrides, key in zip(grid, keys, strict=True):
+            job: dict[str, Any] = {"overrides": overrides}
+            if isinstance(key, Exception):
+                exc, key = key, config_hash({"uncomposable": overrides})
+                job.update(key=key, skipped=False, launched=False, uncomposable=True)
+                if key not in seen:
+                    n_bad += 1
+                    message = self._compose_failure(overrides, exc)
+                    log.error("%s", message)
+                    _record_uncomposable(sweep_dir / key, overrides, message, type(exc).__name__)
+            else:
+                status = _record_status(sweep_dir / key)
+                skipped = self.resume and status == "ok"
+                job.update(key=key, skipped=skipped)
+                if key in seen:
+                    job["duplicate"] = True  # identical config (e.g. two experiments share a grid): run once
+                elif not skipped and attempts_with_this_code(sweep_dir / key) >= self.max_attempts:
+                    job.update(launched=False, gave_up=True)  # its failed record stays
+                    if status is None:  # killed each time before it could write one
+                        _record_uncomposable(sweep_dir / key, overrides, f"gave up after {self.max_attempts} "
+                                             "attempts that wrote no record (killed each time?)", "JobCrash")
+                elif not skipped:
+                    to_launch.append((key, overrides))
+            seen.add(job["key"])
             jobs.append(job)
         n_dup = sum(bool(j.get("duplicate")) for j in jobs)
         if n_dup:
             log.warning("%d jobs of this sweep repeat another job's config; each config runs once", n_dup)
+        n_gave_up = sum(bool(j.get("gave_up")) for j in jobs)
         info = {
             "started": started,
             "experiments": self.experiments,
             "total": len(jobs),
             "to_run": len(to_launch),
+            "keying_s": round(keying_s, 3),
+            "max_attempts": self.max_attempts,
             "jobs": jobs,
         }
-        tmp = sweep_dir / (SWEEP_FILE + ".tmp")
-        tmp.write_text(json.dumps(info, indent=1))
-        tmp.replace(sweep_dir / SWEEP_FILE)
+        sweep_file = sweep_dir / SWEEP_FILE
+        atomic_write(sweep_file, json.dumps(info, indent=1))
         n_skip = sum(bool(j["skipped"]) and not j.get("duplicate") for j in jobs)
         print(
             f"nirspi-run: sweep of {len(jobs)} jobs in {sweep_dir}: {len(to_launch)} to run"
             + (f", {n_skip} skipped (already complete)" if n_skip else "")
-            + (f", {n_dup} identical to another job (run once)" if n_dup else ""),
+            + (f", {n_dup} identical to another job (run once)" if n_dup else "")
+            + (f", {n_bad} do not compose (failed)" if n_bad else "")
+            + (f", {n_gave_up} failed {self.max_attempts} times and are not retried "
+               "(hydra.sweeper.max_attempts)" if n_gave_up else "")
+            + f" [keyed in {keying_s:.1f} s]",
             flush=True,
         )
         returns: list[Sequence[Any]] = []
         if not to_launch:
             return returns
-        batch_size = self.max_batch_size or len(to_launch)
         watcher = ProgressWatcher(sweep_dir)
         watcher.start()
         try:
-            for start in range(0, len(to_launch), batch_size):
-                batch = to_launch[start : start + batch_size]
-                results = self.launcher.launch(batch, initial_job_idx=start)
-                returns.append(results)
+            pending = to_launch
+            for _round in range(self.max_attempts):
+                if not self._launch(pending, returns):
+                    break
+                # the launcher failed (e.g. a joblib worker killed from outside): launch again the
+                # jobs that wrote no record in this sweep and may still be attempted
+                pending = [
+                    (key, ov) for key, ov in pending
+                    if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)
+                    and attempts_with_this_code(sweep_dir / key) < self.max_attempts
+                ]
+                if not pending:
+                    break
+                print(f"nirspi-run: launching the {len(pending)} jobs without a record again", flush=True)
         finally:
             watcher.stop()
         return returns
 
+    def _launch(self, jobs: list[tuple[str, list[str]]], returns: list[Sequence[Any]]) -> bool:
+        """Launch ``jobs`` in batches; True when the launcher raised (reported in one line)."""
+        batch_size = self.max_batch_size or len(jobs)
+        for start in range(0, len(jobs), batch_size):
+            batch = [[*ov, subdir_override(key)] for key, ov in jobs[start : start + batch_size]]
+            try:
+                returns.append(self.launcher.launch(batch, initial_job_idx=start))
+            except Exception as exc:  # noqa: BLE001 - the records say which jobs finished
+                first = str(exc).strip().splitlines()
+                print(f"nirspi-run: warning: the launcher failed: {type(exc).__name__}: "
+                      f"{first[0] if first else ''}", file=sys.stderr, flush=True)
+                return True
+        return False
+
+
+def _written_since(path: Path, reference: Path) -> bool:
+    try:
+        return path.stat().st_mtime_ns >= reference.stat().st_mtime_ns
+    except OSError:
+        return False
+
+
+def _record_uncomposable(folder: Path, overrides: list[str], message: str, error_type: str) -> None:
+    """A failed record for a job whose config does not compose (no config, the error)."""
+    from nirspi_pipe.records import provenance
+
+    record = {
+        "config": {}, "choices": {}, "metrics": {}, "timings_ms": {}, "derived": {}, "info": {},
+        "meta": {"config_hash": None, "job_key": folder.name, **provenance(), "status": "failed",
+                 "error": message, "error_type": error_type, "warnings": [], "overrides": overrides},
+    }
+    write_record(folder, record)
 
 class ProgressWatcher(threading.Thread):
     """Prints :func:`progress_line` whenever another job of the sweep finishes.

@@ -139,6 +139,14 @@ def _to_grid(z: np.ndarray, n: int) -> np.ndarray:
     return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
+_SNAP_PX = 1e-6  # pixels; assumed: 6 orders below a pixel, 10 above the last-bit noise of x/z (~1e-16 px)
+
+
+def _snap(uv: np.ndarray, focal_px: float) -> np.ndarray:
+    """Normalised image coordinates rounded to ``_SNAP_PX`` pixels (returned in pixels)."""
+    return np.round(np.asarray(uv, dtype=np.float64) * (focal_px / _SNAP_PX)) * _SNAP_PX
+
+
 def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
     """z-depth ``(n, n)`` (metres) of a cloud at each pixel centre, linear over the Delaunay
     triangulation of the points' normalised image coordinates; NaN outside their hull.
@@ -151,7 +159,13 @@ def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
     p = points[np.isfinite(points).all(axis=1) & (points[:, 2] > 0)]
     if len(p) < 3:
         return np.full((n, n), np.nan)
-    uv = p[:, :2] / p[:, 2:3]
+    # Fused points are back-projected pixels, so many project exactly onto pixel centres and hull
+    # edges run through them: inside/outside, the Delaunay diagonal of co-circular points and
+    # "repeated point" would then depend on the last bit of x/z, which differs between BLAS kernel
+    # sets (AVX-512 vs AVX2). Snap points and pixel centres to 1e-6 pixel (far below any physical
+    # scale) so these discrete decisions see identical inputs on every CPU (issue 12).
+    uv = _snap(p[:, :2] / p[:, 2:3], camera.focal_px)
+    x, y = _snap(x, camera.focal_px), _snap(y, camera.focal_px)
     uv, first = np.unique(uv, axis=0, return_index=True)  # a repeated point breaks a triangulation
     z = p[first, 2]
     if len(uv) < 3:

@@ -1,0 +1,207 @@
+"""One sweep job, crash-isolated: locked, counted, and run in a child process.
+
+Whatever the launcher (joblib workers, ``submitit_local`` subprocesses, SLURM tasks), the task
+function of a sweep calls :func:`run_sweep_job`, which
+
+1. takes the job folder's lock (:class:`nirspi_pipe.records.JobLock`), waiting if another sweep
+   writing into the same folder is running this very job; if another process completed it
+   meanwhile (an ``ok`` record; with ``resume=false`` one newer than this sweep's ``sweep.json``),
+   it is not run again, so two identical sweeps into one folder share the work;
+2. counts the attempt in ``attempts.json`` (the sweeper stops relaunching a job after
+   ``hydra.sweeper.max_attempts`` attempts with the same code, so a deterministic crasher never
+   blocks a sweep);
+3. runs the job in a forked child process. A child that segfaults, is killed (``SIGKILL`` from
+   the kernel's out-of-memory killer or a scheduler) or calls ``os._exit`` takes only itself
+   down: the worker writes a ``failed`` record naming the signal or exit code, and the launcher's
+   worker, and with it every other job of the sweep, goes on.
+
+Where ``os.fork`` does not exist (Windows) the job runs in-process, without crash isolation.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import logging
+import os
+import signal
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from nirspi_pipe.records import (
+    RECORD_NAME,
+    InputHasher,
+    JobLock,
+    OutputError,
+    atomic_write,
+    code_identity,
+    config_hash,
+    job_key_of,
+    provenance,
+    read_record,
+    write_record,
+)
+
+__all__ = ["ATTEMPTS_NAME", "crash_message", "read_attempts", "run_sweep_job"]
+
+log = logging.getLogger(__name__)
+
+ATTEMPTS_NAME = "attempts.json"
+_CHILD_FAILED = 70  # exit code of a child whose job runner itself raised (EX_SOFTWARE)
+
+
+def read_attempts(folder: Path) -> dict[str, Any]:
+    """``attempts.json`` of a job folder: ``{"attempts": n, "source_hash": ..., "last": ...}``;
+    ``{"attempts": 0}`` when there is none or it is unreadable."""
+    try:
+        data = json.loads((Path(folder) / ATTEMPTS_NAME).read_text())
+        if isinstance(data, dict) and isinstance(data.get("attempts"), int):
+            return data
+    except (OSError, ValueError):
+        pass
+    return {"attempts": 0}
+
+
+def attempts_with_this_code(folder: Path) -> int:
+    """Attempts made on a job with the code now running (a code change resets the count)."""
+    data = read_attempts(folder)
+    return int(data["attempts"]) if data.get("source_hash") == code_identity()["source_hash"] else 0
+
+
+def _bump_attempts(folder: Path) -> int:
+    n = attempts_with_this_code(folder) + 1
+    atomic_write(Path(folder) / ATTEMPTS_NAME, json.dumps({
+        "attempts": n,
+        "source_hash": code_identity()["source_hash"],
+        "last": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "pid": os.getpid(),
+    }))
+    return n
+
+
+def crash_message(status: int) -> tuple[str, dict[str, Any]]:
+    """The one-line error and record fields for a child's ``waitpid`` status."""
+    if os.WIFSIGNALED(status):
+        sig = os.WTERMSIG(status)
+        try:
+            name = signal.Signals(sig).name
+        except ValueError:
+            name = f"signal {sig}"
+        hint = {
+            signal.SIGKILL: " (killed: out of memory, or by a scheduler or a user)",
+            signal.SIGSEGV: " (a crash in native code)",
+            signal.SIGABRT: " (aborted in native code)",
+        }.get(sig, "")
+        return f"job process killed by {name} ({sig}){hint}", {"signal": sig, "exit_code": -sig}
+    code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else status
+    return (f"job process exited with code {code} before writing its record",
+            {"exit_code": code, "signal": None})
+
+
+def _done_ok(folder: Path, sweep_file: Path | None, resume: bool) -> dict[str, Any] | None:
+    """The job's ``ok`` record if it needs no run: with ``resume``, any ``ok`` record (the sweeper
+    launched the job because it had none, so another sweep wrote it since); without, only one that
+    another process wrote during this sweep (newer than ``sweep.json``, both stamped by the same
+    file system clock). Else None."""
+    path = folder / RECORD_NAME
+    if not resume and sweep_file is None:
+        return None
+    try:
+        if not resume and path.stat().st_mtime_ns < sweep_file.stat().st_mtime_ns:  # type: ignore[union-attr]
+            return None
+        rec = read_record(path)
+    except (OSError, ValueError):
+        return None
+    return rec if rec.get("meta", {}).get("status") == "ok" else None
+
+
+def run_sweep_job(
+    execute: Callable[..., dict[str, Any]],
+    cfg: Any,
+    out_dir: Path,
+    choices: dict[str, str],
+    overrides: list[str],
+    job_num: int | None = None,
+    sweep_file: Path | None = None,
+    resume: bool = False,
+) -> dict[str, Any]:
+    """Run ``execute(cfg, out_dir, choices, overrides, job_num, attempt=n)`` (which writes the
+    job's record) as described in the module docstring. Never raises for a failing or crashing
+    job; returns the record written (or, when even that could not be written, the one meant)."""
+    out_dir = Path(out_dir)
+    lock = JobLock(out_dir)
+    if not lock.acquire(wait=False):
+        print(f"nirspi-run: job {out_dir.name} is running in another process; waiting for it", flush=True)
+        lock.acquire()
+    try:
+        done = _done_ok(out_dir, sweep_file, resume)
+        if done is not None:
+            return done
+        attempt = _bump_attempts(out_dir)
+        provenance()  # computed once per worker (cached), inherited by every forked child
+        if not hasattr(os, "fork"):  # pragma: no cover - Windows: no isolation
+            return execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the child (coverage does not follow forks)
+            code = 0
+            try:
+                execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+            except BaseException:  # noqa: BLE001 - the child must never return into the worker
+                traceback.print_exc()
+                code = _CHILD_FAILED
+            finally:
+                try:
+                    sys.stdout.flush()
+                    sys.stderr.flush()
+                finally:
+                    os._exit(code)
+        while True:
+            try:
+                _, status = os.waitpid(pid, 0)
+                break
+            except InterruptedError:  # pragma: no cover - retried by Python since 3.5
+                continue
+        rec = _own_record(out_dir, attempt)
+        if rec is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
+            return rec
+        return _record_crash(out_dir, status, rec, cfg, choices, overrides, job_num, attempt)
+    finally:
+        lock.release()
+
+
+def _own_record(out_dir: Path, attempt: int) -> dict[str, Any] | None:
+    try:
+        rec = read_record(out_dir / RECORD_NAME)
+    except (OSError, ValueError):
+        return None
+    return rec if rec.get("meta", {}).get("attempt") == attempt else None
+
+
+def _record_crash(out_dir: Path, status: int, rec: dict[str, Any] | None, cfg: Any, choices: dict[str, str],
+                  overrides: list[str], job_num: int | None, attempt: int) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    message, fields = crash_message(status)
+    if rec is not None and rec.get("meta", {}).get("status") == "failed":
+        return rec  # the child recorded its own failure, then exited non-zero: keep its words
+    try:
+        config = OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # noqa: BLE001 - the record must still be written
+        config = {}
+    inputs = InputHasher().hashes(config)
+    record = {
+        "config": config, "choices": choices, "metrics": {}, "timings_ms": {}, "derived": {}, "info": {},
+        "meta": {"config_hash": config_hash(config), "job_key": job_key_of(config, inputs), "inputs": inputs,
+                 **provenance(), "status": "failed", "error": message, "error_type": "JobCrash", **fields,
+                 "attempt": attempt, "warnings": [], "overrides": overrides, "job_num": job_num},
+    }
+    try:
+        write_record(out_dir, record)
+    except OutputError as exc:
+        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+    return record
