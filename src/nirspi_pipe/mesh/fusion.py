@@ -78,7 +78,10 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     A pixel is a spike when it differs from the median of its valid 3×3 neighbours by more than
     ``k`` robust standard deviations (1.4826 × the median absolute residual over the map), with
     the deviation floored at ``0.1·unit`` (``unit``: one pixel pitch in the map's depth unit) so
-    that a noise-free surface keeps its curvature. Linear slopes leave no residual.
+    that a noise-free surface keeps its curvature, and raised to the local scale (1.4826 × the
+    median absolute residual of the 3×3 neighbourhood) so that a strongly curved region, where
+    every residual is large, is kept while an isolated spike is not. Linear slopes leave no
+    residual.
     """
     n0, n1 = depth.shape
     pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
@@ -93,7 +96,14 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     if not good.any():
         return valid
     sigma = max(1.4826 * float(np.median(np.abs(res[good]))), 0.1 * unit)
-    return valid & ~(np.abs(np.nan_to_num(res)) > k * sigma)
+    # local residual scale: a smooth but strongly curved region (an occluding contour) has large
+    # residuals at every pixel; a spike stands out against its own neighbourhood's too
+    ares = np.pad(np.abs(res), 1, constant_values=np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows off the mask
+        local = 1.4826 * np.nanmedian(np.lib.stride_tricks.sliding_window_view(ares, (3, 3)).reshape(n0, n1, 9), -1)
+    scale = np.maximum(sigma, np.nan_to_num(local, nan=sigma))
+    return valid & ~(np.abs(np.nan_to_num(res)) > k * scale)
 
 
 def back_project(depth_m: np.ndarray, camera: Camera) -> np.ndarray:
