@@ -97,33 +97,41 @@ def laser_directions(spot_angle_deg: float, azimuth_deg: float) -> np.ndarray:
 def aim_spots(image: np.ndarray, camera: Camera, n_spots: int, threshold: float) -> tuple[np.ndarray, list[str]]:
     """Spot pixels ``(k, 2)`` (row, col; ``k ≤ n_spots``) aimed at the object in a 2D image.
 
-    The object is where the image exceeds ``threshold`` × its 99.5th percentile. Each connected
+    The image is 3×3 median filtered and smoothed (Gaussian, 1 px); the object is where it exceeds both Otsu's threshold
+    (object against fog airlight and background) and ``threshold`` × its 99.5th percentile, opened
+    (3×3) against isolated noise pixels. Each connected
     part of at least 2 % of the object's pixels gets one spot first (largest parts first, at its
     point farthest from its edge, so the spot and its 2×2 neighbourhood stay on the object);
-    the remaining spots go by farthest-point sampling, each maximising its image distance to the
+    the remaining spots go by farthest-point sampling within those parts, each maximising its image distance to the
     spots chosen so far times ``sqrt`` of its depth into the object (spread out, away from the
     edges: spots at different depths fix the SFS scale). Returns the pixels and notes (empty
     when fine; e.g. no object found).
     """
     from scipy import ndimage
 
+    from skimage.filters import threshold_otsu
+
     img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    img = ndimage.gaussian_filter(ndimage.median_filter(img, size=3, mode="nearest"), 1.0)  # fog noise
     ref = float(np.percentile(img, 99.5)) if img.size else 0.0
-    if not ref > 0:
-        return np.zeros((0, 2), dtype=np.int64), ["the 2D image is dark: no object to aim at"]
-    mask = img > threshold * ref
+    if not ref > 0 or float(img.max() - img.min()) <= 0:
+        return np.zeros((0, 2), dtype=np.int64), ["the 2D image is flat or dark: no object to aim at"]
+    # object vs background (fog airlight, noise): Otsu's threshold, at least threshold × the top
+    mask = ndimage.binary_opening(img > max(threshold * ref, float(threshold_otsu(img))))
     labels, nlab = ndimage.label(mask)
     dt = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]  # the image border is an edge
     sizes = np.asarray(ndimage.sum(mask, labels, np.arange(1, nlab + 1))) if nlab else np.zeros(0)
     comp_max = np.asarray(ndimage.maximum(dt, labels, np.arange(1, nlab + 1))) if nlab else np.zeros(0)
     depth = np.where(mask, dt / np.maximum(comp_max[np.maximum(labels - 1, 0)], 1e-9), 0.0)
     chosen: list[tuple[int, int]] = []
+    big = np.zeros(nlab + 1, dtype=bool)
     for lab in np.argsort(-sizes)[:n_spots]:
         if sizes[lab] < 0.02 * mask.sum():
             break
+        big[lab + 1] = True
         r, c = ndimage.maximum_position(dt, labels, lab + 1)
         chosen.append((int(r), int(c)))
-    rr, cc = np.nonzero(mask & (depth >= 0.3))
+    rr, cc = np.nonzero(big[labels] & (depth >= 0.3))
     while chosen and len(chosen) < n_spots and len(rr):
         ch = np.array(chosen)
         dmin = np.min(np.hypot(rr[:, None] - ch[:, 0], cc[:, None] - ch[:, 1]), axis=1)

@@ -435,7 +435,7 @@ class ItofFusion:
     max_edge_factor: float = 4.0
     knn: int = 8
     outlier_std: float | None = 2.5
-    time_step: float = 1.0
+    time_step: float = 8.0
     adaptive_step: bool = True
     diffuse: str = "range"
 
@@ -593,6 +593,35 @@ class ItofFusion:
         extent_px = min(rows.max() - rows.min(), cols.max() - cols.min()) + 1
         return float(min(self.voxel_px * pitch, extent_px * pitch / self.min_voxels_across))
 
+    def _diffuse(self, cloud: np.ndarray, noise_m: float) -> tuple[np.ndarray, float]:
+        """One implicit heat step on the cloud (``range`` or ``xyz``), its ``t`` chosen by the
+        discrepancy principle (Morozov) when ``adaptive_step``: the largest ``t ≤ time_step``
+        whose 95th-percentile point movement stays within ``1.96 × noise_m`` (the 95th
+        percentile of Gaussian noise of standard deviation ``noise_m``). The movement grows
+        about linearly with small ``t``; two secant steps find it. Returns the cloud and ``t``."""
+        step = float(self.time_step)
+        if step == 0 or len(cloud) < 3:
+            return cloud, 0.0
+        r = np.linalg.norm(cloud, axis=1)
+
+        def apply(t: float) -> tuple[np.ndarray, float]:
+            if self.diffuse == "range":
+                r2 = heat_diffusion(r, cloud, self.knn, t)
+                return cloud / r[:, None] * r2[:, None], float(np.percentile(np.abs(r2 - r), 95))
+            c2 = heat_diffusion(cloud, cloud, self.knn, t)
+            return c2, float(np.percentile(np.linalg.norm(c2 - cloud, axis=1), 95))
+
+        out, moved = apply(step)
+        target = 1.96 * noise_m
+        for _ in range(2):
+            if not self.adaptive_step or moved <= 1.05 * target:
+                break
+            step *= target / moved if moved > 0 else 0.0
+            if step <= 0:
+                return cloud, 0.0
+            out, moved = apply(step)
+        return out, step
+
     # -- the whole fusion ----------------------------------------------------------------------
     def fuse(self, depth: DepthMap, itof: ItofSample | None, camera: Camera) -> PointCloud:
         """Fuse the SFS ``depth`` with the iToF points into a metric point cloud (metres)."""
@@ -634,24 +663,7 @@ class ItofFusion:
             else np.ones(len(merged), dtype=bool)
         )
         cloud = merged[keep]
-        step = float(self.time_step)
-        noise_m = float(fit["sfs_noise_m"])
-        if self.diffuse == "range":
-            r = np.linalg.norm(cloud, axis=1)
-            r2 = heat_diffusion(r, cloud, self.knn, step)
-            moved = float(np.sqrt(np.mean((r2 - r) ** 2))) if len(r) else 0.0
-            if self.adaptive_step and moved > noise_m and step > 0:
-                # discrepancy principle (Morozov): smooth no further than the noise level
-                step *= noise_m / moved
-                r2 = heat_diffusion(r, cloud, self.knn, step)
-            cloud = cloud / r[:, None] * r2[:, None]
-        else:
-            c2 = heat_diffusion(cloud, cloud, self.knn, step)
-            moved = float(np.sqrt(np.mean(np.sum((c2 - cloud) ** 2, axis=1)))) if len(cloud) else 0.0
-            if self.adaptive_step and moved > noise_m and step > 0:
-                step *= noise_m / moved
-                c2 = heat_diffusion(cloud, cloud, self.knn, step)
-            cloud = c2
+        cloud, step = self._diffuse(cloud, float(fit["sfs_noise_m"]))
         if not np.all(np.isfinite(cloud)):
             raise NirspiError("fusion: non-finite points after filtering")
         normals = pca_normals(cloud, self.knn)
