@@ -12,9 +12,7 @@
    flips towards valence 6, and tangential relaxation with reprojection onto the input
    surface, towards a target edge length ``edge_factor`` × the cloud's median sample spacing.
    This is what brings the equiangle skewness of a power crust (fans of slivers around each
-   sample) down; the reprojection keeps the surface where it was. The faces on the mesh's
-   border are left alone (remeshing them pulls an open sheet's border inwards and costs
-   chamfer distance).
+   sample) down; the reprojection keeps the surface where it was.
 
 Remeshing is an option with a price: see docs/mesh.md (``nirspi-bench mesh3d`` prints it).
 """
@@ -85,11 +83,7 @@ def clean_and_remesh(
         ms.meshing_remove_connected_component_by_face_number(mincomponentsize=int(min_component_faces))
         ms.meshing_remove_unreferenced_vertices()
     if iterations > 0 and ms.current_mesh().face_number() > 0:
-        # the sheet's border stays as it is: remeshing it would pull the border inwards
-        ms.compute_selection_from_mesh_border()
-        ms.apply_selection_inverse(invfaces=True)
         ms.meshing_isotropic_explicit_remeshing(
-            selectedonly=True,
             iterations=int(iterations),
             targetlen=pymeshlab.PureValue(float(spacing_m * edge_factor * 1e3)),
             featuredeg=60.0,
