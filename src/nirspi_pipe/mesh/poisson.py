@@ -50,7 +50,7 @@ class ScreenedPoisson:
     closed: bool = False
     trim_factor: float = 1.5
     remesh_iterations: int = 0
-    remesh_edge_factor: float = 0.7
+    remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
 
     def __post_init__(self) -> None:

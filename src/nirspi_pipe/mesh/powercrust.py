@@ -354,7 +354,7 @@ class PowerCrust:
     closed: bool = False
     trim_factor: float = 1.5
     remesh_iterations: int = 3
-    remesh_edge_factor: float = 0.7
+    remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
     box_factor: float = 3.0
     weld_factor: float = 0.25

@@ -41,7 +41,7 @@ def clean_and_remesh(
     faces: np.ndarray,
     spacing_m: float,
     iterations: int = 3,
-    edge_factor: float = 0.7,
+    edge_factor: float = 1.0,
     max_hole_edges: int = 30,
     min_component_faces: int = 10,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
@@ -87,8 +87,7 @@ def clean_and_remesh(
             iterations=int(iterations),
             targetlen=pymeshlab.PureValue(float(spacing_m * edge_factor * 1e3)),
             featuredeg=60.0,
-            checksurfdist=True,
-            maxsurfdist=pymeshlab.PureValue(float(0.5 * spacing_m * 1e3)),
+            checksurfdist=False,  # reprojection keeps the surface; the check made it 3x slower
             reprojectflag=True,
         )
     m = ms.current_mesh()
