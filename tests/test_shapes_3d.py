@@ -265,7 +265,7 @@ def test_remeshing_improves_skewness_and_keeps_the_surface(sphere):
 
 
 def test_remesh_small_or_empty_input_and_bad_keys():
-    v, f, info = clean_and_remesh(np.zeros((0, 3)), np.zeros((0, 3), int), 1e-3)
+    _, f, info = clean_and_remesh(np.zeros((0, 3)), np.zeros((0, 3), int), 1e-3)
     assert len(f) == 0 and info["faces_before_remesh"] == 0
     for key, value in [("remesh_iterations", -1), ("remesh_edge_factor", 0.0), ("max_hole_edges", 1.5)]:
         with pytest.raises(ConfigError, match=key):

@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|" + "---|" * (len(COLUMNS) + 2))
     for shape in ns.shapes.split(","):
         t0 = time.perf_counter()
-        m, warns, fus = run_shape(shape, ns.resolution, ns.sfs, extra)
+        m, _warns, fus = run_shape(shape, ns.resolution, ns.sfs, extra)
         if "error" in m:
             print(f"| {shape} | failed: {m['error']} |")
             continue

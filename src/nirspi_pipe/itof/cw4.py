@@ -44,7 +44,7 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.types import Acquisition, Camera, Image2D, ItofSample, Scene
 
-__all__ = ["ContinuousWave4", "demodulate_4phase", "laser_directions", "ambiguity_range_m", "aim_spots"]
+__all__ = ["ContinuousWave4", "aim_spots", "ambiguity_range_m", "demodulate_4phase", "laser_directions"]
 
 SPOT_MODES = ("auto", "fixed")
 
@@ -108,7 +108,6 @@ def aim_spots(image: np.ndarray, camera: Camera, n_spots: int, threshold: float)
     when fine; e.g. no object found).
     """
     from scipy import ndimage
-
     from skimage.filters import threshold_otsu
 
     img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)

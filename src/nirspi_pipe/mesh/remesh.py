@@ -23,7 +23,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 
-__all__ = ["clean_and_remesh", "check_remesh_keys"]
+__all__ = ["check_remesh_keys", "clean_and_remesh"]
 
 
 def check_remesh_keys(iterations: int, edge_factor: float, max_hole_edges: int) -> None:

@@ -34,7 +34,7 @@ from nirspi_pipe.scene.render import check_common, compose_scene
 from nirspi_pipe.scene.shapes import raycast_mesh, rotation_matrix
 from nirspi_pipe.types import Camera, Scene
 
-__all__ = ["KINDS", "GeneratedShape", "shape_mesh", "grid_surface", "render_smooth_mesh"]
+__all__ = ["KINDS", "GeneratedShape", "grid_surface", "render_smooth_mesh", "shape_mesh"]
 
 KINDS = ("plate_edge", "ring", "bowl", "multi", "partial", "off_centre", "vase")
 

@@ -222,7 +222,7 @@ def singular_depths(
     info["singular_regions"] = int(n_src)
     if n_src < 2:
         return depth, info
-    obj_lab, n_obj = ndimage.label(prep.mask, structure=np.ones((3, 3)))
+    obj_lab, _ = ndimage.label(prep.mask, structure=np.ones((3, 3)))
     owner = np.asarray(ndimage.maximum(obj_lab, src_lab, np.arange(1, n_src + 1)), dtype=np.int64)
     multi = [o for o in np.unique(owner) if (owner == o).sum() >= 2]
     if not multi:
