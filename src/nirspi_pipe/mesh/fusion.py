@@ -4,17 +4,15 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
 
 0. **Despiking.** SFS pixels that stand out of their 3×3 median by more than ``despike_k``
    robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
-1. **Regions and metric scaling (Alg. A3).** The image is split into four angular sectors around
-   the principal point, each centred on one iToF spot (with the default laser azimuth of 45°
-   these are the image quadrants). The relative SFS depth ``z_r`` becomes metric depth
-   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: one global scale ``s`` and offset ``t`` plus one
-   offset correction ``δ_k`` per region, blended across region borders by weights ``w_k`` that
-   sum to one. ``(s, t, δ)`` is the weighted least-squares fit to the iToF anchors (weights
-   ``1/σ_k²``) regularised by two documented priors: ``s ≈ s₀ = Z̄/f`` (SFS depth in pixel-pitch
-   units at the anchors' mean depth, relative tolerance ``scale_prior_rel``) and ``δ_k ≈ 0``
-   (tolerance ``region_offset_prior_mm``). Without the scale prior, four anchors at the same SFS
-   depth (a sphere hit symmetrically) cannot fix the scale; the priors keep the problem
-   well-posed and fall back gracefully when spots miss.
+1. **Anchors and metric scaling (Alg. A3).** The relative SFS depth ``z_r`` becomes metric depth
+   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: a global scale ``s`` and offset ``t`` fitted to the
+   valid iToF anchors (weights ``1/(σ_k² + σ_SFS²)``, ``σ_SFS`` the SFS noise estimated from the
+   map, :func:`depth_noise`) with the prior ``s ≈ s₀ = Z̄/f`` (relative tolerance
+   ``scale_prior_rel``); 1 anchor fits ``t`` only, 2 fit ``s`` and ``t``. With at least
+   ``min_anchors_local`` anchors each anchor's image region (Voronoi cells of the anchors, blended
+   over ``blend_px``, :func:`anchor_weights`) gets a local offset ``δ_k = g_k·r_k``: its residual
+   after the global fit shrunk by ``g_k = max(0, 1 − (σ_k² + σ_SFS²)/r_k²)``, so agreement within
+   the noise applies nothing. Every rejected anchor is warned about with its reason.
 2. **Back-projection** of every valid pixel with the pinhole camera, and triangulation of the
    pixel grid (two triangles per 2×2 block of valid pixels; triangles whose longest edge exceeds
    ``max_edge_factor`` × the median are dropped: they bridge SFS outliers or depth jumps).
@@ -25,14 +23,16 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    with ``d·x < |V0V1|`` and ``(d/sin α)·y < |V0V2|·(1 − d·x/|V0V1|)`` (Eq. 15): rows ``d`` apart.
    ``sin α`` is floored at ``sin(min_angle_deg)`` (α → 0 makes ``d/sin α`` blow up: a sliver
    then gets only its vertex rows).
-4. **Voxel merging**: points are averaged per cubic voxel of side ``voxel_mm`` (default
-   ``d_pitch``).
+4. **Voxel merging**: points are averaged per cubic voxel of side ``voxel_mm``, by default
+   ``voxel_px`` pixel pitches at the object's depth, at most 1/``min_voxels_across`` of its
+   extent (a collapse is warned about).
 5. **Filtering**: statistical outlier removal (mean distance to the ``knn`` nearest neighbours
    more than ``outlier_std`` standard deviations above the mean), then one implicit step of the
    heat equation on the kNN graph: ``(D + t·(D − W))·x' = D·x`` — the backward-Euler step
    ``(I + t·L_rw)·x' = x`` of ``∂x/∂τ = −L_rw x`` with the random-walk Laplacian
    ``L_rw = I − D⁻¹W`` and heat-kernel weights ``W_ij = exp(−|p_i − p_j|²/h²)`` (``h`` = mean
-   neighbour distance). ``t = time_step`` is dimensionless, in units of one neighbour-averaging
+   neighbour distance). ``t ≤ time_step`` is dimensionless (chosen by the discrepancy principle
+   against ``σ_SFS`` when ``adaptive_step``), in units of one neighbour-averaging
    step: a graph eigenmode with eigenvalue ``λ ∈ [0, 2]`` is damped by ``1/(1 + tλ)``; the step is
    unconditionally stable (implicit), so ``t`` sets the smoothing only. By default the filter
    acts on the range along each camera ray (``diffuse: range``) so the silhouette of the open
