@@ -1,8 +1,9 @@
 """iToF ``cw4``: four continuous-wave indirect time-of-flight lasers (paper §3, Table 1).
 
-Four 1550 nm lasers sit at the camera (the origin) and point at 90° to each other around the
-optical axis, each ``spot_angle_deg`` off axis, so that by default (azimuth 45°) each spot lands
-in one image quadrant. Each has its own photodiode. A laser is sine-modulated at ``f_mod`` and the
+Up to four 1550 nm lasers sit at the camera (the origin). With ``spots: fixed`` (the paper) they
+point at 360°/n to each other around the optical axis, each ``spot_angle_deg`` off axis, so that
+with azimuth 45° each spot lands in one image quadrant; with ``spots: auto`` (default) they are
+steered at the object seen in the 2D image (:func:`aim_spots`, via :meth:`ContinuousWave4.aimed`). Each has its own photodiode. A laser is sine-modulated at ``f_mod`` and the
 photodiode signal is correlated with the modulation at four phase offsets (0, 90°, 180°, 270°):
 
     A_k = B/4 + (N_s/4)·(1 + c_d·cos(φ + k·π/2)),   k = 0..3
