@@ -7,6 +7,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.itof.cw4 import ContinuousWave4, aim_spots
@@ -270,3 +272,24 @@ def test_remesh_small_or_empty_input_and_bad_keys():
     for key, value in [("remesh_iterations", -1), ("remesh_edge_factor", 0.0), ("max_hole_edges", 1.5)]:
         with pytest.raises(ConfigError, match=key):
             PowerCrust(**{key: value})
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from(["blobs", "noise", "nan", "const"]))
+def test_aim_spots_hostile_images(seed, kind):
+    """Spots land on pixels above the object threshold, or none with a note; never a crash."""
+    rng = np.random.default_rng(seed)
+    img = rng.random((32, 32))
+    if kind == "blobs":
+        from scipy import ndimage
+
+        img = (ndimage.gaussian_filter(rng.random((32, 32)), 3) > 0.5).astype(float)
+    elif kind == "nan":
+        img[rng.random((32, 32)) < 0.3] = np.nan
+    elif kind == "const":
+        img = np.full((32, 32), float(rng.random()))
+    px, notes = aim_spots(img, Camera(32), 4, 0.1)
+    assert len(px) <= 4 and (len(px) > 0 or notes)
+    assert np.all((px >= 0) & (px < 32))
+    if kind == "blobs" and len(px):
+        assert img[px[:, 0], px[:, 1]].all()
