@@ -51,8 +51,8 @@ def test_recovers_metric_sphere(scene, seed):
     assert np.sqrt(np.mean(d**2)) < 2e-3
     assert cloud.info["anchors_used"] == 4 and np.all(np.isfinite(cloud.normals))
     assert np.all(cloud.normals @ np.array([0, 0, 1.0]) < 0.5)  # normals face the camera
-    # 5 mm voxels on a ~3900 mm² cap: a few hundred points at most
-    assert 60 < len(cloud.points_m) < 400
+    # automatic voxel of 2 pixel pitches: about one point per 2x2 pixels of the cap
+    assert 0.15 * cloud.info["pixels"] < len(cloud.points_m) < 0.6 * cloud.info["pixels"]
 
 
 def test_fused_depth_is_smoother_than_sfs(scene):
@@ -187,7 +187,7 @@ def test_nan_inside_mask_is_warned(scene):
 @pytest.mark.parametrize(
     "key,value",
     [("d_pitch_mm", 0.0), ("min_angle_deg", 0.0), ("knn", 2), ("time_step", -1.0), ("diffuse", "z"),
-     ("blend_deg", 100.0), ("scale_prior_rel", 0.0)],
+     ("blend_px", -1.0), ("scale_prior_rel", 0.0)],
 )
 def test_bad_config(key, value):
     with pytest.raises(ConfigError, match=key):

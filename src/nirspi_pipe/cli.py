@@ -116,6 +116,7 @@ def execute_job(
         output = run_pipeline(cfg)
     except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
         record["meta"]["error"] = _one_line(exc)
+        record["meta"]["warnings"] = list(getattr(exc, "nirspi_warnings", []))
         record["meta"]["error_type"] = "ConfigError" if isinstance(exc, ConfigError) else type(exc).__name__
         try:
             atomic_write(out_dir / "error.txt", traceback.format_exc())

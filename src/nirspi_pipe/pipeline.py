@@ -294,6 +294,26 @@ class _Clock:
                 raise exc.under(name) from None
 
 
+def _measure_itof(stage: Any, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
+    """Aim steerable iToF spots with the 2D image when the stage can (``aimed``), then measure."""
+    if hasattr(stage, "aimed"):
+        stage = stage.aimed(image, grid)
+    return stage.measure(truth, acq, rng)
+
+
+@contextmanager
+def _recorded_warnings() -> Iterator[list[warnings.WarningMessage]]:
+    """Record every warning; an exception leaving the block carries them as ``nirspi_warnings``
+    (a failed record keeps the warnings that explain it)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield caught  # type: ignore[misc]
+        except Exception as exc:
+            exc.nirspi_warnings = [f"{w.category.__name__}: {w.message}" for w in caught]  # type: ignore[attr-defined]
+            raise
+
+
 def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
     pairs: dict[str, Any] = {
         "source": products.acquisition,
@@ -334,8 +354,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
     clock = _Clock()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
+    with _recorded_warnings() as caught:
         with clock.stage("build"):
             camera: Camera = build(cfg.camera, "camera")
             stages = build_stages(cfg)
@@ -370,7 +389,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
         if "sfs" in stages:
             depth = clock.call("sfs", stages["sfs"].solve, shaded, grid)
         if "itof" in stages:
-            itof = clock.call("itof", stages["itof"].measure, truth, acq, rngs["itof"])
+            itof = clock.call("itof", _measure_itof, stages["itof"], shaded, grid, truth, acq, rngs["itof"])
         if "fusion" in stages:
             if depth is None:
                 raise ConfigError("fusion", cfg.get("fusion"), "null unless an sfs stage is set")

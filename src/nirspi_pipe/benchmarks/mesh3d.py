@@ -61,6 +61,8 @@ def main(argv: list[str]) -> int:
                              "import path of an sfs class (default: a stand-in from the truth)")
     parser.add_argument("--sfs-backend", default=None, choices=["numpy", "opencl"],
                         help="sfs.backend for a config option")
+    parser.add_argument("--remesh-iterations", type=int, default=None,
+                        help="surface.remesh_iterations (default: the surface's own; 0 shows remeshing's price)")
     ns = parser.parse_args(argv)
 
     cam = Camera(ns.resolution)
@@ -70,7 +72,8 @@ def main(argv: list[str]) -> int:
     image = solver.solve(acq)
     itof = ContinuousWave4()
     fusion = ItofFusion()
-    surface = PowerCrust() if ns.surface == "power_crust" else ScreenedPoisson()
+    rkw = {} if ns.remesh_iterations is None else {"remesh_iterations": ns.remesh_iterations}
+    surface = PowerCrust(**rkw) if ns.surface == "power_crust" else ScreenedPoisson(**rkw)
     metrics = Metrics3D()
     sfs = _load(ns.sfs, ns.sfs_backend) if ns.sfs else None
 
@@ -101,7 +104,7 @@ def main(argv: list[str]) -> int:
     ref_ms = median_time_s(lambda: solver.solve(acq), ns.repeat) * 1e3
     med = {k: float(np.median(v)) for k, v in stage_ms.items()}
     sfs_name = (f"{ns.sfs}/{ns.sfs_backend or 'default'}") if ns.sfs else "stand-in (truth degraded)"
-    print(f"3D path at {ns.resolution}^2, surface={ns.surface}, sfs={sfs_name}, {ns.repeat} repetitions (median ms), "
+    print(f"3D path at {ns.resolution}^2, surface={ns.surface} (remesh_iterations={surface.remesh_iterations}), sfs={sfs_name}, {ns.repeat} repetitions (median ms), "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     for k, v in med.items():
         print(f"  {k:>8} {v:8.2f}")

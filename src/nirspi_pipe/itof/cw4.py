@@ -1,8 +1,9 @@
 """iToF ``cw4``: four continuous-wave indirect time-of-flight lasers (paper §3, Table 1).
 
-Four 1550 nm lasers sit at the camera (the origin) and point at 90° to each other around the
-optical axis, each ``spot_angle_deg`` off axis, so that by default (azimuth 45°) each spot lands
-in one image quadrant. Each has its own photodiode. A laser is sine-modulated at ``f_mod`` and the
+Up to four 1550 nm lasers sit at the camera (the origin). With ``spots: fixed`` (the paper) they
+point at 360°/n to each other around the optical axis, each ``spot_angle_deg`` off axis, so that
+with azimuth 45° each spot lands in one image quadrant; with ``spots: auto`` (default) they are
+steered at the object seen in the 2D image (:func:`aim_spots`, via :meth:`ContinuousWave4.aimed`). Each has its own photodiode. A laser is sine-modulated at ``f_mod`` and the
 photodiode signal is correlated with the modulation at four phase offsets (0, 90°, 180°, 270°):
 
     A_k = B/4 + (N_s/4)·(1 + c_d·cos(φ + k·π/2)),   k = 0..3
@@ -37,14 +38,16 @@ fog does not reduce the background. Fog backscatter of the laser into the receiv
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.types import Acquisition, ItofSample, Scene
+from nirspi_pipe.types import Acquisition, Camera, Image2D, ItofSample, Scene
 
-__all__ = ["ContinuousWave4", "demodulate_4phase", "laser_directions", "ambiguity_range_m"]
+__all__ = ["ContinuousWave4", "aim_spots", "ambiguity_range_m", "demodulate_4phase", "laser_directions"]
+
+SPOT_MODES = ("auto", "fixed")
 
 C_M_S = 299_792_458.0  # speed of light, m/s
 H_J_S = 6.626_070_15e-34  # Planck constant, J·s
@@ -92,6 +95,55 @@ def laser_directions(spot_angle_deg: float, azimuth_deg: float) -> np.ndarray:
     )
 
 
+def aim_spots(image: np.ndarray, camera: Camera, n_spots: int, threshold: float) -> tuple[np.ndarray, list[str]]:
+    """Spot pixels ``(k, 2)`` (row, col; ``k ≤ n_spots``) aimed at the object in a 2D image.
+
+    The image is 3×3 median filtered and smoothed (Gaussian, 1 px); the object is where it exceeds both Otsu's threshold
+    (object against fog airlight and background) and ``threshold`` × its 99.5th percentile, opened
+    (3×3) against isolated noise pixels. Each connected
+    part of at least 2 % of the object's pixels gets one spot first (largest parts first, at its
+    point farthest from its edge, so the spot and its 2×2 neighbourhood stay on the object);
+    the remaining spots go by farthest-point sampling within those parts, each maximising its image distance to the
+    spots chosen so far times ``sqrt`` of its depth into the object (spread out, away from the
+    edges: spots at different depths fix the SFS scale). Returns the pixels and notes (empty
+    when fine; e.g. no object found).
+    """
+    from scipy import ndimage
+    from skimage.filters import threshold_otsu
+
+    img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    img = ndimage.gaussian_filter(ndimage.median_filter(img, size=3, mode="nearest"), 1.0)  # fog noise
+    ref = float(np.percentile(img, 99.5)) if img.size else 0.0
+    if not ref > 0 or float(img.max() - img.min()) <= 0:
+        return np.zeros((0, 2), dtype=np.int64), ["the 2D image is flat or dark: no object to aim at"]
+    # object vs background (fog airlight, noise): Otsu's threshold, at least threshold × the top
+    mask = ndimage.binary_opening(img > max(threshold * ref, float(threshold_otsu(img))))
+    labels, nlab = ndimage.label(mask)
+    dt = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]  # the image border is an edge
+    sizes = np.asarray(ndimage.sum(mask, labels, np.arange(1, nlab + 1))) if nlab else np.zeros(0)
+    comp_max = np.asarray(ndimage.maximum(dt, labels, np.arange(1, nlab + 1))) if nlab else np.zeros(0)
+    depth = np.where(mask, dt / np.maximum(comp_max[np.maximum(labels - 1, 0)], 1e-9), 0.0)
+    chosen: list[tuple[int, int]] = []
+    big = np.zeros(nlab + 1, dtype=bool)
+    for lab in np.argsort(-sizes)[:n_spots]:
+        if sizes[lab] < 0.02 * mask.sum():
+            break
+        big[lab + 1] = True
+        r, c = ndimage.maximum_position(dt, labels, lab + 1)
+        chosen.append((int(r), int(c)))
+    rr, cc = np.nonzero(big[labels] & (depth >= 0.3))
+    while chosen and len(chosen) < n_spots and len(rr):
+        ch = np.array(chosen)
+        dmin = np.min(np.hypot(rr[:, None] - ch[:, 0], cc[:, None] - ch[:, 1]), axis=1)
+        score = dmin * np.sqrt(depth[rr, cc])
+        j = int(np.argmax(score))
+        if dmin[j] < 1.0:
+            break
+        chosen.append((int(rr[j]), int(cc[j])))
+    notes = [] if chosen else ["no object region large enough to aim at"]
+    return np.array(chosen, dtype=np.int64).reshape(-1, 2), notes
+
+
 def _sample_at(scene: Scene, d: np.ndarray) -> tuple[bool, float, float, float]:
     """Where the ray ``d`` (unit) meets the scene: ``(hit, range_m, reflectance, cos_incidence)``.
 
@@ -137,10 +189,19 @@ class ContinuousWave4:
         ned_cm_per_sqrt_hz: noise-equivalent distance, cm/√Hz (Table 1: 1).
         laser_power_mw: optical power of each laser, mW (§3: 5 mW, IEC 62471).
         wavelength_nm: laser wavelength, nm (1550).
-        spot_angle_deg: angle of each laser off the optical axis, degrees (must stay inside the
-            camera's field of view). 3.5° puts the spots ~12 mm off axis at 20 cm, inside the
-            paper's Ø50 mm sphere.
-        azimuth_deg: azimuth of laser 0 around the axis, degrees; 45° puts one spot per quadrant.
+        spots: ``auto`` (default): steerable spots aimed at the object with the 2D image
+            (:func:`aim_spots`; the runner calls :meth:`aimed` before :meth:`measure`), like a
+            system with steerable or several emitters; ``fixed``: the paper's geometry below.
+        n_spots: number of lasers, 1 to 4.
+        aim_threshold: ``auto``: object pixels are brighter than this × the image's 99.5th
+            percentile.
+        spot_angle_deg: ``fixed``: angle of each laser off the optical axis, degrees (must stay
+            inside the camera's field of view). 3.5° puts the spots ~12 mm off axis at 20 cm,
+            inside the paper's Ø50 mm sphere.
+        azimuth_deg: ``fixed``: azimuth of laser 0 around the axis, degrees; 45° puts one spot
+            per quadrant (lasers at 360°/n_spots from each other).
+        aim_directions: unit directions ``[[x, y, z], …]`` the spots are aimed at (camera frame);
+            set by :meth:`aimed`, or given explicitly; null = from ``spots``.
         aperture_mm: diameter of each receiver's collecting lens, mm (assumption).
         rx_half_fov_deg: half field of view of each receiver, degrees (Table 1 α_FOV = 10°);
             sets how much background light it collects.
@@ -156,8 +217,12 @@ class ContinuousWave4:
     ned_cm_per_sqrt_hz: float = 1.0
     laser_power_mw: float = 5.0
     wavelength_nm: float = 1550.0
+    spots: str = "auto"
+    n_spots: int = 4
+    aim_threshold: float = 0.1
     spot_angle_deg: float = 3.5
     azimuth_deg: float = 45.0
+    aim_directions: tuple | None = None
     aperture_mm: float = 5.0
     rx_half_fov_deg: float = 10.0
     quantum_efficiency: float = 0.8
@@ -182,6 +247,16 @@ class ContinuousWave4:
             raise ConfigError("ned_cm_per_sqrt_hz", self.ned_cm_per_sqrt_hz, "a NED in cm/√Hz >= 0")
         if self.averaging_s < self.t_int_us * 1e-6:
             raise ConfigError("averaging_s", self.averaging_s, "at least one frame (>= t_int_us)")
+        if self.spots not in SPOT_MODES:
+            raise ConfigError("spots", self.spots, ", ".join(SPOT_MODES))
+        if isinstance(self.n_spots, bool) or int(self.n_spots) != self.n_spots or not 1 <= self.n_spots <= 4:
+            raise ConfigError("n_spots", self.n_spots, "an integer from 1 to 4")
+        if not 0.0 < self.aim_threshold < 1.0:
+            raise ConfigError("aim_threshold", self.aim_threshold, "a fraction in (0, 1)")
+        if self.aim_directions is not None:
+            d = np.asarray(self.aim_directions, dtype=np.float64) if np.size(self.aim_directions) else np.zeros(0)
+            if d.ndim != 2 or d.shape[1] != 3 or not 1 <= len(d) <= 4 or not np.all(np.isfinite(d)) or (d[:, 2] <= 0).any():
+                raise ConfigError("aim_directions", self.aim_directions, "1 to 4 directions [x, y, z] with z > 0, or null")
         if not 0.0 <= self.spot_angle_deg < 80.0:
             raise ConfigError("spot_angle_deg", self.spot_angle_deg, "degrees in [0, 80)")
         if not np.isfinite(self.azimuth_deg):
@@ -192,6 +267,31 @@ class ContinuousWave4:
             raise ConfigError("quantum_efficiency", self.quantum_efficiency, "a fraction in (0, 1]")
         if not 0.0 < self.demod_contrast <= 1.0:
             raise ConfigError("demod_contrast", self.demod_contrast, "a contrast in (0, 1]")
+
+    def aimed(self, image: Image2D, camera: Camera) -> ContinuousWave4:
+        """This iToF with its spots aimed at the object seen in ``image`` (``spots: auto``; the
+        ``camera`` is the image's grid). ``fixed``, or explicit ``aim_directions``: unchanged.
+        When no object is found the fixed geometry is used, with a warning."""
+        if self.spots != "auto" or self.aim_directions is not None:
+            return self
+        px, notes = aim_spots(image.data, camera, int(self.n_spots), self.aim_threshold)
+        if len(px) == 0:
+            warnings.warn(f"itof: spots=auto: {'; '.join(notes)}; using the fixed spot geometry", stacklevel=2)
+            return self
+        x, y = camera.pixel_coords()
+        d = np.stack([x[px[:, 0], px[:, 1], 0], y[px[:, 0], px[:, 1], 0], np.ones(len(px))], axis=1)
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return replace(self, aim_directions=tuple(tuple(float(v) for v in row) for row in d))
+
+    def directions(self) -> np.ndarray:
+        """Unit directions ``(k, 3)`` of the lasers (camera frame)."""
+        if self.aim_directions is not None:
+            d = np.asarray(self.aim_directions, dtype=np.float64).reshape(-1, 3)
+            return d / np.linalg.norm(d, axis=1, keepdims=True)
+        k = int(self.n_spots)
+        th = np.deg2rad(self.spot_angle_deg)
+        psi = np.deg2rad(self.azimuth_deg + 360.0 / k * np.arange(k))
+        return np.stack([np.sin(th) * np.cos(psi), np.sin(th) * np.sin(psi), np.full(k, np.cos(th))], axis=-1)
 
     @property
     def f_mod_hz(self) -> float:
@@ -254,14 +354,15 @@ class ContinuousWave4:
             raise NirspiError(f"itof: invalid fog/background in acquisition.derived (beta={beta}, E={e_bg})")
         f = self.f_mod_hz
         lam = ambiguity_range_m(f)
-        dirs = laser_directions(self.spot_angle_deg, self.azimuth_deg)
+        dirs = self.directions()
         k_phase = np.pi / 2.0 * np.arange(4)
-        points = np.zeros((4, 3))
-        sigma = np.zeros(4)
-        true_range = np.full(4, np.inf)
-        sig_e = np.zeros(4)
-        bg_e = np.zeros(4)
-        sig_shot = np.zeros(4)
+        m = len(dirs)
+        points = np.zeros((m, 3))
+        sigma = np.zeros(m)
+        true_range = np.full(m, np.inf)
+        sig_e = np.zeros(m)
+        bg_e = np.zeros(m)
+        sig_shot = np.zeros(m)
         for j, d in enumerate(dirs):
             hit, r, refl, cos_inc = _sample_at(scene, d)
             n_s, n_b = self.expected_counts(r, refl, cos_inc, beta, e_bg)
@@ -288,6 +389,7 @@ class ContinuousWave4:
             points[j] = dist * d
             true_range[j], sig_e[j], bg_e[j], sig_shot[j] = r, n_s, n_b, s_shot
         info = {
+            "aimed": self.aim_directions is not None,
             "ambiguity_range_m": lam,
             "frames": self.frames,
             "sigma_floor_m": float(self.sigma_floor_m),

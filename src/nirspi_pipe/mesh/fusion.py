@@ -4,17 +4,15 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
 
 0. **Despiking.** SFS pixels that stand out of their 3×3 median by more than ``despike_k``
    robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
-1. **Regions and metric scaling (Alg. A3).** The image is split into four angular sectors around
-   the principal point, each centred on one iToF spot (with the default laser azimuth of 45°
-   these are the image quadrants). The relative SFS depth ``z_r`` becomes metric depth
-   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: one global scale ``s`` and offset ``t`` plus one
-   offset correction ``δ_k`` per region, blended across region borders by weights ``w_k`` that
-   sum to one. ``(s, t, δ)`` is the weighted least-squares fit to the iToF anchors (weights
-   ``1/σ_k²``) regularised by two documented priors: ``s ≈ s₀ = Z̄/f`` (SFS depth in pixel-pitch
-   units at the anchors' mean depth, relative tolerance ``scale_prior_rel``) and ``δ_k ≈ 0``
-   (tolerance ``region_offset_prior_mm``). Without the scale prior, four anchors at the same SFS
-   depth (a sphere hit symmetrically) cannot fix the scale; the priors keep the problem
-   well-posed and fall back gracefully when spots miss.
+1. **Anchors and metric scaling (Alg. A3).** The relative SFS depth ``z_r`` becomes metric depth
+   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: a global scale ``s`` and offset ``t`` fitted to the
+   valid iToF anchors (weights ``1/(σ_k² + σ_SFS²)``, ``σ_SFS`` the SFS noise estimated from the
+   map, :func:`depth_noise`) with the prior ``s ≈ s₀ = Z̄/f`` (relative tolerance
+   ``scale_prior_rel``); 1 anchor fits ``t`` only, 2 fit ``s`` and ``t``. With at least
+   ``min_anchors_local`` anchors each anchor's image region (Voronoi cells of the anchors, blended
+   over ``blend_px``, :func:`anchor_weights`) gets a local offset ``δ_k = g_k·r_k``: its residual
+   after the global fit shrunk by ``g_k = max(0, 1 − (σ_k² + σ_SFS²)/r_k²)``, so agreement within
+   the noise applies nothing. Every rejected anchor is warned about with its reason.
 2. **Back-projection** of every valid pixel with the pinhole camera, and triangulation of the
    pixel grid (two triangles per 2×2 block of valid pixels; triangles whose longest edge exceeds
    ``max_edge_factor`` × the median are dropped: they bridge SFS outliers or depth jumps).
@@ -25,14 +23,16 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    with ``d·x < |V0V1|`` and ``(d/sin α)·y < |V0V2|·(1 − d·x/|V0V1|)`` (Eq. 15): rows ``d`` apart.
    ``sin α`` is floored at ``sin(min_angle_deg)`` (α → 0 makes ``d/sin α`` blow up: a sliver
    then gets only its vertex rows).
-4. **Voxel merging**: points are averaged per cubic voxel of side ``voxel_mm`` (default
-   ``d_pitch``).
+4. **Voxel merging**: points are averaged per cubic voxel of side ``voxel_mm``, by default
+   ``voxel_px`` pixel pitches at the object's depth, at most 1/``min_voxels_across`` of its
+   extent (a collapse is warned about).
 5. **Filtering**: statistical outlier removal (mean distance to the ``knn`` nearest neighbours
    more than ``outlier_std`` standard deviations above the mean), then one implicit step of the
    heat equation on the kNN graph: ``(D + t·(D − W))·x' = D·x`` — the backward-Euler step
    ``(I + t·L_rw)·x' = x`` of ``∂x/∂τ = −L_rw x`` with the random-walk Laplacian
    ``L_rw = I − D⁻¹W`` and heat-kernel weights ``W_ij = exp(−|p_i − p_j|²/h²)`` (``h`` = mean
-   neighbour distance). ``t = time_step`` is dimensionless, in units of one neighbour-averaging
+   neighbour distance). ``t ≤ time_step`` is dimensionless (chosen by the discrepancy principle
+   against ``σ_SFS`` when ``adaptive_step``), in units of one neighbour-averaging
    step: a graph eigenmode with eigenvalue ``λ ∈ [0, 2]`` is damped by ``1/(1 + tλ)``; the step is
    unconditionally stable (implicit), so ``t`` sets the smoothing only. By default the filter
    acts on the range along each camera ray (``diffuse: range``) so the silhouette of the open
@@ -65,6 +65,8 @@ __all__ = [
     "pca_normals",
     "back_project",
     "despike",
+    "depth_noise",
+    "anchor_weights",
 ]
 
 _MAX_POINTS = 5_000_000  # guard on Alg. A4's output (d_pitch far below the triangle size)
@@ -76,7 +78,10 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     A pixel is a spike when it differs from the median of its valid 3×3 neighbours by more than
     ``k`` robust standard deviations (1.4826 × the median absolute residual over the map), with
     the deviation floored at ``0.1·unit`` (``unit``: one pixel pitch in the map's depth unit) so
-    that a noise-free surface keeps its curvature. Linear slopes leave no residual.
+    that a noise-free surface keeps its curvature, and raised to the local scale (1.4826 × the
+    median absolute residual of the 3×3 neighbourhood) so that a strongly curved region, where
+    every residual is large, is kept while an isolated spike is not. Linear slopes leave no
+    residual.
     """
     n0, n1 = depth.shape
     pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
@@ -91,7 +96,14 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     if not good.any():
         return valid
     sigma = max(1.4826 * float(np.median(np.abs(res[good]))), 0.1 * unit)
-    return valid & ~(np.abs(np.nan_to_num(res)) > k * sigma)
+    # local residual scale: a smooth but strongly curved region (an occluding contour) has large
+    # residuals at every pixel; a spike stands out against its own neighbourhood's too
+    ares = np.pad(np.abs(res), 1, constant_values=np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows off the mask
+        local = 1.4826 * np.nanmedian(np.lib.stride_tricks.sliding_window_view(ares, (3, 3)).reshape(n0, n1, 9), -1)
+    scale = np.maximum(sigma, np.nan_to_num(local, nan=sigma))
+    return valid & ~(np.abs(np.nan_to_num(res)) > k * scale)
 
 
 def back_project(depth_m: np.ndarray, camera: Camera) -> np.ndarray:
@@ -340,21 +352,62 @@ def pca_normals(points: np.ndarray, knn: int) -> np.ndarray:
     return n
 
 
+def depth_noise(depth: np.ndarray, valid: np.ndarray) -> float:
+    """Robust estimate of the white-noise standard deviation of a depth map ``(n, n)`` (its unit).
+
+    The residual of each valid pixel against the mean of its four valid neighbours has standard
+    deviation ``σ·sqrt(1 + 1/4)`` for white noise ``σ`` and no residual on a plane; we take
+    1.4826 × its median absolute value / 1.118 (a smooth surface adds only its small curvature
+    term, ``pitch²·κ/2``). Returns 0 when fewer than 9 pixels have four valid neighbours.
+    """
+    z = np.where(valid, depth, 0.0)
+    v = valid.astype(np.float64)
+    zp, vp = np.pad(z, 1), np.pad(v, 1)
+    nsum = zp[:-2, 1:-1] + zp[2:, 1:-1] + zp[1:-1, :-2] + zp[1:-1, 2:]
+    ncnt = vp[:-2, 1:-1] + vp[2:, 1:-1] + vp[1:-1, :-2] + vp[1:-1, 2:]
+    inner = valid & (ncnt == 4)
+    if inner.sum() < 9:
+        return 0.0
+    res = (z - nsum / np.maximum(ncnt, 1))[inner]
+    return float(1.4826 * np.median(np.abs(res - np.median(res))) / np.sqrt(1.25))
+
+
+def anchor_weights(rows: np.ndarray, cols: np.ndarray, anchor_rc: np.ndarray, blend_px: float) -> np.ndarray:
+    """Weights ``(…, k)`` of the anchors' image regions at pixels ``(rows, cols)``: Voronoi cells
+    of the anchors' pixel positions ``anchor_rc`` ``(k, 2)``, blended over a band ``blend_px``
+    wide around each cell border (``w_k ∝ clip((d_min + blend/2 − d_k)/blend, 0, 1)``, the same
+    linear ramp as :func:`region_weights`); non-negative, summing to 1."""
+    d = np.hypot(rows[..., None] - anchor_rc[:, 0], cols[..., None] - anchor_rc[:, 1])
+    hard = np.zeros(d.shape)
+    np.put_along_axis(hard, np.argmin(d, axis=-1)[..., None], 1.0, axis=-1)
+    if blend_px <= 0 or anchor_rc.shape[0] == 1:
+        return hard
+    dmin = d.min(axis=-1, keepdims=True)
+    w = np.clip((dmin + 0.5 * blend_px - d) / blend_px, 0.0, 1.0)
+    tot = w.sum(axis=-1, keepdims=True)
+    return np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), hard)
+
+
 @dataclass(frozen=True)
 class ItofFusion:
     """Fusion ``itof``: Algorithms A3/A4 with voxel merging and a heat-diffusion filter.
 
     Attributes:
         d_pitch_mm: point pitch of Alg. A4, mm (paper: 5 mm).
-        voxel_mm: voxel side for merging, mm; null = ``d_pitch_mm``.
+        voxel_mm: voxel side for merging, mm; null = ``voxel_px`` pixel pitches at the object's
+            median depth, at most ``1/min_voxels_across`` of the object's extent.
+        voxel_px: the automatic voxel in pixel pitches at the object's median depth.
+        min_voxels_across: the automatic voxel keeps at least this many voxels across the
+            object's smaller image extent (a near or small object never collapses).
         min_angle_deg: floor on α in Eq. (15) (guard of ``d/sin α``), degrees.
         scale_prior_rel: relative tolerance of the prior scale ``Z̄/f`` (SFS in pixel-pitch
             units); null = fit the scale from the anchors alone (needs anchors at different SFS
             depths).
-        region_offset_prior_mm: tolerance of each region's offset correction, mm; 0 = one global
-            offset (no per-region anchoring).
-        blend_deg: width of the band over which neighbouring regions' offsets blend, degrees
-            (0 = hard quadrants as in the paper).
+        local_offsets: with at least ``min_anchors_local`` valid anchors, each anchor's image
+            region gets its own offset: the anchor's residual after the global fit, shrunk by
+            how well SFS and iToF already agree there (module docstring).
+        min_anchors_local: fewest valid anchors for local offsets (below: scale and offset only).
+        blend_px: band (pixels) over which neighbouring anchor regions' offsets blend.
         anchor_radius_px: an iToF spot off the SFS mask is matched to the nearest valid pixel
             within this radius (pixels), else it is not used.
         despike_k: drop SFS pixels farther than this many robust standard deviations from the
@@ -362,37 +415,49 @@ class ItofFusion:
         max_edge_factor: drop grid triangles whose longest edge exceeds this × the median.
         knn: neighbours for the outlier test, the diffusion graph and the normals.
         outlier_std: statistical outlier threshold in standard deviations; null = off.
-        time_step: dimensionless implicit heat-diffusion step ``t`` (0 = no smoothing).
+        time_step: largest dimensionless implicit heat-diffusion step ``t`` (0 = no smoothing).
+        adaptive_step: shrink ``t`` by the discrepancy principle so that the filter moves the
+            points by no more than the estimated SFS noise (noise-free depth stays put).
         diffuse: ``range`` (along camera rays; keeps the silhouette) or ``xyz``.
     """
 
     d_pitch_mm: float = 5.0
     voxel_mm: float | None = None
+    voxel_px: float = 2.0
+    min_voxels_across: int = 16
     min_angle_deg: float = 1.0
     scale_prior_rel: float | None = 0.2
-    region_offset_prior_mm: float = 5.0
-    blend_deg: float = 30.0
+    local_offsets: bool = True
+    min_anchors_local: int = 3
+    blend_px: float = 8.0
     anchor_radius_px: float = 2.0
     despike_k: float | None = 4.0
     max_edge_factor: float = 4.0
     knn: int = 8
     outlier_std: float | None = 2.5
-    time_step: float = 1.0
+    time_step: float = 8.0
+    adaptive_step: bool = True
     diffuse: str = "range"
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.d_pitch_mm) and self.d_pitch_mm > 0):
             raise ConfigError("d_pitch_mm", self.d_pitch_mm, "a pitch in mm > 0")
         if self.voxel_mm is not None and not (np.isfinite(self.voxel_mm) and self.voxel_mm > 0):
-            raise ConfigError("voxel_mm", self.voxel_mm, "a voxel size in mm > 0, or null for d_pitch_mm")
+            raise ConfigError("voxel_mm", self.voxel_mm, "a voxel size in mm > 0, or null (automatic)")
+        if not (np.isfinite(self.voxel_px) and self.voxel_px > 0):
+            raise ConfigError("voxel_px", self.voxel_px, "pixel pitches > 0")
+        if int(self.min_voxels_across) != self.min_voxels_across or not 2 <= self.min_voxels_across <= 4096:
+            raise ConfigError("min_voxels_across", self.min_voxels_across, "an integer from 2 to 4096")
         if not 0.0 < self.min_angle_deg < 90.0:
             raise ConfigError("min_angle_deg", self.min_angle_deg, "degrees in (0, 90)")
         if self.scale_prior_rel is not None and not (np.isfinite(self.scale_prior_rel) and self.scale_prior_rel > 0):
             raise ConfigError("scale_prior_rel", self.scale_prior_rel, "a relative tolerance > 0, or null")
-        if not (np.isfinite(self.region_offset_prior_mm) and self.region_offset_prior_mm >= 0):
-            raise ConfigError("region_offset_prior_mm", self.region_offset_prior_mm, "mm >= 0")
-        if not 0.0 <= self.blend_deg <= 90.0:
-            raise ConfigError("blend_deg", self.blend_deg, "degrees in [0, 90]")
+        if not isinstance(self.local_offsets, bool):
+            raise ConfigError("local_offsets", self.local_offsets, "true or false")
+        if int(self.min_anchors_local) != self.min_anchors_local or not 1 <= self.min_anchors_local <= 64:
+            raise ConfigError("min_anchors_local", self.min_anchors_local, "an integer from 1 to 64")
+        if not (np.isfinite(self.blend_px) and self.blend_px >= 0):
+            raise ConfigError("blend_px", self.blend_px, "pixels >= 0")
         if not self.anchor_radius_px >= 0:
             raise ConfigError("anchor_radius_px", self.anchor_radius_px, "pixels >= 0")
         if self.despike_k is not None and not self.despike_k > 0:
@@ -405,46 +470,58 @@ class ItofFusion:
             raise ConfigError("outlier_std", self.outlier_std, "standard deviations > 0, or null")
         if not (np.isfinite(self.time_step) and self.time_step >= 0):
             raise ConfigError("time_step", self.time_step, "a dimensionless step >= 0")
+        if not isinstance(self.adaptive_step, bool):
+            raise ConfigError("adaptive_step", self.adaptive_step, "true or false")
         if self.diffuse not in ("range", "xyz"):
             raise ConfigError("diffuse", self.diffuse, "range or xyz")
 
     # -- Alg. A3: anchors and metric depth ---------------------------------------------------
     def _anchor_values(
         self, zr_map: np.ndarray, valid: np.ndarray, itof: ItofSample, camera: Camera
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per anchor: ``(used, zr, z_m, sigma_m)``; unusable anchors are warned about."""
-        pts = np.asarray(itof.points_m, dtype=np.float64)
-        sig = np.asarray(itof.sigma_m, dtype=np.float64)
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+        """Per anchor: ``(used, zr, z_m, sigma_m, reasons)``; every unusable anchor is warned
+        about and its reason listed (``""`` for a used one)."""
+        pts = np.asarray(itof.points_m, dtype=np.float64).reshape(-1, 3)
+        sig = np.asarray(itof.sigma_m, dtype=np.float64).reshape(-1)
         n = camera.resolution
         used = np.zeros(len(pts), dtype=bool)
         zr = np.zeros(len(pts))
+        reasons = [""] * len(pts)
         rr, cc = np.nonzero(valid)
         for k, (p, s) in enumerate(zip(pts, sig)):
             if not (np.all(np.isfinite(p)) and p[2] > 0 and np.isfinite(s) and s > 0):
-                warnings.warn(f"fusion: iToF spot {k} has no valid range (sigma={s}); not used", stacklevel=3)
-                continue
-            row, col = project_px(p, camera)
-            r0, c0 = int(np.floor(row)), int(np.floor(col))
-            if 0 <= r0 < n - 1 and 0 <= c0 < n - 1 and valid[r0 : r0 + 2, c0 : c0 + 2].all():
-                fr, fc = row - r0, col - c0
-                b = zr_map[r0 : r0 + 2, c0 : c0 + 2]
-                zr[k] = b[0, 0] * (1 - fr) * (1 - fc) + b[0, 1] * (1 - fr) * fc + b[1, 0] * fr * (1 - fc) + b[1, 1] * fr * fc
-                used[k] = True
-                continue
-            if len(rr):
-                d2 = (rr - row) ** 2 + (cc - col) ** 2
-                j = int(np.argmin(d2))
-                if d2[j] <= self.anchor_radius_px**2:
+                reasons[k] = f"no valid range (sigma={s:.3g} m)"
+            else:
+                row, col = project_px(p, camera)
+                r0, c0 = int(np.floor(row)), int(np.floor(col))
+                if 0 <= r0 < n - 1 and 0 <= c0 < n - 1 and valid[r0 : r0 + 2, c0 : c0 + 2].all():
+                    fr, fc = row - r0, col - c0
+                    b = zr_map[r0 : r0 + 2, c0 : c0 + 2]
+                    zr[k] = (b[0, 0] * (1 - fr) * (1 - fc) + b[0, 1] * (1 - fr) * fc
+                             + b[1, 0] * fr * (1 - fc) + b[1, 1] * fr * fc)
+                    used[k] = True
+                    continue
+                d2 = (rr - row) ** 2 + (cc - col) ** 2 if len(rr) else np.zeros(0)
+                j = int(np.argmin(d2)) if len(d2) else -1
+                if j >= 0 and d2[j] <= self.anchor_radius_px**2:
                     zr[k], used[k] = zr_map[rr[j], cc[j]], True
                     continue
-            warnings.warn(f"fusion: iToF spot {k} falls outside the SFS depth mask; not used", stacklevel=3)
-        return used, zr, pts[:, 2], sig
+                near = f"{np.sqrt(d2[j]):.1f} px" if j >= 0 else "no valid pixel"
+                reasons[k] = (f"falls at pixel ({row:.1f}, {col:.1f}), outside the SFS depth mask (nearest valid "
+                              f"pixel {near} > anchor_radius_px={self.anchor_radius_px:g})")
+            warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=3)
+        return used, zr, pts[:, 2], sig, reasons
 
     def metric_depth(
         self, depth: DepthMap, itof: ItofSample, camera: Camera
     ) -> tuple[np.ndarray, np.ndarray, dict]:
         """Alg. A3: the metric z-depth map ``(n, n)`` (metres, valid where the returned mask is
-        True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used}``."""
+        True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used, …}``.
+
+        Degrees of freedom by the number of valid anchors: 1 → the offset (the scale is the prior
+        ``Z̄/f``); 2 → offset and scale (with the prior); ≥ ``min_anchors_local`` (3) → also one
+        local offset per anchor region, shrunk towards 0 where SFS and iToF agree within their
+        combined uncertainty."""
         zr_map = np.asarray(depth.depth_m, dtype=np.float64)
         n = camera.resolution
         if zr_map.shape != (n, n) or np.shape(depth.mask) != (n, n):
@@ -460,26 +537,35 @@ class ItofFusion:
             unit = 1.0 if not depth.metric else float(np.median(zr_map[valid])) / camera.focal_px
             kept = despike(zr_map, valid, self.despike_k, unit)
             spikes, valid = int(valid.sum() - kept.sum()), kept
-        used, zr, z, sig = self._anchor_values(zr_map, valid, itof, camera)
-        pts = np.asarray(itof.points_m, dtype=np.float64)
-        c = n / 2.0 - 0.5
-        row_a, col_a = project_px(np.where(np.isfinite(pts), pts, 0.0) + [0, 0, 1e-12], camera)
-        anchor_ang = np.degrees(np.arctan2(-(row_a - c), col_a - c))
-        region = np.arange(len(pts))
+        used, zr, z, sig, reasons = self._anchor_values(zr_map, valid, itof, camera)
+        if not used.any():
+            why = "; ".join(f"spot {k}: {r}" for k, r in enumerate(reasons)) or "the iToF sample has no spot"
+            raise NirspiError(f"fusion: no valid iToF anchor on the SFS depth map ({why}); cannot make it metric")
         s0 = 1.0
         if not depth.metric:
-            zbar = float(np.average(z[used], weights=1.0 / sig[used] ** 2)) if used.any() else 1.0
+            zbar = float(np.average(z[used], weights=1.0 / sig[used] ** 2))
             s0 = zbar / camera.focal_px  # metres per pixel pitch at the anchors' depth
-        s, t, delta = fit_metric_depth(
-            zr[used], z[used], sig[used], region[used], len(pts), s0,
-            self.scale_prior_rel, self.region_offset_prior_mm * 1e-3,
-        )
+        noise_rel = depth_noise(zr_map, valid)  # SFS noise, depth units
+        sfs_sigma = abs(s0) * noise_rel  # metres
+        eff_sig = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
+        prior = self.scale_prior_rel if used.sum() >= 2 else (self.scale_prior_rel or 0.2)
+        s, t, _ = fit_metric_depth(zr[used], z[used], eff_sig, np.zeros(int(used.sum()), int), 1, s0, prior, 0.0)
         if s <= 0:
             warnings.warn(f"fusion: fitted depth scale {s:.3g} <= 0 (SFS depth inverted?)", stacklevel=3)
-        rows, cols = np.mgrid[0:n, 0:n]
-        pix_ang = np.degrees(np.arctan2(-(rows - c), cols - c))
-        w = region_weights(pix_ang, anchor_ang, self.blend_deg)
-        z_m = s * zr_map + t + np.einsum("ijk,k->ij", w, delta)
+        z_m = s * zr_map + t
+        pts = np.asarray(itof.points_m, dtype=np.float64).reshape(-1, 3)
+        delta = np.zeros(len(pts))
+        gains = np.zeros(len(pts))
+        if self.local_offsets and used.sum() >= self.min_anchors_local:
+            resid = z[used] - (s * zr[used] + t)
+            var = eff_sig**2
+            # positive-part shrinkage: only the disagreement beyond the combined noise is applied
+            g = np.clip(1.0 - var / np.maximum(resid**2, 1e-300), 0.0, 1.0)
+            delta[used], gains[used] = g * resid, g
+            row_a, col_a = project_px(pts[used], camera)
+            rows, cols = np.mgrid[0:n, 0:n]
+            w = anchor_weights(rows, cols, np.stack([row_a, col_a], axis=1), self.blend_px)
+            z_m = z_m + w @ delta[used]
         valid &= np.isfinite(z_m) & (z_m > 0)
         if not valid.any():
             raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
@@ -488,10 +574,53 @@ class ItofFusion:
             "scale_prior": s0,
             "offset_m": t,
             "region_offsets_m": [float(v) for v in delta],
+            "offset_gains": [float(v) for v in gains],
             "anchors_used": int(used.sum()),
+            "anchors_rejected": {str(k): r for k, r in enumerate(reasons) if r},
+            "sfs_noise_m": float(sfs_sigma),
             "spikes_removed": spikes,
         }
         return np.where(valid, z_m, np.inf), valid, fit
+
+    def voxel_size_m(self, z_m: np.ndarray, valid: np.ndarray, camera: Camera) -> float:
+        """The merging voxel, metres: ``voxel_mm``, or ``voxel_px`` pixel pitches at the object's
+        median depth capped at ``1/min_voxels_across`` of its smaller image extent (metres)."""
+        if self.voxel_mm is not None:
+            return self.voxel_mm * 1e-3
+        zmed = float(np.median(z_m[valid]))
+        pitch = zmed / camera.focal_px
+        rows, cols = np.nonzero(valid)
+        extent_px = min(rows.max() - rows.min(), cols.max() - cols.min()) + 1
+        return float(min(self.voxel_px * pitch, extent_px * pitch / self.min_voxels_across))
+
+    def _diffuse(self, cloud: np.ndarray, noise_m: float) -> tuple[np.ndarray, float]:
+        """One implicit heat step on the cloud (``range`` or ``xyz``), its ``t`` chosen by the
+        discrepancy principle (Morozov) when ``adaptive_step``: the largest ``t ≤ time_step``
+        whose 95th-percentile point movement stays within ``1.96 × noise_m`` (the 95th
+        percentile of Gaussian noise of standard deviation ``noise_m``). The movement grows
+        about linearly with small ``t``; two secant steps find it. Returns the cloud and ``t``."""
+        step = float(self.time_step)
+        if step == 0 or len(cloud) < 3:
+            return cloud, 0.0
+        r = np.linalg.norm(cloud, axis=1)
+
+        def apply(t: float) -> tuple[np.ndarray, float]:
+            if self.diffuse == "range":
+                r2 = heat_diffusion(r, cloud, self.knn, t)
+                return cloud / r[:, None] * r2[:, None], float(np.percentile(np.abs(r2 - r), 95))
+            c2 = heat_diffusion(cloud, cloud, self.knn, t)
+            return c2, float(np.percentile(np.linalg.norm(c2 - cloud, axis=1), 95))
+
+        out, moved = apply(step)
+        target = 1.96 * noise_m
+        for _ in range(2):
+            if not self.adaptive_step or moved <= 1.05 * target:
+                break
+            step *= target / moved if moved > 0 else 0.0
+            if step <= 0:
+                return cloud, 0.0
+            out, moved = apply(step)
+        return out, step
 
     # -- the whole fusion ----------------------------------------------------------------------
     def fuse(self, depth: DepthMap, itof: ItofSample | None, camera: Camera) -> PointCloud:
@@ -508,31 +637,33 @@ class ItofFusion:
             faces = faces[edges <= self.max_edge_factor * np.median(edges)]
         if len(faces) == 0:
             raise NirspiError("fusion: no triangle between valid SFS pixels (mask too sparse)")
-        # region of each triangle: the anchor (iToF point) its first vertex is blended most to
-        pts = np.asarray(itof.points_m, dtype=np.float64)
-        c = n / 2.0 - 0.5
+        # V0 of each triangle (Alg. A4): the vertex nearest the iToF point of its anchor region
+        pts = np.asarray(itof.points_m, dtype=np.float64).reshape(-1, 3)
+        ok = np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)
         fr, fc = np.divmod(faces[:, 0], n)
-        row_a, col_a = project_px(np.where(np.isfinite(pts), pts, 0.0) + [0, 0, 1e-12], camera)
-        anchor_ang = np.degrees(np.arctan2(-(row_a - c), col_a - c))
-        tri_ang = np.degrees(np.arctan2(-(fr - c), fc - c))
-        region = np.argmax(region_weights(tri_ang, anchor_ang, 0.0), axis=-1)
-        ref = np.where(np.isfinite(pts), pts, 0.0)[region]
+        if ok.any():
+            row_a, col_a = project_px(pts[ok], camera)
+            region = np.argmin(np.hypot(fr[:, None] - row_a, fc[:, None] - col_a), axis=1)
+            ref = pts[ok][region]
+        else:
+            ref = xyz[faces[:, 0]]
         dense = semi_even_points(xyz[faces], ref, self.d_pitch_mm * 1e-3, self.min_angle_deg)  # Alg. A4
         verts = xyz[np.unique(faces)]
-        voxel = (self.voxel_mm if self.voxel_mm is not None else self.d_pitch_mm) * 1e-3
+        voxel = self.voxel_size_m(z_m, valid, camera)
         merged = voxel_merge(np.concatenate([verts, dense]), voxel)
+        if len(merged) < max(16, 0.1 * len(verts)):
+            warnings.warn(
+                f"fusion: the {voxel * 1e3:.3g} mm voxel merged {len(verts) + len(dense)} points into "
+                f"{len(merged)} ({len(verts)} pixels); set fusion.voxel_mm smaller (or null: automatic)",
+                stacklevel=2,
+            )
         keep = (
             remove_outliers(merged, self.knn, self.outlier_std)
             if self.outlier_std is not None
             else np.ones(len(merged), dtype=bool)
         )
         cloud = merged[keep]
-        if self.diffuse == "range":
-            r = np.linalg.norm(cloud, axis=1)
-            r2 = heat_diffusion(r, cloud, self.knn, self.time_step)
-            cloud = cloud / r[:, None] * r2[:, None]
-        else:
-            cloud = heat_diffusion(cloud, cloud, self.knn, self.time_step)
+        cloud, step = self._diffuse(cloud, float(fit["sfs_noise_m"]))
         if not np.all(np.isfinite(cloud)):
             raise NirspiError("fusion: non-finite points after filtering")
         normals = pca_normals(cloud, self.knn)
@@ -545,7 +676,7 @@ class ItofFusion:
             "outliers_removed": int((~keep).sum()),
             "points": int(len(cloud)),
             "voxel_m": voxel,
-            "time_step": float(self.time_step),
+            "time_step": step,
         }
         return PointCloud(
             points_m=cloud, normals=normals, depth_scale=float(fit["scale"]), depth_offset_m=float(fit["offset_m"]), info=info

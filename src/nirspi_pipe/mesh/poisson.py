@@ -15,9 +15,11 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.powercrust import trim_to_samples
+from nirspi_pipe.mesh.remesh import check_remesh_keys, clean_and_remesh
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["ScreenedPoisson"]
@@ -35,6 +37,10 @@ class ScreenedPoisson:
         closed: keep the whole closed surface (True) or only the part near the samples.
         trim_factor: with ``closed: false``, the distance to the nearest sample, in median sample
             spacings, beyond which a face is dropped.
+        remesh_iterations: rounds of isotropic remeshing after clean-up
+            (:func:`~nirspi_pipe.mesh.remesh.clean_and_remesh`); 0 = clean-up only.
+        remesh_edge_factor: target edge length, × the cloud's median sample spacing.
+        max_hole_edges: clean-up closes holes bounded by at most this many edges (0 = none).
     """
 
     depth: int = 6
@@ -43,8 +49,12 @@ class ScreenedPoisson:
     normal_knn: int = 10
     closed: bool = False
     trim_factor: float = 1.5
+    remesh_iterations: int = 0
+    remesh_edge_factor: float = 1.0
+    max_hole_edges: int = 30
 
     def __post_init__(self) -> None:
+        check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
         if int(self.depth) != self.depth or not 4 <= self.depth <= 12:
             raise ConfigError("depth", self.depth, "an integer from 4 to 12")
         if not self.point_weight >= 0:
@@ -85,5 +95,12 @@ class ScreenedPoisson:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
         if len(faces) == 0:
             warnings.warn("poisson: empty surface", stacklevel=2)
+        if len(faces):
+            spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
+            verts, faces, rinfo = clean_and_remesh(
+                verts, faces, spacing, int(self.remesh_iterations), float(self.remesh_edge_factor),
+                int(self.max_hole_edges),
+            )
+            info.update(rinfo)
         info["faces"] = int(len(faces))
         return Mesh(vertices_m=verts, faces=faces, info=info)

@@ -45,6 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.mesh.remesh import check_remesh_keys, clean_and_remesh
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
@@ -343,15 +344,23 @@ class PowerCrust:
             the samples' extent.
         weld_factor: power-diagram vertices closer than this × the median sample spacing are
             merged (removes the slivers of near-degenerate power faces); 0 = exact coincidences only.
+        remesh_iterations: rounds of isotropic remeshing after clean-up
+            (:func:`~nirspi_pipe.mesh.remesh.clean_and_remesh`); 0 = clean-up only.
+        remesh_edge_factor: target edge length, × the cloud's median sample spacing.
+        max_hole_edges: clean-up closes holes bounded by at most this many edges (0 = none).
     """
 
     labelling: str = "view"
     closed: bool = False
     trim_factor: float = 1.5
+    remesh_iterations: int = 3
+    remesh_edge_factor: float = 1.0
+    max_hole_edges: int = 30
     box_factor: float = 3.0
     weld_factor: float = 0.25
 
     def __post_init__(self) -> None:
+        check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
         if not 0.0 <= self.weld_factor < 1.0:
             raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
         if self.labelling not in ("view", "amenta"):
@@ -372,5 +381,12 @@ class PowerCrust:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
             if len(faces) == 0:
                 warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
+        if len(faces):
+            spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
+            verts, faces, rinfo = clean_and_remesh(
+                verts, faces, spacing, int(self.remesh_iterations), float(self.remesh_edge_factor),
+                int(self.max_hole_edges),
+            )
+            info.update(rinfo)
         info["faces"] = int(len(faces))
         return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)

@@ -14,7 +14,11 @@ Shared keys (all stages):
 * ``min_intensity``: normalised radiance ``I/albedo`` at or below which a pixel is not object
   (background, shadow, I = 0). It also caps the slope at ``sqrt(1/min² − 1)``.
 * ``source_tol``: pixels with ``I/albedo ≥ 1 − source_tol`` are singular points (Dirichlet
-  ``z = 0``).
+  data).
+* ``singular`` (orthographic stages): ``maximal`` (default): each connected singular region gets
+  a depth consistent with the others, the maximal solution from the occluding contour
+  (:func:`singular_depths`), with a warning that the choice is ambiguous; ``zero``: every
+  singular point at ``z = 0`` (the nearest depth).
 * ``median_px``: odd median-filter window applied to the image first (0 = off); use it against
   salt noise.
 * ``scheme``, ``backend``, ``tol`` (pixel units), ``max_sweeps``.
@@ -46,6 +50,7 @@ __all__ = [
 ]
 
 BACKENDS = ("numpy", "opencl")
+SINGULAR_CHOICES = ("maximal", "zero")  # depths of the singular regions: see singular_depths
 
 
 def oren_nayar_ab(roughness_rad: float) -> tuple[float, float]:
@@ -192,6 +197,73 @@ def _run(
     return solve_numpy(problem, scheme, tol, max_sweeps, slope_average=slope_average)
 
 
+def singular_depths(
+    f: np.ndarray, prep: Prepared, scheme: str, backend: str, tol: float, max_sweeps: int, slope_average: str
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Consistent depths (pixel pitches) of the singular points, one per connected singular
+    region: the maximal-solution choice from the occluding contour.
+
+    Every singular point has ``|∇z| = 0`` but not all lie at one depth (a vase: the body's and
+    the lip's ridges, the neck between). Per object region (connected part of the mask) with
+    two or more singular regions, the eikonal is solved once more with ``z = 0`` on the object's
+    contour (its border pixels that are not on the image border): ``h = L(x, contour)``, the
+    maximal solution for a contour at one depth (Lions, Rouy & Tourin 1993; Prados & Faugeras
+    2005); it is 1-Lipschitz in the optical metric, so the heights ``h_k`` (median over each
+    singular region) are consistent with each other and with the shading between them. Region
+    ``k`` gets depth ``max_j h_j − h_k``. Warns that the choice is ambiguous (concave and convex
+    shapes shade alike; a contour not at one depth breaks the assumption). Returns the depth map
+    of the singular points (0 elsewhere) and bookkeeping.
+    """
+    from scipy import ndimage
+
+    depth = np.zeros(f.shape)
+    info: dict[str, Any] = {"singular_regions": 0, "singular_regions_lifted": 0}
+    src_lab, n_src = ndimage.label(prep.sources, structure=np.ones((3, 3)))
+    info["singular_regions"] = int(n_src)
+    if n_src < 2:
+        return depth, info
+    obj_lab, _ = ndimage.label(prep.mask, structure=np.ones((3, 3)))
+    owner = np.asarray(ndimage.maximum(obj_lab, src_lab, np.arange(1, n_src + 1)), dtype=np.int64)
+    multi = [o for o in np.unique(owner) if (owner == o).sum() >= 2]
+    if not multi:
+        return depth, info
+    inner = np.zeros_like(prep.mask)
+    inner[1:-1, 1:-1] = True
+    contour = prep.mask & ~ndimage.binary_erosion(prep.mask, structure=np.ones((3, 3))) & inner
+    region = np.isin(obj_lab, multi)
+    seeds = contour & region
+    if not seeds.any():
+        warnings.warn("sfs: several singular regions but no occluding contour in view: all kept at z = 0 "
+                      "(ambiguous)", stacklevel=3)
+        return depth, info
+    problem = SweepProblem(rhs=np.where(seeds, 1.0, np.maximum(f, 1e-12)), fixed=seeds,
+                           init=np.where(seeds, 0.0, BIG))
+    h = _run(problem, scheme, backend, tol, max_sweeps, slope_average).z
+    h_k = np.asarray(ndimage.median(np.where(h < 0.5 * BIG, h, np.nan), src_lab, np.arange(1, n_src + 1)))
+    lifted, spread = 0, 0.0
+    for o in multi:
+        ks = np.nonzero(owner == o)[0]
+        hk = h_k[ks]
+        if not np.all(np.isfinite(hk)):
+            continue
+        zk = hk.max() - hk
+        for k, z in zip(ks, zk):
+            depth[src_lab == k + 1] = z
+        lifted += int((zk > 0).sum())
+        spread = max(spread, float(zk.max()))
+    info["singular_regions_lifted"] = lifted
+    info["singular_depth_spread_px"] = spread
+    if lifted:
+        touches = bool((region & ~inner).any())
+        warnings.warn(
+            f"sfs: {n_src} singular regions; {lifted} set behind the nearest by the "
+            f"maximal solution from the occluding contour (up to {spread:.1f} px): ambiguous, it assumes the "
+            f"contour at one depth and a convex shape{'; the object touches the image border' if touches else ''}",
+            stacklevel=3,
+        )
+    return depth, info
+
+
 def _finish(
     z: np.ndarray, prep: Prepared, res: SweepResult, name: str, extra: dict[str, Any], backend: str, scheme: str
 ) -> DepthMap:
@@ -249,9 +321,12 @@ class LaxFriedrichsSFS:
     source_tol: float = 1e-3
     median_px: int = 0
     slope_average: str = "cos2"
+    singular: str = "maximal"
 
     def __post_init__(self) -> None:
         _check_common(self, SCHEMES)
+        if self.singular not in SINGULAR_CHOICES:
+            raise ConfigError("singular", self.singular, ", ".join(SINGULAR_CHOICES))
         if self.slope_average not in SLOPE_AVERAGES:
             raise ConfigError("slope_average", self.slope_average, ", ".join(SLOPE_AVERAGES))
 
@@ -269,9 +344,13 @@ class LaxFriedrichsSFS:
         c = np.clip(self.cos_incidence(prep.norm), self.min_intensity, 1.0)
         f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
         scheme = _effective_scheme(self.scheme, f.shape)
-        problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, 0.0, BIG))
+        z_src, sing = np.zeros(f.shape), {}
+        if self.singular == "maximal":
+            z_src, sing = singular_depths(f, prep, scheme, self.backend, float(self.tol), int(self.max_sweeps),
+                                          self.slope_average)
+        problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, z_src, BIG))
         res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps), self.slope_average)
-        extra = {"focal_px": float(camera.focal_px), **self._model_info()}
+        extra = {"focal_px": float(camera.focal_px), **self._model_info(), **sing}
         if scheme == "second_order":
             extra["slope_average"] = self.slope_average
         return _finish(res.z, prep, res, type(self).__name__, extra, self.backend, scheme)
