@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from nirspi_admm import ADMMTVSolver
 from skimage import data
 from skimage.transform import resize
 
-from nirspi_admm import ADMMTVSolver
 from nirspi_pipe.metrics import psnr
 from nirspi_pipe.patterns.hadamard import fwht2
 from nirspi_pipe.solvers.correlation import CorrelationSolver

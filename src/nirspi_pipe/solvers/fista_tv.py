@@ -9,7 +9,12 @@ import numpy as np
 from skimage.restoration import denoise_tv_chambolle
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.solvers.common import checked_coefficients, data_scale, measurement_operator, relative_residual
+from nirspi_pipe.solvers.common import (
+    checked_coefficients,
+    data_scale,
+    measurement_operator,
+    relative_residual,
+)
 from nirspi_pipe.solvers.noise import estimate_noise, sure_weight
 from nirspi_pipe.types import Acquisition, Image2D
 

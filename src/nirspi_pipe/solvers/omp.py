@@ -30,9 +30,9 @@ triangular solve are shared host code.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
