@@ -153,9 +153,10 @@ def test_explicit_patterns_use_a_general_operator():
     out = FistaTVSolver(lam=0.0, max_iter=2000, tol=1e-12).solve(acq)
     np.testing.assert_allclose(out.data, img, atol=1e-4)
     assert np.all(np.isfinite(CorrelationSolver().solve(acq).data))
-    for solver in (FWHTSolver(), OMPSolver()):
-        with pytest.raises(NirspiError):
-            solver.solve(acq)
+    out = OMPSolver(sparsity=1.0, tol=1e-12).solve(acq)  # explicit patterns: the dense OMP (issue #15)
+    np.testing.assert_allclose(out.data, img, atol=1e-8)
+    with pytest.raises(NirspiError):
+        FWHTSolver().solve(acq)
 
 
 # --- stability ----------------------------------------------------------------------------

@@ -32,7 +32,7 @@ def main(argv: list[str]) -> int:
     for n in ns.sizes:
         scene = ImageTarget().render(Camera(resolution=n))
         acq = Simulator().acquire(scene, Zigzag(ns.ratio).select(n), n, np.random.default_rng(0))
-        solver = FistaTVSolver(max_iter=ns.iterations, tol=0.0)
+        solver = FistaTVSolver(lam=0.02, max_iter=ns.iterations, tol=0.0)  # fixed weight: iterations only
         solver.solve(acq)  # warm-up
         t0 = time.perf_counter()
         out = solver.solve(acq)

@@ -59,7 +59,7 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--sfs", default=None,
                         help="an sfs config option (second_order, godunov, lax_friedrichs, …) or the "
                              "import path of an sfs class (default: a stand-in from the truth)")
-    parser.add_argument("--sfs-backend", default=None, choices=["numpy", "opencl"],
+    parser.add_argument("--sfs-backend", default=None, choices=["auto", "numpy", "opencl"],
                         help="sfs.backend for a config option")
     parser.add_argument("--remesh-iterations", type=int, default=None,
                         help="surface.remesh_iterations (default: the surface's own; 0 shows remeshing's price)")

@@ -49,7 +49,7 @@ __all__ = [
     "prepare_image",
 ]
 
-BACKENDS = ("numpy", "opencl")
+BACKENDS = ("auto", "numpy", "opencl")
 SINGULAR_CHOICES = ("maximal", "zero")  # depths of the singular regions: see singular_depths
 
 
@@ -293,6 +293,15 @@ def _finish(
     return DepthMap(depth_m=depth, mask=valid, metric=False, info=info)
 
 
+def _resolve(backend: str, model: int, scheme: str, slope_average: str = "cos2") -> str:
+    """The back end a solve uses; ``auto`` is ``opencl`` when a device builds the kernel."""
+    if backend == "numpy":
+        return "numpy"
+    from nirspi_pipe.sfs.opencl import resolve_backend
+
+    return resolve_backend(backend, model, scheme, slope_average)
+
+
 def _effective_scheme(scheme: str, shape: tuple[int, int]) -> str:
     if scheme == "lax_friedrichs" and min(shape) < 3:
         warnings.warn("sfs: image smaller than 3x3, using the godunov scheme", stacklevel=3)
@@ -329,6 +338,12 @@ class LaxFriedrichsSFS:
             raise ConfigError("singular", self.singular, ", ".join(SINGULAR_CHOICES))
         if self.slope_average not in SLOPE_AVERAGES:
             raise ConfigError("slope_average", self.slope_average, ", ".join(SLOPE_AVERAGES))
+        self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
+
+    def effective_backend(self) -> str:
+        """The back end a solve uses: ``auto`` is ``opencl`` when a device builds the kernel,
+        else ``numpy`` (cached per process; the record's ``info.sfs.backend`` says which)."""
+        return _resolve(self.backend, 0, self.scheme, self.slope_average)
 
     def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
         """``cos θ`` from the normalised radiance; Lambertian: ``I/albedo`` itself."""
@@ -344,16 +359,17 @@ class LaxFriedrichsSFS:
         c = np.clip(self.cos_incidence(prep.norm), self.min_intensity, 1.0)
         f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
         scheme = _effective_scheme(self.scheme, f.shape)
+        backend = _resolve(self.backend, 0, scheme, self.slope_average)
         z_src, sing = np.zeros(f.shape), {}
         if self.singular == "maximal":
-            z_src, sing = singular_depths(f, prep, scheme, self.backend, float(self.tol), int(self.max_sweeps),
+            z_src, sing = singular_depths(f, prep, scheme, backend, float(self.tol), int(self.max_sweeps),
                                           self.slope_average)
         problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, z_src, BIG))
-        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps), self.slope_average)
-        extra = {"focal_px": float(camera.focal_px), **self._model_info(), **sing}
+        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average)
+        extra = {"focal_px": float(camera.focal_px), "backend_requested": self.backend, **self._model_info(), **sing}
         if scheme == "second_order":
             extra["slope_average"] = self.slope_average
-        return _finish(res.z, prep, res, type(self).__name__, extra, self.backend, scheme)
+        return _finish(res.z, prep, res, type(self).__name__, extra, backend, scheme)
 
 
 @dataclass(frozen=True)
@@ -456,6 +472,11 @@ class PerspectiveSFS:
         _check_common(self, ("lax_friedrichs",))
         if not isinstance(self.falloff, bool):
             raise ConfigError("falloff", self.falloff, "true or false")
+        self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
+
+    def effective_backend(self) -> str:
+        """The back end a solve uses (``auto``: ``opencl`` when a device builds the kernel)."""
+        return _resolve(self.backend, 2 if self.falloff else 1, self.scheme)
 
     def solve(self, image: Image2D, camera: Camera) -> DepthMap:
         """Depth (pixel pitches at the nearest point, 0 there) from ``image`` seen by ``camera``."""
@@ -483,7 +504,8 @@ class PerspectiveSFS:
             model = 1
         problem = SweepProblem(rhs=rhs, fixed=fixed, init=init, model=model, xhat=xh, yhat=yh, focal_px=f)
         scheme = self.scheme
-        res = _run(problem, scheme, self.backend, float(self.tol), int(self.max_sweeps))
+        backend = self.effective_backend()
+        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps))
         w = np.where(prep.mask, res.z, np.nan)
         valid = prep.mask & (res.z < 0.5 * BIG)
         z_rel = np.zeros_like(res.z)
@@ -493,4 +515,5 @@ class PerspectiveSFS:
         depth = f * (z_rel - 1.0)  # pixel pitches at the nearest point
         depth = np.where(valid, depth, BIG)
         extra = {"focal_px": f, "falloff": bool(self.falloff)}
-        return _finish(depth, prep, res, "PerspectiveSFS", extra, self.backend, scheme)
+        extra["backend_requested"] = self.backend
+        return _finish(depth, prep, res, "PerspectiveSFS", extra, backend, scheme)

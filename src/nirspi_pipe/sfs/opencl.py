@@ -342,6 +342,31 @@ def opencl_available(scheme: str = "godunov") -> bool:
     return True
 
 
+def warm_up(model: int, scheme: str, slope_average: str = "cos2") -> bool:
+    """Build (or fetch from pyopencl's on-disk cache) the exact kernel a solve with ``model`` and
+    ``scheme`` will launch, so that compilation is never part of a stage's time; True when it
+    builds. Called by the SFS stages' ``__post_init__``."""
+    try:
+        if scheme == "second_order":
+            _program2(int(slope_average == "cos2"))
+        else:
+            _program(int(model), 0 if scheme == "lax_friedrichs" else 1)
+    except Exception:  # noqa: BLE001 - any failure means "not available"
+        return False
+    return True
+
+
+def resolve_backend(backend: str, model: int, scheme: str, slope_average: str = "cos2") -> str:
+    """``auto`` → ``opencl`` when a device builds this solve's kernel (:func:`warm_up`), else
+    ``numpy``; ``numpy``/``opencl`` are returned as given (``opencl`` warmed up)."""
+    if backend == "numpy":
+        return backend
+    ok = warm_up(model, scheme, slope_average)
+    if backend == "auto":
+        return "opencl" if ok else "numpy"
+    return backend
+
+
 def solve_opencl(
     problem: SweepProblem,
     scheme: str = "lax_friedrichs",

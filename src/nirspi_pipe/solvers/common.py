@@ -32,6 +32,7 @@ __all__ = [
     "measurement_operator",
     "require_hadamard",
     "relative_residual",
+    "data_scale",
     "SATURATION_MARGIN",
 ]
 
@@ -144,3 +145,14 @@ def relative_residual(op: LinearOperator, x: np.ndarray, y: np.ndarray) -> float
     r = float(np.linalg.norm(op.matvec(x.ravel()) - y))
     ny = float(np.linalg.norm(y))
     return r / ny if ny > 0 else r
+
+
+def data_scale(acquisition: Acquisition) -> float:
+    """The mean non-zero eigenvalue of ``AᵀA``, ``‖A‖_F² / min(m, N)``: ``N`` for ±1 Hadamard
+    patterns (every measured row has norm² ``N``); for explicit patterns their own value, so that
+    ``½‖Ax − y‖²/s`` weighs the data alike for 0/1, ±1 and split patterns."""
+    if acquisition.patterns is None:
+        return float(acquisition.n_pixels)
+    p = np.asarray(acquisition.patterns, dtype=np.float64)
+    rank_bound = min(p.shape[0], p.shape[1])
+    return float(np.sum(p * p)) / rank_bound if rank_bound else 0.0

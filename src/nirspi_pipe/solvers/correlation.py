@@ -40,7 +40,11 @@ class CorrelationSolver:
     (``Acquisition.coefficients``) and ±1 Hadamard patterns, ``α = 1/N`` makes the full
     acquisition exact (``H H = N·I``), and undersampled it is the zero-filled inverse, only
     computed the slow way, ``O(m · N)``: it is the time reference for the fast solvers. With
-    explicit patterns it is ``α Pᵀ y`` with ``α = m / Σ_k ‖P_k‖²`` (the same ``1/N`` for ±1 patterns).
+    explicit patterns it is Eq. (2)'s ``G = Pᵀ y`` normalised: ``a·G + b`` with the gain ``a`` and
+    offset ``b`` that best reproduce the measurements (least squares over the two numbers,
+    ``min ‖P(a G + b) − y‖``). For a full set of ±1 patterns that is ``a = 1/N``, ``b = 0`` (exact);
+    for 0/1 patterns ``PᵀP ≈ (m/4)(I + 11ᵀ)``, so ``G`` is the image plus a large constant, which
+    ``b`` removes and ``a`` scales back to relative radiance (``info.alpha``, ``info.offset``).
 
     Attributes:
         chunk: measurements accumulated per batched product (memory ``chunk × n``).
@@ -59,7 +63,10 @@ class CorrelationSolver:
             image = correlate_hadamard(n, acquisition.indices, c, self.chunk) / size  # Eq. (2)
         else:
             p = np.asarray(acquisition.patterns, dtype=np.float64)
-            energy = float(np.sum(p * p))
-            alpha = len(c) / energy if energy > 0 else 0.0  # 1/mean‖P_k‖², = 1/N for ±1 patterns
-            image = (p.T @ c).reshape(n, n) * alpha  # Eq. (2)
+            g = p.T @ c  # Eq. (2), before its factor
+            design = np.stack([p @ g, p.sum(axis=1)], axis=1)  # P g and P 1
+            (alpha, offset), *_ = np.linalg.lstsq(design, c, rcond=None)
+            image = (alpha * g + offset).reshape(n, n)
+            return Image2D(image, info={"iterations": 1, "stop_reason": "direct", "alpha": float(alpha),
+                                        "offset": float(offset)})
         return Image2D(image, info={"iterations": 1, "stop_reason": "direct"})

@@ -1,11 +1,14 @@
 """OpenCL back end of the OMP solver (pyopencl, float64; runs on PoCL's CPU device here).
 
 Kernels: the correlation ``G = Mᵀ R M`` (scatter of the residual on the Hadamard grid, then
-two ``n × n`` products, one work item per output entry), and the classical Gram–Schmidt pair
-``c = Q a`` / ``q = a − Qᵀ c`` over the stored orthonormal columns. All in double precision,
-which the device must support (``cl_khr_fp64``), so that it agrees with the numpy reference to
-``1e-5``. The host code in :mod:`nirspi_pipe.solvers.omp` picks atoms and solves the final
-triangular system for both back ends.
+two ``n × n`` products, one work item per output entry) and the synthesis ``M S Mᵀ`` (the same
+two product kernels on ``Mᵀ``). All in double precision, which the device must support
+(``cl_khr_fp64``), so that it agrees with the numpy reference to ``1e-5``. The host code in
+:mod:`nirspi_pipe.solvers.omp` picks atoms and keeps the Cholesky factor for both back ends.
+
+The program is built once per process (:func:`opencl_context`, called by ``OMPSolver`` when it
+is constructed, so compilation is never part of a solve's time) and pyopencl keeps the built
+binary in its on-disk cache (``~/.cache/pyopencl``), so later processes skip the compiler.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 
 from nirspi_pipe.errors import NirspiError
 
-__all__ = ["OpenCLOmpBackend", "opencl_context"]
+__all__ = ["OpenCLOmpBackend", "opencl_context", "gpu_available"]
 
 _SOURCE = r"""
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
@@ -46,23 +49,6 @@ __kernel void t_m(__global const double *T, __global const double *M, __global d
     G[a * n + b] = s;
 }
 
-/* c[j] = sum_i Q[j, i] v[i]   (Q row-major: k_max x m; one work item per stored vector) */
-__kernel void q_dot(__global const double *Q, __global const double *v, __global double *c,
-                    const int m) {
-    const int j = get_global_id(0);
-    double s = 0.0;
-    for (int i = 0; i < m; ++i) s += Q[(long)j * m + i] * v[i];
-    c[j] = s;
-}
-
-/* v[i] -= sum_{j<k} c[j] Q[j, i]   (one work item per measurement) */
-__kernel void q_sub(__global const double *Q, __global const double *c, __global double *v,
-                    const int m, const int k) {
-    const int i = get_global_id(0);
-    double s = v[i];
-    for (int j = 0; j < k; ++j) s -= c[j] * Q[(long)j * m + i];
-    v[i] = s;
-}
 """
 
 
@@ -92,7 +78,7 @@ def opencl_context() -> tuple[Any, Any, dict[str, Any]]:
             log = str(exc).strip().splitlines()
             failures.append(f"{device.platform.version} / {device.name}: {log[-3] if len(log) >= 3 else log[-1]}")
             continue
-        kernels = {k: cl.Kernel(program, k) for k in ("scatter", "mt_r", "t_m", "q_dot", "q_sub")}
+        kernels = {k: cl.Kernel(program, k) for k in ("scatter", "mt_r", "t_m")}
         return ctx, cl.CommandQueue(ctx), kernels
     raise NirspiError(
         "solver.backend=opencl: no OpenCL device could build the kernels ("
@@ -101,8 +87,20 @@ def opencl_context() -> tuple[Any, Any, dict[str, Any]]:
     )
 
 
+@lru_cache(maxsize=1)
+def gpu_available() -> bool:
+    """True when the device :func:`opencl_context` picks is a GPU (cached per process)."""
+    try:
+        import pyopencl as cl
+
+        ctx, _, _ = opencl_context()
+    except Exception:  # noqa: BLE001 - no working device means "no"
+        return False
+    return any(d.type & cl.device_type.GPU for d in ctx.devices)
+
+
 class OpenCLOmpBackend:
-    """OMP's correlation and Gram–Schmidt steps on an OpenCL device (see module doc)."""
+    """OMP's correlation and synthesis on an OpenCL device (see module doc)."""
 
     def __init__(self, m_mat: np.ndarray, rows: np.ndarray, cols: np.ndarray, k_max: int) -> None:
         import pyopencl as cl
@@ -111,52 +109,42 @@ class OpenCLOmpBackend:
         self.ctx, self.queue, kernels = opencl_context()
         self.n = int(m_mat.shape[0])
         self.m_count = int(rows.size)
+        self.rows, self.cols = rows, cols
         mf = cl.mem_flags
         n2 = self.n * self.n
         self.k_scatter = kernels["scatter"]
         self.k_mt_r = kernels["mt_r"]
         self.k_t_m = kernels["t_m"]
-        self.k_dot = kernels["q_dot"]
-        self.k_sub = kernels["q_sub"]
         self.d_m = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(m_mat, np.float64))
+        self.d_mt = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
+                              hostbuf=np.ascontiguousarray(m_mat.T, np.float64))
         self.d_rows = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rows.astype(np.int32))
         self.d_cols = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cols.astype(np.int32))
         self.d_resid = cl.Buffer(self.ctx, mf.READ_ONLY, size=8 * self.m_count)
         self.d_grid = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * n2)
         self.d_tmp = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * n2)
-        self.d_g = cl.Buffer(self.ctx, mf.WRITE_ONLY, size=8 * n2)
-        self.d_q = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * max(1, k_max) * self.m_count)
-        self.d_v = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * self.m_count)
-        self.d_c = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * max(1, k_max))
+        self.d_g = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * n2)
         self.h_g = np.empty(n2)
+
+    def _products(self, left, right) -> np.ndarray:  # type: ignore[no-untyped-def]
+        """``leftᵀ · grid · right`` on the device (``left``/``right`` buffers of ``M`` or ``Mᵀ``)."""
+        cl, q, n = self.cl, self.queue, np.int32(self.n)
+        self.k_mt_r(q, (self.n, self.n), None, left, self.d_grid, self.d_tmp, n)
+        self.k_t_m(q, (self.n, self.n), None, self.d_tmp, right, self.d_g, n)
+        cl.enqueue_copy(q, self.h_g, self.d_g)
+        return self.h_g.copy()
 
     def correlate(self, residual: np.ndarray) -> np.ndarray:
         cl, q, n = self.cl, self.queue, np.int32(self.n)
         cl.enqueue_copy(q, self.d_resid, np.ascontiguousarray(residual, np.float64))
         cl.enqueue_fill_buffer(q, self.d_grid, np.float64(0.0), 0, 8 * self.n * self.n)
         self.k_scatter(q, (self.m_count,), None, self.d_grid, self.d_rows, self.d_cols, self.d_resid, n)
-        self.k_mt_r(q, (self.n, self.n), None, self.d_m, self.d_grid, self.d_tmp, n)
-        self.k_t_m(q, (self.n, self.n), None, self.d_tmp, self.d_m, self.d_g, n)
-        cl.enqueue_copy(q, self.h_g, self.d_g)
-        return self.h_g.copy()
+        return self._products(self.d_m, self.d_m)
 
-    def orthogonalize(self, column: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        if k == 0:
-            return column.copy(), np.zeros(0)
-        cl, q, m = self.cl, self.queue, np.int32(self.m_count)
-        cl.enqueue_copy(q, self.d_v, np.ascontiguousarray(column, np.float64))
-        total = np.zeros(k)
-        part = np.empty(k)
-        for _ in range(2):  # CGS2: classical Gram–Schmidt, twice
-            self.k_dot(q, (k,), None, self.d_q, self.d_v, self.d_c, m)
-            self.k_sub(q, (self.m_count,), None, self.d_q, self.d_c, self.d_v, m, np.int32(k))
-            cl.enqueue_copy(q, part, self.d_c)
-            total += part
-        out = np.empty(self.m_count)
-        cl.enqueue_copy(q, out, self.d_v)
-        return out, total
+    def gram(self, column: np.ndarray, support: np.ndarray) -> np.ndarray:
+        return self.correlate(column)[support]
 
-    def store(self, vec: np.ndarray, k: int) -> None:
-        self.cl.enqueue_copy(
-            self.queue, self.d_q, np.ascontiguousarray(vec, np.float64), dst_offset=8 * k * self.m_count
-        )
+    def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
+        self.cl.enqueue_copy(self.queue, self.d_grid, np.ascontiguousarray(coeffs, np.float64))
+        full = self._products(self.d_mt, self.d_mt).reshape(self.n, self.n)  # (M S) Mᵀ
+        return full[self.rows, self.cols]

@@ -12,7 +12,9 @@ gives an ADMM whose every step is closed-form and ``O(N log N)``:
 
 * ``x``: ``(q I + DᵀD) x = …`` is diagonal in the DCT-II basis (Neumann Laplacian);
 * ``w``: ``(AᵀA + ρ I) w = Aᵀc + ρ b`` is diagonal in the Hadamard basis (A has orthonormal
-  rows), solved with two fast Walsh–Hadamard transforms;
+  rows), solved with two fast Walsh–Hadamard transforms; with explicit patterns ``P`` (any
+  ``(m, N)`` matrix: 0/1, ±1, split) ``A = P/√s`` with ``s = ‖P‖_F²/min(m, N)`` (the same data
+  weight as ``fista_tv``), and the system is solved by conjugate gradients, warm-started;
 * ``v``: soft thresholding; ``p``: projection onto ``x ≥ 0``.
 
 This is the augmented-Lagrangian/alternating scheme of TVAL3 (Li, Yin & Zhang 2013) with exact
@@ -26,9 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.fft import dctn, idctn
+from scipy.sparse.linalg import LinearOperator, cg
 
-from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht
+from nirspi_pipe.solvers.common import data_scale, measurement_operator
+from nirspi_pipe.solvers.fista_tv import choose_weight
 from nirspi_pipe.types import Acquisition, Image2D
 
 __all__ = ["ADMMTVSolver", "admm_tv"]
@@ -67,6 +72,7 @@ def admm_tv(
     max_iter: int = 300,
     tol: float = 1e-4,
     nonneg: bool = True,
+    patterns: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, object]]:
     """Reconstruct an ``n × n`` image from 2D Hadamard coefficients by ADMM-TV.
 
@@ -79,23 +85,42 @@ def admm_tv(
         max_iter: iteration cap.
         tol: relative primal/dual residual at which to stop.
         nonneg: constrain the image to ``x ≥ 0``.
+        patterns: ``(m, n²)`` explicit patterns (row-major pixels) measured as ``coefficients``;
+            None for Hadamard ``indices``.
 
     Returns:
         The image (relative radiance) and bookkeeping (iterations, stop reason, residuals).
     """
     big_n = n * n
     root = np.sqrt(big_n)
-    idx = np.asarray(indices, dtype=np.int64)
-    counts = np.bincount(idx, minlength=big_n).astype(np.float64)
-    sums = np.bincount(idx, weights=np.asarray(coefficients, dtype=np.float64) / root, minlength=big_n)
-    measured = counts > 0
+    if patterns is None:
+        idx = np.asarray(indices, dtype=np.int64)
+        counts = np.bincount(idx, minlength=big_n).astype(np.float64)
+        sums = np.bincount(idx, weights=np.asarray(coefficients, dtype=np.float64) / root, minlength=big_n)
+        measured = counts > 0
 
-    def t(x_flat: np.ndarray) -> np.ndarray:  # orthonormal Hadamard transform (self-inverse)
-        return fwht(x_flat) / root
+        def t(x_flat: np.ndarray) -> np.ndarray:  # orthonormal Hadamard transform (self-inverse)
+            return fwht(x_flat) / root
 
-    # Initial guess: zero-filled inverse of the averaged coefficients.
-    c_hat = np.where(measured, sums / np.maximum(counts, 1.0), 0.0)
-    x = t(c_hat).reshape(n, n)
+        # Initial guess: zero-filled inverse of the averaged coefficients.
+        c_hat = np.where(measured, sums / np.maximum(counts, 1.0), 0.0)
+        x = t(c_hat).reshape(n, n)
+
+        def w_step(b: np.ndarray, w_prev: np.ndarray) -> np.ndarray:
+            # (AᵀA + ρI) w = Aᵀc + ρ b, diagonal in the Hadamard domain.
+            return t((sums + rho * t(b.ravel())) / (counts + rho)).reshape(n, n)
+    else:
+        p = np.asarray(patterns, dtype=np.float64)
+        scale = float(np.sum(p * p)) / max(1, min(p.shape))
+        p_s = p / np.sqrt(scale)
+        aty = p_s.T @ (np.asarray(coefficients, dtype=np.float64) / np.sqrt(scale))
+        normal = LinearOperator((big_n, big_n), matvec=lambda v: p_s.T @ (p_s @ v) + rho * v, dtype=np.float64)
+        x = aty.reshape(n, n)
+
+        def w_step(b: np.ndarray, w_prev: np.ndarray) -> np.ndarray:
+            sol, _ = cg(normal, aty + rho * b.ravel(), x0=w_prev.ravel(), rtol=1e-6, maxiter=200)
+            return sol.reshape(n, n)
+
     q = 2.0 if nonneg else 1.0
     denom = q + _laplacian_eigenvalues(n)
     w, v, p = x.copy(), _grad(x), np.maximum(x, 0.0)
@@ -107,11 +132,8 @@ def admm_tv(
         if nonneg:
             rhs = rhs + (p - up)
         x = idctn(dctn(rhs, type=2, norm="ortho") / denom, type=2, norm="ortho")
-        # w-step: (AᵀA + ρI) w = Aᵀc + ρ b, diagonal in the Hadamard domain.
-        b_hat = t((x + uw).ravel())
-        w_hat = (sums + rho * b_hat) / (counts + rho)
         w_old, v_old, p_old = w, v, p
-        w = t(w_hat).reshape(n, n)
+        w = w_step(x + uw, w)
         gx = _grad(x)
         z = gx + uv
         v = np.sign(z) * np.maximum(np.abs(z) - thresh, 0.0)
@@ -139,18 +161,29 @@ def admm_tv(
 
 @dataclass(frozen=True)
 class ADMMTVSolver:
-    """Solver ``admm_tv`` (plugin nirspi-admm): total-variation-regularised reconstruction of an
-    undersampled Hadamard acquisition by ADMM. See :func:`admm_tv` for the parameters."""
+    """Solver ``admm_tv`` (plugin nirspi-admm): total-variation-regularised reconstruction by ADMM
+    of a Hadamard acquisition or of explicit patterns. See :func:`admm_tv` for the parameters.
 
-    tv_weight: float = 0.02
+    ``tv_weight: auto`` (default) sets λ from the data's own noise, by the rule of
+    :func:`nirspi_pipe.solvers.fista_tv.choose_weight` (noise from the split pairs, SURE-optimal
+    weight, 0 for exact data at full sampling, at least ``lam_floor`` when undersampled).
+    """
+
+    tv_weight: float | str = "auto"
+    lam_floor: float = 0.02
     rho: float = 1.0
     max_iter: int = 300
     tol: float = 1e-4
     nonneg: bool = True
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.tv_weight) or self.tv_weight < 0:
-            raise ConfigError("tv_weight", self.tv_weight, "a weight >= 0")
+        if isinstance(self.tv_weight, str):
+            if self.tv_weight != "auto":
+                raise ConfigError("tv_weight", self.tv_weight, "auto, or a weight >= 0")
+        elif not np.isfinite(self.tv_weight) or self.tv_weight < 0:
+            raise ConfigError("tv_weight", self.tv_weight, "auto, or a weight >= 0")
+        if not np.isfinite(self.lam_floor) or self.lam_floor < 0:
+            raise ConfigError("lam_floor", self.lam_floor, "a weight >= 0")
         if not np.isfinite(self.rho) or self.rho <= 0:
             raise ConfigError("rho", self.rho, "a penalty > 0")
         if int(self.max_iter) < 1:
@@ -160,20 +193,37 @@ class ADMMTVSolver:
 
     def solve(self, acquisition: Acquisition) -> Image2D:
         """Reconstruct relative radiance from ``acquisition.coefficients()``."""
-        if acquisition.patterns is not None:
-            raise NirspiError("solver=admm_tv needs a Hadamard acquisition; this one has explicit patterns")
         coeffs = acquisition.coefficients()
         if not np.all(np.isfinite(coeffs)):
             warnings.warn("admm_tv: non-finite measurements were dropped", stacklevel=2)
         keep = np.isfinite(coeffs)
-        image, info = admm_tv(
-            acquisition.n,
-            acquisition.indices[keep],
-            coeffs[keep],
-            tv_weight=float(self.tv_weight),
-            rho=float(self.rho),
-            max_iter=int(self.max_iter),
-            tol=float(self.tol),
-            nonneg=bool(self.nonneg),
+        patterns = None if acquisition.patterns is None else np.asarray(acquisition.patterns)[keep]
+        indices = acquisition.indices[keep]
+
+        def solve_for(data: np.ndarray, lam: float) -> np.ndarray:
+            return admm_tv(
+                acquisition.n,
+                indices,
+                data,
+                tv_weight=lam,
+                rho=float(self.rho),
+                max_iter=int(self.max_iter),
+                tol=float(self.tol),
+                nonneg=bool(self.nonneg),
+                patterns=patterns,
+            )
+
+        y = coeffs[keep]
+        op = measurement_operator(acquisition) if keep.all() else None
+        forward = op.matvec if op is not None else (lambda v: measurement_operator(acquisition).matvec(v)[keep])
+        lam, weight_info = choose_weight(
+            self.tv_weight, self.lam_floor, acquisition, y, data_scale(acquisition),
+            lambda d, w: solve_for(d, w)[0], forward,
         )
-        return Image2D(image, info=info)
+        if lam == 0.0 and patterns is not None:  # exact data, explicit patterns: least squares to tolerance
+            from nirspi_pipe.solvers.lstsq import LstsqSolver
+
+            ls = LstsqSolver().solve(acquisition)
+            return Image2D(ls.data, info={**ls.info, **weight_info})
+        image, info = solve_for(y, lam)
+        return Image2D(image, info={**info, **weight_info})

@@ -1,0 +1,92 @@
+"""``nirspi-bench paper``: where the time of a paper sweep goes, as ratios to a reference workload.
+
+Runs ``nirspi-run -m +experiment=EXPERIMENT`` (default ``paper_ci``; ``--experiment paper`` for
+the full sweep) in a fresh folder and splits its wall time:
+
+* **keying**: composing every job's config and hashing it (the sweeper's loop, from its start to
+  the moment it writes ``sweep.json``);
+* **stages**: each pipeline stage's time summed over the jobs (``timings_ms.*`` in the records),
+  and divided by the workers (the share of wall time, if perfectly parallel);
+* **other**: the rest of the workers' time — the launcher, each job's own Hydra composition,
+  imports in fresh workers, writing records and tables.
+
+The reference workload, timed in the same process just before and after (the mean is used), is a
+fixed numpy task: 64² split-Hadamard simulation + fast inverse of the sphere, 50 times. Every time
+is printed in seconds and as a multiple of the reference, which is what to compare across runs
+on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def reference_s() -> float:
+    """Seconds of the fixed reference workload (see module doc)."""
+    from nirspi_pipe.patterns.orders import Basic
+    from nirspi_pipe.scene.objects import Sphere
+    from nirspi_pipe.solvers.fwht import FWHTSolver
+    from nirspi_pipe.sources.simulator import Simulator
+    from nirspi_pipe.types import Camera
+
+    scene = Sphere().render(Camera(resolution=64))
+    idx = Basic(1.0).select(64)
+    t0 = time.perf_counter()
+    for k in range(50):
+        FWHTSolver().solve(Simulator().acquire(scene, idx, 64, np.random.default_rng(k)))
+    return time.perf_counter() - t0
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="nirspi-bench paper", description=__doc__)
+    parser.add_argument("--experiment", default="paper_ci")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="joblib n_jobs (default: all cores)")
+    parser.add_argument("--dir", default=None, help="sweep folder (default: a temporary one)")
+    ns = parser.parse_args(argv)
+    import pandas as pd
+
+    cpu0 = os.times()
+    ref_before = reference_s()
+    with tempfile.TemporaryDirectory() as tmp:
+        sweep = Path(ns.dir or Path(tmp) / "sweep")
+        exe = Path(sys.executable).with_name("nirspi-run")
+        cmd = [str(exe), "-m", f"+experiment={ns.experiment}", f"hydra.sweep.dir={sweep}",
+               f"hydra.launcher.n_jobs={ns.workers}"]
+        t0 = time.time()
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        wall = time.time() - t0
+        if proc.returncode != 0:
+            print(proc.stdout[-2000:], proc.stderr[-2000:], file=sys.stderr)
+            return 1
+        info = json.loads((sweep / "sweep.json").read_text())
+        keying = (sweep / "sweep.json").stat().st_mtime - float(info["started"])
+        frame = pd.read_parquet(sweep / "results.parquet")
+    ref = 0.5 * (ref_before + reference_s())
+    stages = {c.split(".", 1)[1]: float(frame[c].fillna(0).sum()) / 1e3 for c in frame.columns
+              if c.startswith("timings_ms.") and c != "timings_ms.total"}  # total = their sum
+    total_stage = sum(stages.values())
+    other = max(ns.workers * (wall - keying) - total_stage, 0.0)
+    print(f"+experiment={ns.experiment}: {len(frame)} jobs run ({info['total']} in the grids), "
+          f"{ns.workers} workers; reference workload {ref:.3f} s")
+    print(f"{'part':<22} {'seconds':>9} {'share of wall':>13} {'x reference':>11}")
+    print(f"{'wall time':<22} {wall:>9.2f} {1.0:>13.2f} {wall / ref:>11.1f}")
+    print(f"{'keying (sweeper)':<22} {keying:>9.2f} {keying / wall:>13.2f} {keying / ref:>11.1f}")
+    for name, sec in sorted(stages.items(), key=lambda kv: -kv[1]):
+        share = sec / ns.workers / wall
+        print(f"{'stage ' + name:<22} {sec:>9.2f} {share:>13.2f} {sec / ref:>11.1f}")
+    print(f"{'other (launch, jobs)':<22} {other:>9.2f} {other / ns.workers / wall:>13.2f} {other / ref:>11.1f}")
+    cpu1 = os.times()
+    cpu = (cpu1.children_user + cpu1.children_system) - (cpu0.children_user + cpu0.children_system)
+    print(f"{'CPU of the sweep':<22} {cpu:>9.2f} {cpu / ns.workers / wall:>13.2f} {cpu / ref:>11.1f}")
+    print("(stage and other seconds are summed over the workers; their share divides by the workers; a CPU share"
+          " well below 1 means the machine was shared)")
+    return 0
