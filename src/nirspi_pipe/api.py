@@ -221,7 +221,7 @@ def load_results(path: str | Path, *, refresh: bool = False) -> pd.DataFrame:
             return pd.read_parquet(p)
         if p.suffix == ".csv":
             return pd.read_csv(p)
-        raise NirspiError(f"{p}: not a results file; allowed: a sweep folder, results.parquet or results.csv")
+        raise ValueError(f"{p}: not a results file; allowed: a sweep folder, results.parquet or results.csv")
     if not p.is_dir():
         raise FileNotFoundError(f"{p}: no such sweep folder or results file")
     if (p / "results.parquet").is_file() and not refresh:
