@@ -61,7 +61,7 @@ def _title(record: Mapping[str, Any]) -> str:
     m = record.get("metrics", {}) or {}
     head = f"scene={ch.get('scene')}  scan={ch.get('scan')}  solver={ch.get('solver')}  {res}×{res}"
     scores = []
-    for key, fmt in (("ssim", "SSIM {:.3f}"), ("psnr", "PSNR {:.2f} dB"), ("depth_rmse_fused_mm", "depth RMSE {:.3g} mm"),
+    for key, fmt in (("ssim", "SSIM {:.3f}"), ("psnr", "PSNR {:.2f} dB"), ("depth_rmse_fused_mm", "fused depth RMSE {:.3g} mm"),
                      ("improvement_pct", "Eq. 17 improvement {:+.1f} %")):
         if key in m and math.isfinite(float(m[key])):
             scores.append(fmt.format(float(m[key])))
@@ -99,11 +99,15 @@ def write_summary_figure(folder: Path, products: Products, record: Mapping[str, 
     extent, xlabel = _extent_mm(products, n)
     truth = products.truth
     three_d = products.depth is not None and truth is not None
-    rows = 2 if three_d else 1
-    fig, axes = plt.subplots(rows, 4 if three_d else 3, figsize=(15 if three_d else 12, 4.4 * rows + 0.6),
-                             squeeze=False)
+    mesh_view = three_d and mesh_png is not None and Path(mesh_png).exists()
+    title = _title(record)
+    title_in = 0.2 + 0.17 * (title.count("\n") + 1)  # inches above the panels
+    ncols = 4 if three_d else 3
+    heights = [3.5] * (2 if three_d else 1) + ([4.4] if mesh_view else [])
+    fig = plt.figure(figsize=(4.2 * ncols, sum(heights) + title_in + 0.3))
+    grid = fig.add_gridspec(len(heights), ncols, height_ratios=heights)
+    r0 = [fig.add_subplot(grid[0, c]) for c in range(ncols)]
     unit = "radiance (white target = 1)"
-    r0 = axes[0]
     if truth is not None:
         _show(fig, r0[0], truth.radiance, "ground truth", unit, extent, xlabel, vmin=0.0, vmax=1.0)
     else:
@@ -125,17 +129,24 @@ def write_summary_figure(folder: Path, products: Products, record: Mapping[str, 
                   vmin=0.0, vmax=1.0)
         else:
             r0[3].axis("off")
-        _depth_row(fig, axes[1], products, extent, xlabel, mesh_png)
-    fig.suptitle(_title(record), fontsize=9, x=0.01, ha="left")
-    fig.tight_layout(rect=(0, 0, 1, 0.86 if rows == 1 else 0.92))
+            r0[3].text(0.5, 0.5, "no upscaling\n(upscale=null)", ha="center", va="center", fontsize=9)
+        _depth_row(fig, [fig.add_subplot(grid[1, c]) for c in range(ncols)], products, extent, xlabel)
+        if mesh_view:
+            import matplotlib.image as mpimg
+
+            ax = fig.add_subplot(grid[2, :])
+            ax.imshow(mpimg.imread(str(mesh_png)))
+            ax.axis("off")
+            ax.set_title("final mesh (left) and true surface (right), mm, seen from beside the camera", fontsize=9)
+    fig.suptitle(title, fontsize=9, x=0.01, ha="left", va="top", y=1.0 - 0.1 / fig.get_figheight())
+    fig.tight_layout(rect=(0, 0, 1, 1.0 - title_in / fig.get_figheight()))
     path = folder / SUMMARY_NAME
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
-def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlabel: str,
-               mesh_png: Path | None) -> None:
+def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlabel: str) -> None:
     from nirspi_pipe.mesh.metrics3d import _interpolate_depth, _to_grid
 
     truth = products.truth
@@ -165,11 +176,36 @@ def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlab
               extent, xlabel, cmap="RdBu_r", vmin=-lim, vmax=lim)
     else:
         row[2].axis("off")
-    row[3].axis("off")
-    if mesh_png is not None and Path(mesh_png).exists():
-        import matplotlib.image as mpimg
+    _depth_histogram(row[3], products)
 
-        row[3].imshow(mpimg.imread(str(mesh_png)))
-        row[3].set_title("final mesh (left) and true surface (right)", fontsize=9)
-    else:
-        row[3].text(0.5, 0.5, "no mesh\n(surface=null)", ha="center", va="center")
+
+def _depth_histogram(ax: Any, products: Products) -> None:
+    """Histogram of the per-pixel depth errors (mm) of SFS alone and after fusion, object pixels."""
+    from nirspi_pipe.mesh.metrics3d import _interpolate_depth, _to_grid
+
+    truth = products.truth
+    assert truth is not None
+    series = []
+    zs = _metric_depth(products)
+    if zs is not None:
+        series.append(("SFS (Alg. A2)", (_to_grid(zs, truth.camera.resolution) - truth.depth_m) * 1e3))
+    if products.cloud is not None:
+        zf = _interpolate_depth(np.asarray(products.cloud.points_m), truth.camera)
+        series.append(("fused (Alg. A3)", (zf - truth.depth_m) * 1e3))
+    # the pixels where the truth and every series exist: those metrics.full scores (Eq. 16)
+    common = truth.mask & np.logical_and.reduce([np.isfinite(e) for _, e in series]) if series else truth.mask
+    data = [(label, e[common]) for label, e in series]
+    data = [(label, e) for label, e in data if e.size]
+    if not data:
+        ax.axis("off")
+        return
+    lim = max(float(np.percentile(np.abs(e), 99)) for _, e in data) or 1.0
+    for label, e in data:
+        rms = float(np.sqrt(np.mean(e**2)))
+        ax.hist(np.clip(e, -lim, lim), bins=40, range=(-lim, lim), histtype="step", linewidth=1.5,
+                label=f"{label}: RMSE {rms:.3g} mm")
+    ax.set_title("depth error on the object's pixels", fontsize=9)
+    ax.set_xlabel("depth − true depth (mm)", fontsize=8)
+    ax.set_ylabel("pixels", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.legend(fontsize=7)
