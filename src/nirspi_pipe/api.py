@@ -177,7 +177,7 @@ def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) 
 
         kept: list[Any] = []
         folder = Path(output_dir)
-        record = execute_job(cfg, folder, choices, list(overrides), on_output=kept.append)
+        record = execute_job(cfg, folder, dict(choices), list(overrides), on_output=kept.append)  # type: ignore[arg-type]
         if record["meta"]["status"] != "ok" or not kept:
             raise RunFailed(f"{record['meta']['error']} (traceback: {folder / 'error.txt'})")
         out = kept[0]
