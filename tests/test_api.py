@@ -221,3 +221,16 @@ def test_help_teaches(tmp_path: Path) -> None:
         assert f"  {name} " in experiments or experiments.rstrip().endswith(name)
     assert "== Installed plugins" in out and "-sc install=bash" in out
     assert "$" not in out.replace("$(nirspi-run", "")  # no unfilled template variable
+
+
+# ---- the README numbers script --------------------------------------------------------------
+
+def test_readme_numbers_stamp_and_timer(tmp_path: Path) -> None:
+    from nirspi_pipe.readme_numbers import machine_stamp, timed
+
+    stamp = machine_stamp()
+    assert set(stamp) == {"when", "platform", "cpu", "load", "commit"}
+    assert "cores" in stamp["cpu"] and stamp["load"].count("/") == 2
+    assert timed([sys.executable, "-c", "pass"], tmp_path) > 0
+    with pytest.raises(RuntimeError, match="failed"):
+        timed([sys.executable, "-c", "raise SystemExit(3)"], tmp_path)
