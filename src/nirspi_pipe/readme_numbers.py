@@ -94,7 +94,8 @@ def _default_run(tmp: Path) -> tuple[str, float]:
     t0 = time.perf_counter()
     res = subprocess.run([_exe("nirspi-run"), "hydra.run.dir=default"], cwd=tmp, capture_output=True,
                          text=True, timeout=600, env=env, check=True)
-    return res.stdout.strip(), time.perf_counter() - t0
+    text = res.stdout.strip().replace(str(tmp / "default"), "outputs/<date>/<time>")
+    return text, time.perf_counter() - t0
 
 
 def _sweep_table(tmp: Path) -> tuple[str, float]:
@@ -152,11 +153,11 @@ def main(argv: list[str] | None = None) -> None:
         tmp = Path(t)
         summary, ref_s = _default_run(tmp)
         table, klux_s = _sweep_table(tmp)
-        sweeps = [("README sweep example (9 jobs)", "-m illumination.klux=5,15,50 seed=0,1,2", klux_s)]
+        sweeps = [("the README's sweep example, 9 jobs", "-m illumination.klux=5,15,50 seed=0,1,2", klux_s)]
         mesh_ms = {}
         for name, jobs in (("table2", 48), ("paper_ci", 44)) + ((("paper", 432),) if ns.paper else ()):
             wall = timed([_exe("nirspi-run"), "-m", f"+experiment={name}", f"hydra.sweep.dir=sweeps/{name}"], tmp)
-            sweeps.append((f"+experiment={name} ({jobs} jobs)", f"-m +experiment={name}", wall))
+            sweeps.append((f"{jobs} jobs", f"-m +experiment={name}", wall))
             if name != "table2":
                 mesh_ms[name] = _mesh_stage_ms(tmp / "sweeps" / name)
         install = _install(tmp) if ns.install else None
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
         f"| `nirspi-run` (default run, reference) | {ref_s:.1f} s | 1 |",
     ]
     for label, _args, wall in sweeps:
-        out.append(f"| `nirspi-run {_args}`: {label} | {wall:.1f} s | {wall / ref_s:.1f} |")
+        out.append(f"| `nirspi-run {_args}` ({label}) | {wall:.1f} s | {wall / ref_s:.1f} |")
     for name, text in mesh_ms.items():
         out.append(f"\nTable 6's 3D mesh stage (fusion + power crust) in `+experiment={name}`, jobs two at a time "
                    f"on this machine: {text}.")
