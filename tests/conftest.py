@@ -10,6 +10,10 @@ from pathlib import Path
 
 import pytest
 
+#: Overrides for the noise-free scene. The default run is the paper's fog chamber with 15 kLux of
+#: background light and the InGaAs detector; tests of exactness and of the algorithms start here.
+NOISE_FREE = ["fog=none", "illumination=none", "detector=ideal"]
+
 
 def script(name: str) -> str:
     """Path of an installed console script of this environment (next to the interpreter)."""

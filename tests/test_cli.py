@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from conftest import NOISE_FREE
 
 pytestmark = pytest.mark.slow
 
@@ -16,7 +17,7 @@ def _records(root: Path) -> list[dict]:
 
 
 def test_single_run_writes_record_arrays_and_pngs(cli) -> None:
-    res = cli("nirspi-run", "camera.resolution=32", "hydra.run.dir=run")
+    res = cli("nirspi-run", *NOISE_FREE, "camera.resolution=32", "hydra.run.dir=run")
     assert res.returncode == 0, res.stderr
     assert "SSIM" in res.stdout and "PSNR" in res.stdout and "solver=fwht" in res.stdout
     run = cli.cwd / "run"

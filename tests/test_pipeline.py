@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import NOISE_FREE
 from hydra import compose, initialize_config_module
 
 from nirspi_pipe.patterns.hadamard import fwht2
@@ -14,8 +15,9 @@ from nirspi_pipe.types import Camera
 
 
 def _cfg(overrides: list[str]):
+    """The composed config of the noise-free scene plus ``overrides`` (later overrides win)."""
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        return compose("config", overrides=overrides)
+        return compose("config", overrides=[*NOISE_FREE, *overrides])
 
 
 @pytest.mark.parametrize("scene", ["sphere", "image"])

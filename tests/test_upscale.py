@@ -129,9 +129,10 @@ def test_forward_matches_loop_reference_on_tiny_network(scale: int, residual: bo
     np.testing.assert_allclose(fsrcnn_forward(lr, net), _forward_loops(lr, net), atol=1e-4)
 
 
+@pytest.mark.torch
 @pytest.mark.parametrize("scale", SCALES)
 def test_forward_matches_torch(scale: int) -> None:
-    torch = pytest.importorskip("torch")
+    import torch  # marker torch: deselected by default; run with `pytest -m torch` after `pip install '.[train]'`
     from nirspi_pipe.upscale.train import _build_net, _to_weights
 
     torch.manual_seed(scale)
@@ -308,8 +309,8 @@ def test_cli_bad_scale_is_one_line(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.torch
 def test_train_command_smoke(tmp_path: Path) -> None:
-    pytest.importorskip("torch")
     from nirspi_pipe.upscale.train import main
 
     assert main(["--scales", "3", "--iters", "3", "--variants", "1", "--batch", "4", "--out", str(tmp_path)]) == 0

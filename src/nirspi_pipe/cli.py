@@ -39,44 +39,21 @@ def _one_line(exc: BaseException) -> str:
 
 
 def _summary(record: dict[str, Any], out_dir: Path) -> str:
-    choices = record.get("choices", {})
-    cfg = record.get("config", {})
-    res = cfg.get("camera", {}).get("resolution")
-    head = (
-        f"nirspi-run: scene={choices.get('scene')} scan={choices.get('scan')} "
-        f"solver={choices.get('solver')} {res}x{res} seed={record['meta'].get('seed')}"
-    )
-    lines = [head]
-    if record["meta"]["status"] != "ok":
-        lines.append(f"  FAILED: {record['meta']['error']}")
-    m = record.get("metrics", {})
-    if m:
-        shown = (
-            ("ssim", "SSIM {:.4f}"), ("psnr", "PSNR {:.2f} dB"), ("rmse", "RMSE {:.4g}"),
-            ("depth_rmse_fused_mm", "depth RMSE {:.3g} mm"), ("improvement_pct", "improvement {:.1f} %"),
-            ("skewness_mean", "skewness {:.3f}"), ("chamfer_mm", "chamfer {:.3g} mm"),
-        )
-        parts = [fmt.format(m[name]) for name, fmt in shown if name in m]
-        rest = len(m) - len(parts)
-        lines.append("  " + "  ".join(parts) + (f"  (+{rest} more in record.json)" if rest > 0 else ""))
-    t = record.get("timings_ms", {})
-    if t:
-        stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
-        lines.append(f"  ms: {stages} | total {t.get('total', 0.0):.1f}")
-    for w in record["meta"].get("warnings", []):
-        lines.append(f"  warning: {w}")
-    lines.append(f"  -> {out_dir}")
-    return "\n".join(lines)
+    from nirspi_pipe.summary import format_summary
+
+    return format_summary(record, out_dir)
 
 
 def execute_job(
     cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str], job_num: int | None = None,
     attempt: int | None = None,
+    on_output: Any = None,
 ) -> dict[str, Any]:
     """Run one job and write its record and arrays into ``out_dir``. Never raises for a failing
     pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
     traceback goes to ``error.txt``. Returns the record. Raises
-    :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written."""
+    :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
+    with the pipeline's ``RunOutput`` of a successful run (the Python API keeps the arrays)."""
     from omegaconf import OmegaConf
 
     from nirspi_pipe.finite import drop_nonfinite
@@ -135,12 +112,16 @@ def execute_job(
     if output is not None:
         try:
             _write_products(cfg, out_dir, output)
+            if (cfg.get("output", {}) or {}).get("images", True):
+                _write_summary_png(out_dir, output, record)
         except OutputError as exc:  # disk full, unwritable folder: the job failed, say where
             record["meta"].update(status="failed", error=str(exc), error_type="OutputError")
         except OSError as exc:  # a writer that does not go through atomic_write (mesh.ply)
             where = f" {exc.filename}" if exc.filename else f" into {out_dir}"
             record["meta"].update(status="failed", error=f"cannot write{where}: {exc.strerror or exc}",
                                   error_type="OutputError")
+        if on_output is not None:
+            on_output(output)
     write_record(out_dir, record)
     return record
 
@@ -173,6 +154,16 @@ def _write_products(cfg: Any, out_dir: Path, output: Any) -> None:
 
         # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
         write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
+
+
+def _write_summary_png(out_dir: Path, output: Any, record: dict[str, Any]) -> None:
+    """summary.png (nirspi_pipe.figure); a failing figure is a warning in the record, not a failed run."""
+    from nirspi_pipe.figure import write_summary_figure
+
+    try:
+        write_summary_figure(out_dir, output.products, record, mesh_png=out_dir / "mesh.png")
+    except Exception as exc:  # noqa: BLE001 - a picture must not fail the run
+        record["meta"]["warnings"].append(f"summary.png not written: {_one_line(exc)}")
 
 
 def _seed_or_none(cfg: Any) -> int | None:
@@ -229,6 +220,7 @@ def run(argv: list[str] | None = None) -> None:
     """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …)."""
     import hydra
 
+    from nirspi_pipe.helptext import register_resolvers
     from nirspi_pipe.sweeper import register_hydra_plugins
     from nirspi_pipe.validate import check_overrides, rewrite_nulls
 
@@ -243,6 +235,7 @@ def run(argv: list[str] | None = None) -> None:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)
     register_hydra_plugins()
+    register_resolvers()  # ${nirspi_help:...} in the --help template
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(
         _hydra_task
     )

@@ -1,0 +1,229 @@
+"""The Python API: run one configuration, read a sweep's results.
+
+    >>> import nirspi_pipe
+    >>> result = nirspi_pipe.run(["fog=chamber", "scan=spiral"])      # doctest: +SKIP
+    >>> result.metrics["psnr"], result.reconstruction.shape          # doctest: +SKIP
+
+:func:`run` composes the configuration exactly as ``nirspi-run`` does (the same config files,
+experiments and installed plugins, through Hydra's public compose API), runs the pipeline in
+this process and returns a :class:`RunResult`. It writes nothing unless ``output_dir`` is given,
+in which case the folder gets what a ``nirspi-run`` job writes (``record.json``, ``arrays.npz``,
+``summary.png``, …). :func:`load_results` returns a sweep's table as a pandas DataFrame.
+docs/api.md has a worked, doctested example.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Any
+
+from nirspi_pipe.errors import NirspiError
+
+if TYPE_CHECKING:  # keep `import nirspi_pipe` cheap: numpy/pandas/hydra load on first use
+    import numpy as np
+    import pandas as pd
+
+    from nirspi_pipe.stages import Products
+
+__all__ = ["BadOverrides", "RunFailed", "RunResult", "compose", "load_results", "run"]
+
+
+class BadOverrides(NirspiError, ValueError):
+    """Overrides that do not compose (unknown option, bad syntax, a command-line flag)."""
+
+
+class RunFailed(NirspiError):
+    """A run with an output folder failed; the message is the error, ``error.txt`` the traceback."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """What one run produced (read-only).
+
+    Attributes:
+        config: the resolved configuration (lengths in the units its keys name).
+        choices: the option of every config group (``{"fog": "chamber", "sfs": None, …}``).
+        overrides: the overrides it was composed with.
+        seed: the seed the run used (``cfg.seed``, or derived from the config hash when null).
+        metrics: scores against the ground truth (``ssim``, ``psnr`` in dB, ``rmse``, and the 3D
+            ones of ``metrics=full``); see :data:`nirspi_pipe.summary.METRIC_HELP`.
+        timings_ms: milliseconds per stage, and ``total``.
+        derived: physical quantities the source used (``beta_per_m``, ``visibility_m``,
+            ``snr_db``, ``klux``, …).
+        info: per-stage bookkeeping (iterations, stop reasons, …).
+        warnings: warnings raised during the run.
+        products: every stage's typed output (:class:`nirspi_pipe.stages.Products`).
+        output_dir: the folder written, or None.
+    """
+
+    config: Mapping[str, Any]
+    choices: Mapping[str, str | None]
+    overrides: tuple[str, ...]
+    seed: int
+    metrics: Mapping[str, float]
+    timings_ms: Mapping[str, float]
+    derived: Mapping[str, float]
+    info: Mapping[str, Mapping[str, Any]]
+    warnings: tuple[str, ...]
+    products: Products
+    output_dir: Path | None = None
+
+    @property
+    def reconstruction(self) -> np.ndarray:
+        """The reconstructed image, relative radiance (white target = 1), ``(n, n)``."""
+        return self.products.image.data
+
+    @property
+    def truth(self) -> np.ndarray | None:
+        """The true radiance on the same grid (None for measured data)."""
+        return None if self.products.truth is None else self.products.truth.radiance
+
+    @property
+    def error(self) -> np.ndarray | None:
+        """``reconstruction − truth`` (None without a ground truth)."""
+        t = self.truth
+        return None if t is None else self.reconstruction - t
+
+    def record(self) -> dict[str, Any]:
+        """The run as a record dict, in the layout of ``record.json`` (without provenance)."""
+        return {
+            "config": dict(self.config),
+            "choices": dict(self.choices),
+            "metrics": dict(self.metrics),
+            "timings_ms": dict(self.timings_ms),
+            "derived": dict(self.derived),
+            "info": {k: dict(v) for k, v in self.info.items()},
+            "meta": {"seed": self.seed, "status": "ok", "warnings": list(self.warnings),
+                     "overrides": list(self.overrides)},
+        }
+
+    def summary(self) -> str:
+        """The text ``nirspi-run`` prints: active effects, explained metrics, stage times."""
+        from nirspi_pipe.summary import format_summary
+
+        return format_summary(self.record(), self.output_dir)
+
+    def save_figure(self, folder: str | Path) -> Path:
+        """Write the run's ``summary.png`` into ``folder``; returns its path."""
+        from nirspi_pipe.figure import write_summary_figure
+
+        folder = Path(folder)
+        return write_summary_figure(folder, self.products, self.record(), mesh_png=folder / "mesh.png")
+
+
+def _frozen(mapping: Mapping[str, Any]) -> Mapping[str, Any]:
+    return MappingProxyType(dict(mapping))
+
+
+def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
+    """The composed config of ``overrides`` (an OmegaConf ``DictConfig`` without the ``hydra``
+    node, as a ``nirspi-run`` job sees it) and the group choices. Raises :class:`BadOverrides`
+    (a :class:`ValueError`) with one line for an unknown option or a bad override."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import open_dict
+
+    from nirspi_pipe.cli import CONFIG_MODULE, CONFIG_NAME
+    from nirspi_pipe.plugins import activate
+    from nirspi_pipe.sweeper import register_hydra_plugins
+    from nirspi_pipe.validate import check_overrides
+
+    overrides = [str(o) for o in overrides]
+    flags = [o for o in overrides if o.startswith("-")]
+    if flags:
+        raise BadOverrides(f"{flags[0]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
+    activate()  # installed plugins' config folders join the search path
+    problem = check_overrides(overrides)
+    if problem:
+        raise BadOverrides(problem)
+    register_hydra_plugins()
+    if GlobalHydra.instance().is_initialized():
+        raise NirspiError("nirspi_pipe.run cannot be called inside a running Hydra app; call run_pipeline(cfg)")
+    try:
+        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
+            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=overrides, return_hydra_config=True)
+    except Exception as exc:
+        if isinstance(exc, NirspiError):
+            raise
+        text = str(exc).strip().splitlines()
+        raise BadOverrides(f"bad overrides {overrides}: {text[0] if text else type(exc).__name__}") from None
+    choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra/")}
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg, choices
+
+
+def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) -> RunResult:
+    """Run one configuration given as ``nirspi-run`` overrides and return its :class:`RunResult`.
+
+    Args:
+        overrides: e.g. ``["fog=chamber", "scan=spiral", "scan.ratio=0.25"]``; the same syntax
+            and defaults as the command line (``+experiment=NAME`` works; sweeps do not).
+        output_dir: write the job's files (``record.json``, ``arrays.npz``, PNGs, ``summary.png``)
+            into this folder; None (default) writes nothing.
+
+    Raises:
+        BadOverrides / ConfigError (both ValueError): bad configuration, with a one-line message
+            naming the key and the allowed values.
+        RunFailed: with ``output_dir``, the run failed (its traceback is in ``error.txt``).
+    """
+    cfg, choices = compose(overrides)
+    if output_dir is not None:
+        from nirspi_pipe.cli import execute_job
+
+        kept: list[Any] = []
+        folder = Path(output_dir)
+        record = execute_job(cfg, folder, dict(choices), list(overrides), on_output=kept.append)  # type: ignore[arg-type]
+        if record["meta"]["status"] != "ok" or not kept:
+            raise RunFailed(f"{record['meta']['error']} (traceback: {folder / 'error.txt'})")
+        out = kept[0]
+    else:
+        from nirspi_pipe.pipeline import run_pipeline
+
+        out = run_pipeline(cfg)
+        folder = None
+    from omegaconf import OmegaConf
+
+    return RunResult(
+        config=_frozen(OmegaConf.to_container(cfg, resolve=True)),  # type: ignore[arg-type]
+        choices=_frozen(choices),
+        overrides=tuple(str(o) for o in overrides),
+        seed=int(out.info["run"]["seed"]),
+        metrics=_frozen(out.metrics),
+        timings_ms=_frozen(out.timings_ms),
+        derived=_frozen(out.derived),
+        info=_frozen({k: _frozen(v) for k, v in out.info.items()}),
+        warnings=tuple(out.warnings),
+        products=out.products,
+        output_dir=folder,
+    )
+
+
+def load_results(path: str | Path, *, refresh: bool = False) -> pd.DataFrame:
+    """A sweep's results as a DataFrame: one row per job, columns as in README's Run section
+    (``scan``, ``illumination.klux``, ``metrics.psnr``, ``timings_ms.solver``, ``status``, …).
+
+    ``path`` is a sweep folder (``hydra.sweep.dir``) or a ``results.parquet``/``.csv`` file. A
+    folder's ``results.parquet`` is read when present; without it, or with ``refresh``, the
+    table is rebuilt from the jobs' ``record.json`` files (nothing is written).
+    """
+    import pandas as pd
+
+    from nirspi_pipe.results import collect
+
+    p = Path(path)
+    if p.is_file():
+        if p.suffix == ".parquet":
+            return pd.read_parquet(p)
+        if p.suffix == ".csv":
+            return pd.read_csv(p)
+        raise ValueError(f"{p}: not a results file; allowed: a sweep folder, results.parquet or results.csv")
+    if not p.is_dir():
+        raise FileNotFoundError(f"{p}: no such sweep folder or results file")
+    if (p / "results.parquet").is_file() and not refresh:
+        return pd.read_parquet(p / "results.parquet")
+    return collect(p, write=False)

@@ -1,0 +1,87 @@
+"""Dynamic parts of ``nirspi-run --help`` (the template is ``conf/hydra/help/nirspi.yaml``).
+
+Hydra fills ``$APP_CONFIG_GROUPS`` (every config group and its options, plugins' included) itself;
+the experiments with a one-line description each and the installed plugins come from the
+OmegaConf resolver ``nirspi_help`` registered here (``${nirspi_help:experiments}``,
+``${nirspi_help:plugins}``). A resolver never raises: a help page must always print.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+
+__all__ = ["RESOLVER", "experiments_text", "plugins_text", "register_resolvers"]
+
+RESOLVER = "nirspi_help"
+
+
+def _description(name: str) -> str:
+    """First comment line of a packaged experiment file (after ``# @package``), or ''."""
+    try:
+        text = (resources.files("nirspi_pipe.experiments") / "experiment" / f"{name}.yaml").read_text()
+    except (OSError, ModuleNotFoundError):
+        return ""
+    for line in text.splitlines():
+        s = line.strip()
+        if not s.startswith("#") or s.startswith("# @package"):
+            if s and not s.startswith("#"):
+                break
+            continue
+        return s.lstrip("# ").rstrip()
+    return ""
+
+
+def experiments_text() -> str:
+    """``  name  description`` per experiment (``+experiment=NAME``), one per line."""
+    try:
+        from nirspi_pipe.validate import group_options
+
+        names = group_options("experiment")
+    except Exception as exc:  # noqa: BLE001 - help must print
+        return f"  (experiments could not be listed: {exc})"
+    if not names:
+        return "  (none found)"
+    width = max(len(n) for n in names)
+    lines = []
+    for n in names:
+        d = _description(n)
+        if len(d) > 96 - width:
+            d = d[: 95 - width].rsplit(" ", 1)[0].rstrip(",;:(") + " …"
+        d = d.rstrip(":")
+        lines.append(f"  {n:<{width}}  {d}".rstrip())
+    return "\n".join(lines)
+
+
+def plugins_text() -> str:
+    """Installed plugins (entry-point group ``nirspi_pipe.plugins``) and the options they add."""
+    try:
+        from nirspi_pipe.plugins import discover
+
+        report = discover()
+    except Exception as exc:  # noqa: BLE001 - help must print
+        return f"  (plugins could not be listed: {exc})"
+    lines = []
+    for p in report.plugins:
+        adds = "; ".join(f"{g}={', '.join(opts)}" for g, opts in sorted(p.options.items())) or "no options"
+        lines.append(f"  {p.name} ({p.distribution}): {adds}")
+    for f in report.failures:
+        lines.append(f"  {f.name}: FAILED to load ({f.error})")
+    if not lines:
+        lines.append("  none installed (a plugin is a pip package; see docs/plugins.md)")
+    return "\n".join(lines)
+
+
+def _resolve(what: str) -> str:
+    if what == "experiments":
+        return experiments_text()
+    if what == "plugins":
+        return plugins_text()
+    return f"(unknown help section {what!r}; allowed: experiments, plugins)"
+
+
+def register_resolvers() -> None:
+    """Register the ``nirspi_help`` resolver with OmegaConf (idempotent)."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver(RESOLVER):
+        OmegaConf.register_new_resolver(RESOLVER, _resolve, use_cache=False)

@@ -1,0 +1,144 @@
+"""The one-run summary printed by ``nirspi-run`` (and ``RunResult.summary()``): which physical
+effects were on, each metric with a one-line explanation, and the time of every stage.
+
+Works on a run record (the dict written to ``record.json``, see :mod:`nirspi_pipe.records`), so
+the same text comes from the command line, the Python API and an old record read back.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+__all__ = ["METRIC_HELP", "effects_lines", "format_summary", "metric_lines"]
+
+#: Metric name -> (format of the value, one-line explanation). The order is the display order.
+METRIC_HELP: dict[str, tuple[str, str]] = {
+    "ssim": ("{:.3f}", "structural similarity to the true radiance: 1 = identical, 0 = no shared structure"),
+    "psnr": ("{:.2f} dB", "peak signal-to-noise ratio, peak = a white target; +6 dB = half the error"),
+    "rmse": ("{:.4g}", "root-mean-square radiance error, Eq. (16), in units of a white target's radiance"),
+    "upscale_psnr": ("{:.2f} dB", "PSNR of the upscaled image against the scene rendered at its resolution"),
+    "upscale_gain_db": ("{:+.2f} dB", "the upscaler's PSNR minus bicubic's on the same reconstruction"),
+    "depth_rmse_sfs_mm": ("{:.3g} mm", "depth error of shape from shading alone (Alg. A2), Eq. (16)"),
+    "depth_rmse_fused_mm": ("{:.3g} mm", "depth error after fusing SFS with the four iToF points (Alg. A3)"),
+    "improvement_pct": (
+        "{:+.1f} %",
+        "Eq. (17): how much fusion cut the SFS depth error; negative = the fused depth is worse than SFS",
+    ),
+    "skewness_mean": ("{:.3f}", "mean equiangle skewness of the mesh's triangles: 0 = equilateral, 1 = degenerate"),
+    "chamfer_mm": ("{:.3g} mm", "mean distance between the final mesh and the true surface"),
+    "hausdorff_mm": ("{:.3g} mm", "largest distance between the final mesh and the true surface"),
+}
+
+_LABELS = {
+    "ssim": "SSIM", "psnr": "PSNR", "rmse": "RMSE", "upscale_psnr": "upscaled PSNR",
+    "upscale_gain_db": "gain over bicubic", "depth_rmse_sfs_mm": "depth RMSE, SFS",
+    "depth_rmse_fused_mm": "depth RMSE, fused", "improvement_pct": "improvement",
+    "skewness_mean": "skewness", "chamfer_mm": "chamfer", "hausdorff_mm": "Hausdorff",
+}
+
+
+def _num(x: Any) -> float:
+    try:
+        return float(x)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _time_varying(node: Mapping[str, Any], keys: tuple[tuple[str, str], ...]) -> str:
+    parts = [f"{label} {100 * _num(node.get(k)):.0f} %" for k, label in keys if _num(node.get(k)) > 0]
+    return f" + {', '.join(parts)}" if parts else ""
+
+
+def effects_lines(record: Mapping[str, Any]) -> list[str]:
+    """One line per physical effect group (fog, background light, detector, extra noise): on
+    with its size, or off. Empty for sources that replay measurements (nothing is simulated)."""
+    choices = record.get("choices", {}) or {}
+    config = record.get("config", {}) or {}
+    derived = record.get("derived", {}) or {}
+    if choices.get("source", "simulator") != "simulator":
+        return [f"source     {choices.get('source')}: measured data, no simulated effects"]
+    lines = []
+    fog = config.get("fog") or {}
+    beta = _num(derived.get("beta_per_m", 0.0))
+    if choices.get("fog") in (None, "none") or not beta > 0:
+        lines.append("fog        off (fog=none): clear air")
+    else:
+        vis = _num(derived.get("visibility_m"))
+        vis_s = f", visibility {vis:.2f} m (Koschmieder, 5 % contrast)" if math.isfinite(vis) else ""
+        tr = _num(derived.get("transmittance_roundtrip"))
+        tr_s = f", {100 * tr:.0f} % of the light survives the round trip" if math.isfinite(tr) else ""
+        tv = _time_varying(fog, (("fluctuation_rel", "density fluctuation"),))
+        lines.append(f"fog        {choices.get('fog')}: extinction β = {beta:.3g} /m{vis_s}{tr_s}{tv}")
+    light = config.get("illumination") or {}
+    klux = _num(derived.get("klux", light.get("klux", 0.0)))
+    if choices.get("illumination") in (None, "none") or not klux > 0:
+        lines.append("background off (illumination=none): dark room")
+    else:
+        irr = _num(derived.get("background_irradiance_w_m2"))
+        band = light.get("band_nm") or []
+        band_s = f" in the {band[0]:g}–{band[1]:g} nm band" if len(band) == 2 else ""
+        irr_s = f" = {irr:.3g} W/m²{band_s}" if math.isfinite(irr) else ""
+        tv = _time_varying(
+            light, (("flicker_rel", "flicker"), ("wander_rel", "wander"), ("drift_rel_per_s", "drift per s"))
+        )
+        lines.append(f"background {klux:g} kLux{irr_s}{tv}")
+    det = choices.get("detector")
+    snr = _num(derived.get("snr_db"))
+    sat = int(_num(derived.get("saturated_patterns", 0)) or 0)
+    if det in (None, "ideal"):
+        lines.append("detector   ideal (detector=ideal): no photon, dark or read noise, no ADC")
+    else:
+        snr_s = f": SNR {snr:.1f} dB per reading" if math.isfinite(snr) else ""
+        lines.append(f"detector   {det}{snr_s}, {sat} saturated pattern{'s' if sat != 1 else ''}")
+    noise = _num((config.get("source") or {}).get("noise_rel", 0.0))
+    if noise > 0:
+        lines.append(f"noise      extra Gaussian noise {noise:g} of the mean reading (source.noise_rel)")
+    return lines
+
+
+def metric_lines(metrics: Mapping[str, float]) -> list[str]:
+    """The explained metrics, one per line (``label  value  explanation``), then a count of the
+    others (in ``record.json``)."""
+    shown = [k for k in METRIC_HELP if k in metrics]
+    lines = []
+    for k in shown:
+        fmt, text = METRIC_HELP[k]
+        v = _num(metrics[k])
+        value = fmt.format(v) if math.isfinite(v) else str(v)
+        lines.append(f"{_LABELS[k]:<18} {value:>10}  {text}")
+    rest = len(metrics) - len(shown)
+    if rest > 0:
+        lines.append(f"(+{rest} more metrics in record.json)")
+    return lines
+
+
+def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> str:
+    """The multi-line summary of one run record (see the module docstring)."""
+    choices = record.get("choices", {}) or {}
+    cfg = record.get("config", {}) or {}
+    meta = record.get("meta", {}) or {}
+    res = (cfg.get("camera") or {}).get("resolution")
+    ratio = _num((cfg.get("scan") or {}).get("ratio", 1.0))
+    sampled = f", {100 * ratio:g} % of the patterns" if math.isfinite(ratio) and ratio < 1 else ""
+    head = (
+        f"nirspi-run: scene={choices.get('scene')} scan={choices.get('scan')} "
+        f"solver={choices.get('solver')} {res}x{res}{sampled} seed={meta.get('seed')}"
+    )
+    lines = [head]
+    if meta.get("status", "ok") != "ok":
+        lines.append(f"  FAILED: {meta.get('error')}")
+    lines += ["  " + s for s in effects_lines(record)]
+    lines += ["  " + s for s in metric_lines(record.get("metrics", {}) or {})]
+    t = record.get("timings_ms", {}) or {}
+    if t:
+        stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
+        lines.append(f"  ms: {stages} | total {t.get('total', 0.0):.1f}")
+    for w in meta.get("warnings", []) or []:
+        lines.append(f"  warning: {w}")
+    if out_dir is not None:
+        pic = "  (summary.png: truth, reconstruction, error)" if (Path(out_dir) / "summary.png").exists() else ""
+        lines.append(f"  -> {out_dir}{pic}")
+    return "\n".join(lines)
