@@ -86,7 +86,7 @@ def test_metrics3d_on_a_3d_run():
     assert m["depth_pixels"] > 1000
     # a 2D-only run gets the image metrics only
     only2d = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance)))
-    assert set(only2d) == {"ssim", "psnr", "rmse"}
+    assert set(only2d) == {"ssim", "psnr", "rmse", "ssim_raw", "psnr_raw"}
 
 
 def test_depth_interpolation_survives_degenerate_clouds() -> None:

@@ -142,6 +142,10 @@ class Acquisition:
         timestamps_s: ``(m,)`` acquisition time of each ±1 measurement, seconds, or None.
         derived: physical quantities the source used (``beta_per_m``, ``snr_db``, …).
         info: source bookkeeping (counts, flags) for the record.
+        reference: ``(n, n)`` the noise-free, static image this camera forms of the scene, in
+            relative radiance (fall-off, fog transmission and veil included; no noise, no change
+            during the acquisition): what the normalised image metrics compare against
+            (:mod:`nirspi_pipe.metrics`). None when unknown (then the truth's radiance is used).
     """
 
     n: int
@@ -154,6 +158,7 @@ class Acquisition:
     timestamps_s: np.ndarray | None = None
     derived: Info = field(default_factory=dict)
     info: Info = field(default_factory=dict)
+    reference: np.ndarray | None = None
 
     @property
     def n_pixels(self) -> int:

@@ -347,6 +347,8 @@ class Illumination:
     budget: PhotonBudget = field(default_factory=PhotonBudget)
 
     name: ClassVar[str] = "budget"
+    #: part of the noise-free static image the metrics compare against (``Simulator.reference_image``)
+    reference: ClassVar[bool] = True
 
     def apply(self, signal: Signal, exposure: Exposure) -> Signal:
         r = exposure.range_m
@@ -358,12 +360,15 @@ class Illumination:
 
 @dataclass(frozen=True)
 class FogAttenuation:
-    """Beer–Lambert on the round trip: optical depth ``2 β r`` per pixel (Eq. 6). ``fog`` is a
-    fog model of :mod:`nirspi_pipe.physics.fog` (``extinction_per_m``, ``extent_m``, ``derived()``)."""
+    """Beer–Lambert on the round trip through the fog: optical depth ``2 β min(r, extent)`` per
+    pixel (Eq. 6). The fog fills the chamber from the camera to ``extent`` (35 cm, §4); beyond it
+    the air is clear. ``fog`` is a fog model of :mod:`nirspi_pipe.physics.fog` (``extinction_per_m``,
+    ``extent_m``, ``derived()``)."""
 
     fog: Any
 
     name: ClassVar[str] = "fog"
+    reference: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not hasattr(type(self.fog), "extinction_per_m") or not hasattr(self.fog, "extent_m"):
@@ -373,7 +378,8 @@ class FogAttenuation:
         fog = self.fog
         beta = float(fog.extinction_per_m)
         r = exposure.range_m
-        x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(r), r, 0.0), 0.0)
+        path = np.minimum(r, float(fog.extent_m))  # the fog path of each ray (inf off the object)
+        x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(path), path, 0.0), 0.0)
         albedo = float(getattr(fog, "single_scattering_albedo", 1.0))
         medium = Medium(beta, np.minimum(r, fog.extent_m), float(fog.extent_m), albedo)
         cond = {
@@ -426,9 +432,15 @@ class Backscatter:
     def __post_init__(self) -> None:
         _check_rel("backscatter_gain", self.gain, 0.0, np.inf, "a factor >= 0")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def veil_e(self, medium: Medium, exposure: Exposure) -> np.ndarray:
+        """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
         from nirspi_pipe.physics.fog import backscatter
 
+        white_1m = float(exposure.budget.white_electrons(1.0)) / (exposure.n * exposure.n)
+        veil = backscatter(self.gain, white_1m, medium.beta_per_m, medium.path_m)
+        return np.asarray(veil, dtype=np.float64) * np.ones(exposure.scene.radiance.shape)
+
+    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
         med = signal.medium
         if med is None:
             raise ValueError("backscatter must follow the fog effect in the chain")
@@ -437,8 +449,7 @@ class Backscatter:
         shape = exposure.scene.radiance.shape
         s = signal.measured(exposure)
         if s.depth_scale_pos is None or s.depth_scale_neg is None:
-            veil = backscatter(self.gain, white_1m, med.beta_per_m, med.path_m) * np.ones(shape)
-            veil_pos, veil_neg = split_measure(veil, idx)
+            veil_pos, veil_neg = split_measure(self.veil_e(med, exposure), idx)
         else:  # Eq. (12) with β(t): κ N_white(1 m) (1 − e^{−β(t) ℓ})
             k = np.full(shape, self.gain * white_1m)
             a_pos, a_neg = split_measure(k, idx)

@@ -266,7 +266,7 @@ class MieFog:
             "q_sca": self.mie.q_sca,
             "single_scattering_albedo": self.single_scattering_albedo,
             "beta_per_m": beta,
-            **({"visibility_m": visibility_m(beta)} if beta > 0 else {}),
+            **({"visibility_m": visibility_m(beta)} if np.isfinite(visibility_m(beta)) else {}),
         }
 
 
@@ -309,4 +309,5 @@ class MeasuredFog:
     def derived(self) -> dict[str, float]:
         """Physical quantities this fog model used, for the record."""
         beta = self.extinction_per_m
-        return {"beta_per_m": beta, **({"visibility_m": visibility_m(beta)} if beta > 0 else {})}
+        vis = visibility_m(beta)
+        return {"beta_per_m": beta, **({"visibility_m": vis} if np.isfinite(vis) else {})}  # subnormal β: inf
