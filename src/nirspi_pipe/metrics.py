@@ -28,7 +28,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 
-__all__ = ["rmse", "psnr", "ssim", "fit_gain_offset", "normalised_pair", "ImageMetrics", "PSNR_CAP_DB"]
+__all__ = ["PSNR_CAP_DB", "ImageMetrics", "fit_gain_offset", "normalised_pair", "psnr", "rmse", "ssim"]
 
 _IMAGE_METRICS = ("ssim", "psnr", "rmse")
 
