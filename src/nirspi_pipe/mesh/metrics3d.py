@@ -87,6 +87,55 @@ def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.clip(np.where(degenerate, 1.0, skew), 0.0, 1.0)
 
 
+def triangle_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(f, 3)`` interior angles of triangles, degrees."""
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    if len(v) == 0:
+        return np.zeros((0, 3))
+    out = np.zeros((len(v), 3))
+    for i in range(3):
+        a, b = v[:, (i + 1) % 3] - v[:, i], v[:, (i + 2) % 3] - v[:, i]
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+        out[:, i] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+def sample_skewness(values: np.ndarray) -> float:
+    """Statistical (Fisher–Pearson) skewness ``E[(x − μ)³]/σ³`` of the finite values
+    (scipy.stats.skew, biased); NaN with fewer than three values or zero spread."""
+    from scipy.stats import skew
+
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size < 3 or not np.std(v) > 0:
+        return float("nan")
+    return float(skew(v))
+
+
+def skewness_candidates(vertices: np.ndarray, faces: np.ndarray, prefix: str) -> dict[str, float]:
+    """Quantities that could be the paper's "skewness" (issue 11; docs/paper.md, "Skewness"):
+
+    * ``{prefix}_aspect_mean``: mean triangle aspect ratio, longest edge over the shortest
+      altitude × √3/2 (1 = equilateral), minus 1;
+    * ``{prefix}_angle_stat``: |statistical skewness| of all triangle angles;
+    * ``{prefix}_equiangle_stat``: |statistical skewness| of the per-triangle equiangle skewness.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return {}
+    v = np.asarray(vertices, dtype=np.float64)[f]
+    edges = np.stack([np.linalg.norm(v[:, (i + 1) % 3] - v[:, i], axis=1) for i in range(3)], axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    lmax = edges.max(axis=1)
+    ok = area > 0
+    aspect = np.where(ok, lmax * lmax / np.maximum(2 * area, 1e-300) * np.sqrt(3) / 2, np.nan)
+    return {
+        f"{prefix}_aspect_mean": float(np.nanmean(aspect) - 1.0) if ok.any() else float("nan"),
+        f"{prefix}_angle_stat": abs(sample_skewness(triangle_angles(vertices, faces))),
+        f"{prefix}_equiangle_stat": abs(sample_skewness(equiangle_skewness(vertices, faces))),
+    }
+
+
 def skewness_summary(skew: np.ndarray, prefix: str = "skewness") -> dict[str, float]:
     """Mean, 95th percentile and the share (0–1) of triangles in each ANSYS band."""
     if len(skew) == 0:
@@ -261,6 +310,7 @@ class Metrics3D:
                     {k: v for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
                      if k in ("skewness_sfs_mean", "skewness_sfs_p95")}
                 )
+                out.update(skewness_candidates(verts, faces, "cand_sfs"))
         if z_sfs is not None and cloud is not None:
             z_sfs = _to_grid(z_sfs, cam.resolution)  # an upscaled SFS grid is scored on the truth's
             z_base = _to_grid(z_geom, cam.resolution) if z_geom is not None else z_sfs
@@ -272,6 +322,11 @@ class Metrics3D:
                 after = rmse(z_fused[both], truth.depth_m[both])
                 out.update(depth_rmse_sfs_mm=before * 1e3, depth_rmse_sfs_fit_mm=fit * 1e3,
                            depth_rmse_fused_mm=after * 1e3, depth_pixels=float(both.sum()))
+                # skewness candidates: |statistical skewness| of the depth errors (docs/paper.md)
+                for key, z in (("cand_sfs_error_stat", z_sfs), ("cand_mesh_error_stat", z_fused)):
+                    val = abs(sample_skewness(z[both] - truth.depth_m[both]))
+                    if np.isfinite(val):
+                        out[key] = val
                 if before > 0 and fit > 0:
                     out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
                     out["improvement_fit_pct"] = improvement_rate(fit, after)
@@ -281,6 +336,8 @@ class Metrics3D:
                 warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=2)
         if mesh is not None and len(mesh.faces):
             out.update(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
+            out.update({k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items()
+                        if np.isfinite(v)})
             if tmask.any():
                 pitch = truth.distance_m / cam.focal_px
                 spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
