@@ -49,8 +49,8 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     return table
 
 
-def _cell(r: pd.Series, key: str) -> str:
-    if r["scan"] == "basic":
+def _cell(r: pd.Series, scan: str, key: str) -> str:
+    if scan == "basic":
         return f"{r[f'{key}_mean']:.2f}"
     d, se = r[f"{key}_d_vs_basic"], r[f"{key}_se_vs_basic"]
     return f"{d:+.2f} ± {se:.2f}{signif(d, se)}" if np.isfinite(se) else f"{d:+.2f}"
@@ -70,9 +70,8 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
     ]
     for (mech, ratio), g in table.groupby(["mechanism", "ratio"], sort=False):
         g = g.set_index("scan")
-        cells8 = [_cell(g.loc[s].rename(None) if s in g.index else pd.Series(dtype=float), "psnr8_db")
-                  if s in g.index else "" for s in SCANS]
-        cells32 = [_cell(g.loc[s], "psnr32_db") if s in g.index else "" for s in SCANS]
+        cells8 = [_cell(g.loc[s], s, "psnr8_db") if s in g.index else "" for s in SCANS]
+        cells32 = [_cell(g.loc[s], s, "psnr32_db") if s in g.index else "" for s in SCANS]
         best = g["psnr8_db_mean"].idxmax()
         sig = any(abs(g.loc[s, "psnr8_db_d_vs_basic"]) > 2 * g.loc[s, "psnr8_db_se_vs_basic"]
                   for s in g.index if s != "basic" and np.isfinite(g.loc[s, "psnr8_db_se_vs_basic"]))
