@@ -86,7 +86,7 @@ def test_metrics3d_on_a_3d_run():
     assert m["depth_pixels"] > 1000
     # a 2D-only run gets the image metrics only
     only2d = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance)))
-    assert set(only2d) == {"ssim", "psnr", "rmse"}
+    assert set(only2d) == {"ssim", "psnr", "rmse", "ssim_raw", "psnr_raw"}
 
 
 def test_depth_interpolation_survives_degenerate_clouds() -> None:
@@ -104,3 +104,15 @@ def test_depth_interpolation_survives_degenerate_clouds() -> None:
     assert inside.any() and np.all((z[inside] > 0.18) & (z[inside] < 0.22))
     line = np.array([[0.0, 0.0, 0.2], [0.01, 0.0, 0.2], [0.02, 0.0, 0.2]])
     assert np.isnan(_interpolate_depth(line, cam)).all()  # no area: nothing to interpolate
+
+
+def test_geometric_baseline_uses_the_camera_geometry_only():
+    """The no-iToF baseline of Eq. (17): pixel-pitch depth scaled by z_nom/focal_px, median at z_nom."""
+    from nirspi_pipe.mesh.metrics3d import geometric_metric_depth
+
+    d = np.array([[0.0, 1.0], [2.0, np.nan]])
+    mask = np.array([[True, True], [True, True]])
+    z = geometric_metric_depth(d, mask, 0.2, 100.0)
+    assert np.isclose(np.nanmedian(z), 0.2) and np.isnan(z[1, 1])
+    assert np.isclose(z[1, 0] - z[0, 0], 2 * 0.2 / 100.0)
+    assert np.isnan(geometric_metric_depth(d, np.zeros((2, 2), bool), 0.2, 100.0)).all()

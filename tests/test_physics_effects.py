@@ -195,3 +195,38 @@ def test_a_new_effect_is_one_small_class():
     assert b.y_pos == pytest.approx(0.5 * a.y_pos) and b.info["effects"] == "fog,haze"
     with pytest.raises(ConfigError, match="domain"):
         forward_model(extra=[object()])
+
+
+def test_led_droop_and_fog_trend_make_the_order_matter_at_full_sampling():
+    """Issue 11: a multiplicative drift in time changes the image error with the order, even with
+    every pattern measured (an additive steady error would not). Without the drift the orders
+    give the same image to rounding."""
+    from nirspi_pipe.patterns.orders import Basic, Spiral
+    from nirspi_pipe.physics.effects import FogTrend, LedDroop, forward_model
+    from nirspi_pipe.physics.fog import MeasuredFog
+    from nirspi_pipe.scene.objects import Sphere
+    from nirspi_pipe.solvers.fwht import FWHTSolver
+    from nirspi_pipe.sources.simulator import Simulator
+    from nirspi_pipe.types import Camera
+
+    n = 8
+    scene = Sphere().render(Camera(n))
+
+    def error(sim: Simulator, order: str) -> float:
+        idx = {"basic": Basic(), "spiral": Spiral()}[order].select(n)
+        img = FWHTSolver().solve(sim.acquire(scene, idx, n, np.random.default_rng(0))).data
+        ref = sim.reference_image(scene)
+        return float(np.sqrt(np.mean((img - ref) ** 2)))
+
+    steady = Simulator(forward_model())
+    assert abs(error(steady, "basic") - error(steady, "spiral")) < 1e-12
+    droop = Simulator(forward_model(led_droop_rel=-0.05))
+    assert [e.name for e in droop.effects] == ["led_droop"]
+    assert abs(error(droop, "basic") - error(droop, "spiral")) > 1e-4
+    trend = Simulator(forward_model(fog=MeasuredFog(beta_per_m=1.15, trend_rel=0.3, backscatter_gain=0.0)))
+    assert "fog_trend" in [e.name for e in trend.effects]
+    assert abs(error(trend, "basic") - error(trend, "spiral")) > 1e-4
+    assert LedDroop(-0.05, 0.05).factor(np.array([0.0]))[0] == 1.0
+    assert np.isclose(LedDroop(-0.05, 0.05).factor(np.array([1e3]))[0], 0.95)
+    with pytest.raises(ConfigError):
+        FogTrend(-2.0)

@@ -78,3 +78,35 @@ def test_budget_is_finite_over_the_range(klux, z):
     bg = Background(klux=klux)
     vals = [b.white_electrons(z), b.ambient_electrons(bg.photon_irradiance, 1.0), bg.irradiance_w_m2]
     assert all(np.isfinite(v) and v >= 0 for v in vals)
+
+
+def test_sun_spectrum_is_the_astm_g173_standard():
+    """AM1.5 global: ~1000 W/m² in total and 25.5 W/m² in 1500-1600 nm (ASTM G173-03); per kLux
+    the band carries more than the 5778 K blackbody (issue 11: the blackbody was 23-29 % low)."""
+    from nirspi_pipe.physics.light import astm_g173_global
+
+    lam, e = astm_g173_global()
+    nm = np.round(lam * 1e9, 3)
+    band = (nm >= 1500) & (nm <= 1600)
+    assert np.trapezoid(e[band], lam[band]) == pytest.approx(25.54, rel=1e-3)
+    sun = klux_to_irradiance_w_m2(1.0, spectrum="sun")
+    bb = klux_to_irradiance_w_m2(1.0, temperature_k=5778.0, spectrum="blackbody")
+    assert 1.15 < sun / bb < 1.45
+    assert klux_to_irradiance_w_m2(10.0, spectrum="sun") == pytest.approx(10 * sun)
+
+
+def test_each_source_has_its_own_flicker():
+    from nirspi_pipe.physics.light import filament_flicker_rel
+
+    assert Background(klux=10, spectrum="sun", flicker_rel=None).flicker_rel == 0.0
+    lamp = Background(klux=10, spectrum="halogen", spectrum_temperature_k=3000, flicker_rel=None, mains_hz=60)
+    assert lamp.flicker_hz == 120.0 and 0 < lamp.flicker_rel < 0.25
+    # more thermal inertia, less flicker; no inertia: the full quarter of the T^4 ripple times d ln B/d ln T
+    taus = [1e-4, 1e-3, 1e-2, 1e-1]
+    amps = [filament_flicker_rel(t) for t in taus]
+    assert all(a > b for a, b in zip(amps, amps[1:], strict=False))
+    assert filament_flicker_rel(0.0) > 0.25
+    # a halogen lamp puts far more of its light in the InGaAs band per lux than the sun
+    assert lamp.irradiance_w_m2 > 5 * Background(klux=10, spectrum="sun").irradiance_w_m2
+    with pytest.raises(ConfigError):
+        Background(klux=1, spectrum="moon")

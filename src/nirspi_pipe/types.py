@@ -160,6 +160,10 @@ class Acquisition:
         derived: physical quantities the source used (``beta_per_m``, ``snr_db``, …), for the
             record only: stages read typed fields, never this mapping.
         info: source bookkeeping (counts, flags) for the record.
+        reference: ``(n, n)`` the noise-free, static image this camera forms of the scene, in
+            relative radiance (fall-off, fog transmission and veil included; no noise, no change
+            during the acquisition): what the normalised image metrics compare against
+            (:mod:`nirspi_pipe.metrics`). None when unknown (then the truth's radiance is used).
     """
 
     n: int
@@ -173,6 +177,7 @@ class Acquisition:
     medium: Medium = field(default_factory=Medium)
     derived: Info = field(default_factory=dict)
     info: Info = field(default_factory=dict)
+    reference: np.ndarray | None = None
 
     @property
     def n_pixels(self) -> int:

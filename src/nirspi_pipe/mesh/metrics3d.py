@@ -1,15 +1,23 @@
 """Metrics ``full``: the 2D image metrics plus the 3D metrics of §7 (Eqs. 16–17, skewness) and
 surface distances.
 
-* ``depth_rmse_sfs_mm``: Eq. (16) between the true z-depth and the SFS depth made metric with the
-  fusion's global scale and offset (``cloud.depth_scale``, ``cloud.depth_offset_m``) — the paper's
-  RMSE of Alg. A2 — over the pixels where both exist.
+* ``depth_rmse_sfs_mm``: Eq. (16) between the true z-depth and the SFS depth made metric from the
+  camera geometry alone, without any iToF information (:func:`geometric_metric_depth`: scale =
+  the pixel pitch at the nominal working distance, ``z_nom / focal_px``; the visible surface's
+  median depth placed at ``z_nom``) — the paper's RMSE of Alg. A2 as a camera without iToF would
+  measure it — over the pixels where SFS, fused and true depth all exist.
+* ``depth_rmse_sfs_fit_mm``: the same with the fusion's global scale and offset (``cloud.depth_scale``,
+  ``cloud.depth_offset_m``): a baseline that already holds the iToF's global fit.
 * ``depth_rmse_fused_mm``: Eq. (16) between the true z-depth and the fused cloud (output of
   Alg. A3), interpolated on the same pixels (linear over the Delaunay triangulation of the
   points' image positions); ``depth_pixels`` counts the pixels compared.
-* ``improvement_pct``: Eq. (17), ``(RMSE_A2 − RMSE_A3) / RMSE_A2 × 100``. The paper's
+* ``improvement_pct``: Eq. (17), ``(RMSE_A2 − RMSE_A3) / RMSE_A2 × 100`` with the geometric
+  baseline; ``improvement_fit_pct`` the same with the global-fit baseline. The paper's
   denominator is named ``RMSE_SfS``; SFS *is* Alg. A2, so it is the same number. Positive =
   fusion helped. Omitted (with a warning) when ``RMSE_A2 = 0``.
+* On an upscaled run (the device preset, ``scene: ${scene}`` given) the 3D scores are computed
+  on the upscaled grid against the scene rendered again there, and the 2D scores are those of
+  :class:`~nirspi_pipe.upscale.metrics.UpscaleMetrics`.
 * ``skewness_*``: equiangle skewness ``max((θmax − 60°)/120°, (60° − θmin)/60°)`` of the final
   mesh's triangles: mean, 95th percentile and the share in each ANSYS band (excellent < 0.25 ≤
   good < 0.5 ≤ fair < 0.75 ≤ poor < 0.9 ≤ very poor < 1, degenerate = 1);
@@ -25,6 +33,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import matplotlib.tri as mtri
 import numpy as np
@@ -37,6 +46,7 @@ from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
 
 __all__ = [
+    "geometric_metric_depth",
     "Metrics3D",
     "equiangle_skewness",
     "skewness_summary",
@@ -76,6 +86,55 @@ def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.clip(np.where(degenerate, 1.0, skew), 0.0, 1.0)
 
 
+def triangle_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(f, 3)`` interior angles of triangles, degrees."""
+    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
+    if len(v) == 0:
+        return np.zeros((0, 3))
+    out = np.zeros((len(v), 3))
+    for i in range(3):
+        a, b = v[:, (i + 1) % 3] - v[:, i], v[:, (i + 2) % 3] - v[:, i]
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+        out[:, i] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return out
+
+
+def sample_skewness(values: np.ndarray) -> float:
+    """Statistical (Fisher–Pearson) skewness ``E[(x − μ)³]/σ³`` of the finite values
+    (scipy.stats.skew, biased); NaN with fewer than three values or zero spread."""
+    from scipy.stats import skew
+
+    v = np.asarray(values, dtype=np.float64).ravel()
+    v = v[np.isfinite(v)]
+    if v.size < 3 or not np.std(v) > 0:
+        return float("nan")
+    return float(skew(v))
+
+
+def skewness_candidates(vertices: np.ndarray, faces: np.ndarray, prefix: str) -> dict[str, float]:
+    """Quantities that could be the paper's "skewness" (issue 11; docs/paper.md, "Skewness"):
+
+    * ``{prefix}_aspect_mean``: mean triangle aspect ratio, longest edge over the shortest
+      altitude × √3/2 (1 = equilateral), minus 1;
+    * ``{prefix}_angle_stat``: |statistical skewness| of all triangle angles;
+    * ``{prefix}_equiangle_stat``: |statistical skewness| of the per-triangle equiangle skewness.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return {}
+    v = np.asarray(vertices, dtype=np.float64)[f]
+    edges = np.stack([np.linalg.norm(v[:, (i + 1) % 3] - v[:, i], axis=1) for i in range(3)], axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    lmax = edges.max(axis=1)
+    ok = area > 0
+    aspect = np.where(ok, lmax * lmax / np.maximum(2 * area, 1e-300) * np.sqrt(3) / 2, np.nan)
+    return {
+        f"{prefix}_aspect_mean": float(np.nanmean(aspect) - 1.0) if ok.any() else float("nan"),
+        f"{prefix}_angle_stat": abs(sample_skewness(triangle_angles(vertices, faces))),
+        f"{prefix}_equiangle_stat": abs(sample_skewness(equiangle_skewness(vertices, faces))),
+    }
+
+
 def skewness_summary(skew: np.ndarray, prefix: str = "skewness") -> dict[str, float]:
     """Mean, 95th percentile and the share (0–1) of triangles in each ANSYS band."""
     if len(skew) == 0:
@@ -93,6 +152,21 @@ def improvement_rate(rmse_before: float, rmse_after: float) -> float:
     if not rmse_before > 0:
         raise ValueError(f"improvement rate undefined for RMSE_before = {rmse_before}")
     return (rmse_before - rmse_after) / rmse_before * 100.0
+
+
+def geometric_metric_depth(relative: np.ndarray, mask: np.ndarray, distance_m: float, focal_px: float) -> np.ndarray:
+    """SFS depth (pixel-pitch units, :mod:`nirspi_pipe.sfs.models`) made metric from the camera
+    geometry alone: ``z = z_nom + (z_nom / focal_px) · (d − median(d))`` over ``mask`` (metres).
+
+    ``z_nom / focal_px`` is the pixel pitch at the nominal working distance ``z_nom`` (m); the
+    visible surface's median depth is placed at ``z_nom`` (assumed: the camera knows the working
+    distance of the set-up, §7: 20 cm, and nothing else). NaN outside ``mask``."""
+    d = np.asarray(relative, dtype=np.float64)
+    ok = np.asarray(mask, dtype=bool) & np.isfinite(d)
+    if not ok.any():
+        return np.full(d.shape, np.nan)
+    med = float(np.median(d[ok]))
+    return np.where(ok, distance_m + distance_m / focal_px * (d - med), np.nan)
 
 
 def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, rng: np.random.Generator,
@@ -193,11 +267,15 @@ class Metrics3D:
         clip: clip the 2D reconstruction to [0, 1] before scoring.
         sample_spacing_mm: surface sampling for chamfer/Hausdorff, mm; null = the true pixel
             pitch at the scene distance.
+        scene, source: the run's scene model and source (``${scene}``, ``${source}``); with an
+            upscaled image they give the scores on the upscaled grid (module docstring).
     """
 
     names: tuple[str, ...] = field(default=("ssim", "psnr", "rmse"))
     clip: bool = False
     sample_spacing_mm: float | None = None
+    scene: Any = None
+    source: Any = None
 
     def __post_init__(self) -> None:
         ImageMetrics(tuple(self.names), self.clip)  # validates names
@@ -206,14 +284,29 @@ class Metrics3D:
 
     def compute(self, products: Products) -> dict[str, float]:
         """All metrics that the run's products allow (3D ones need truth, depth, cloud, mesh)."""
-        out = ImageMetrics(tuple(self.names), self.clip).compute(products)
+        fine = products.upscaled is not None and self.scene is not None and products.truth is not None
+        if fine:
+            from nirspi_pipe.upscale.metrics import UpscaleMetrics
+
+            out = UpscaleMetrics(tuple(self.names), self.clip, scene=self.scene, source=self.source).compute(products)
+        else:
+            out = ImageMetrics(tuple(self.names), self.clip).compute(products)
         truth = products.truth
         if truth is None:
             return out
+        depth = products.depth
+        if fine and depth is not None and depth.depth_m.shape[0] != truth.camera.resolution:
+            from nirspi_pipe.upscale.data import RenderCamera
+
+            side = int(depth.depth_m.shape[0])
+            truth = self.scene.render(RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
         cam = truth.camera
         tmask = truth.mask & np.isfinite(truth.depth_m)
-        depth, cloud, mesh = products.depth, products.cloud, products.mesh
-        z_sfs = None
+        cloud, mesh = products.cloud, products.mesh
+        z_sfs = z_geom = None
+        if depth is not None and not depth.metric:
+            grid = cam if depth.depth_m.shape[0] == cam.resolution else cam.resampled(depth.depth_m.shape[0])
+            z_geom = geometric_metric_depth(depth.depth_m, depth.mask, float(truth.distance_m), grid.focal_px)
         if depth is not None and (depth.metric or (cloud is not None and cloud.depth_scale is not None)):
             zr = np.asarray(depth.depth_m, dtype=np.float64)
             if depth.metric:
@@ -231,23 +324,34 @@ class Metrics3D:
                     {k: v for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
                      if k in ("skewness_sfs_mean", "skewness_sfs_p95")}
                 )
+                out.update(skewness_candidates(verts, faces, "cand_sfs"))
         if z_sfs is not None and cloud is not None:
             z_sfs = _to_grid(z_sfs, cam.resolution)  # an upscaled SFS grid is scored on the truth's
+            z_base = _to_grid(z_geom, cam.resolution) if z_geom is not None else z_sfs
             z_fused = _interpolate_depth(np.asarray(cloud.points_m), cam)
-            both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused)
+            both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused) & np.isfinite(z_base)
             if both.any():
-                before = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16)
+                fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
+                before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline
                 after = rmse(z_fused[both], truth.depth_m[both])
-                out.update(depth_rmse_sfs_mm=before * 1e3, depth_rmse_fused_mm=after * 1e3,
-                           depth_pixels=float(both.sum()))
-                if before > 0:
+                out.update(depth_rmse_sfs_mm=before * 1e3, depth_rmse_sfs_fit_mm=fit * 1e3,
+                           depth_rmse_fused_mm=after * 1e3, depth_pixels=float(both.sum()))
+                # skewness candidates: |statistical skewness| of the depth errors (docs/paper.md)
+                for key, z in (("cand_sfs_error_stat", z_sfs), ("cand_mesh_error_stat", z_fused)):
+                    val = abs(sample_skewness(z[both] - truth.depth_m[both]))
+                    if np.isfinite(val):
+                        out[key] = val
+                if before > 0 and fit > 0:
                     out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
+                    out["improvement_fit_pct"] = improvement_rate(fit, after)
                 else:
                     warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=2)
             else:
                 warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=2)
         if mesh is not None and len(mesh.faces):
             out.update(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
+            out.update({k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items()
+                        if np.isfinite(v)})
             if tmask.any():
                 pitch = truth.distance_m / cam.focal_px
                 spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch

@@ -38,7 +38,9 @@ effect                  enabled by                  what it does
 ``fog``                 ``fog=chamber|measured``     e^{−2βr} per pixel, round trip (Eq. 6):
                                                      :class:`FogAttenuation`
 ``fog_fluctuation``     ``fog.fluctuation_rel > 0``  β(t) = β f(t) per reading: :class:`FogFluctuation`
+``fog_trend``           ``fog.trend_rel != 0``       β(t) = β (1 + rel t/T): :class:`FogTrend`
 ``backscatter``         ``fog.backscatter_gain > 0`` veil of the lit fog (Eq. 12): :class:`Backscatter`
+``led_droop``           ``source.effects.led_droop…``  LED power droop per reading: :class:`LedDroop`
 ``background``          ``illumination.klux > 0``    ambient charge (Eqs. 7, 10–11):
                                                      :class:`BackgroundLight`
 ``background_drift``    ``illumination.drift…``      drift, flicker, wander: :class:`BackgroundDrift`
@@ -72,6 +74,8 @@ __all__ = [
     "Illumination",
     "FogAttenuation",
     "FogFluctuation",
+    "FogTrend",
+    "LedDroop",
     "Backscatter",
     "BackgroundLight",
     "BackgroundDrift",
@@ -349,6 +353,8 @@ class Illumination:
     budget: PhotonBudget = field(default_factory=PhotonBudget)
 
     name: ClassVar[str] = "budget"
+    #: part of the noise-free static image the metrics compare against (``Simulator.reference_image``)
+    reference: ClassVar[bool] = True
 
     def apply(self, signal: Signal, exposure: Exposure) -> Signal:
         r = exposure.range_m
@@ -360,12 +366,15 @@ class Illumination:
 
 @dataclass(frozen=True)
 class FogAttenuation:
-    """Beer–Lambert on the round trip: optical depth ``2 β r`` per pixel (Eq. 6). ``fog`` is a
-    fog model of :mod:`nirspi_pipe.physics.fog` (``extinction_per_m``, ``extent_m``, ``derived()``)."""
+    """Beer–Lambert on the round trip through the fog: optical depth ``2 β min(r, extent)`` per
+    pixel (Eq. 6). The fog fills the chamber from the camera to ``extent`` (35 cm, §4); beyond it
+    the air is clear. ``fog`` is a fog model of :mod:`nirspi_pipe.physics.fog` (``extinction_per_m``,
+    ``extent_m``, ``derived()``)."""
 
     fog: Any
 
     name: ClassVar[str] = "fog"
+    reference: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not hasattr(type(self.fog), "extinction_per_m") or not hasattr(self.fog, "extent_m"):
@@ -375,7 +384,8 @@ class FogAttenuation:
         fog = self.fog
         beta = float(fog.extinction_per_m)
         r = exposure.range_m
-        x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(r), r, 0.0), 0.0)
+        path = np.minimum(r, float(fog.extent_m))  # the fog path of each ray (inf off the object)
+        x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(path), path, 0.0), 0.0)
         albedo = float(getattr(fog, "single_scattering_albedo", 1.0))
         medium = FogPath(beta, np.minimum(r, fog.extent_m), float(fog.extent_m), albedo)
         cond = {
@@ -417,6 +427,61 @@ class FogFluctuation:
 
 
 @dataclass(frozen=True)
+class FogTrend:
+    """The fog density trends during the acquisition: ``β(t) = β (1 + rel · t/T)`` per reading,
+    linear from the first reading (t = 0) to the last (t = T), multiplying any fluctuation. A
+    multiplicative drift: its error depends on the image, and the scan order decides which
+    coefficients see the early and the late density (issue 11). ``rel`` is ``fog.trend_rel``."""
+
+    rel: float
+
+    name: ClassVar[str] = "fog_trend"
+
+    def __post_init__(self) -> None:
+        _check_rel("trend_rel", self.rel, -0.9, 10.0, "a relative change over the acquisition in [-0.9, 10]")
+
+    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+        if signal.optical_depth is None:
+            raise ValueError("fog_trend must follow the fog effect in the chain")
+        t_end = float(max(exposure.t_neg.max(initial=0.0), exposure.t_dark.max(initial=0.0)))
+        scale = 1.0 / t_end if t_end > 0 else 0.0
+        f_pos = 1.0 + self.rel * exposure.t_pos * scale
+        f_neg = 1.0 + self.rel * exposure.t_neg * scale
+        if signal.depth_scale_pos is not None and signal.depth_scale_neg is not None:
+            f_pos, f_neg = f_pos * signal.depth_scale_pos, f_neg * signal.depth_scale_neg
+        return replace(signal, depth_scale_pos=f_pos, depth_scale_neg=f_neg).with_derived(fog_trend_rel=self.rel)
+
+
+@dataclass(frozen=True)
+class LedDroop:
+    """The LED array's output droops as the junctions warm during the acquisition:
+    ``P(t) = P₀ (1 + rel (1 − e^{−t/τ}))`` (``rel < 0``: droop), on the active light of every
+    reading (object and fog veil; not the background). InGaAsP LEDs lose output with junction
+    temperature (a negative temperature coefficient of optical power, e.g. Thorlabs LED1550E
+    datasheet); the amount and τ here are study values (``source.effects.led_droop_rel``,
+    ``led_droop_time_s``), not measured on the paper's camera."""
+
+    rel: float
+    time_s: float = 0.05
+
+    name: ClassVar[str] = "led_droop"
+
+    def __post_init__(self) -> None:
+        _check_rel("led_droop_rel", self.rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
+        if not np.isfinite(self.time_s) or self.time_s <= 0:
+            raise ConfigError("led_droop_time_s", self.time_s, "a thermal time constant in s > 0")
+
+    def factor(self, t_s: np.ndarray) -> np.ndarray:
+        """Relative LED power at times ``t_s`` (s), dimensionless."""
+        return 1.0 + self.rel * -np.expm1(-np.asarray(t_s, dtype=np.float64) / self.time_s)
+
+    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+        s = signal.measured(exposure)
+        assert s.pos_e is not None and s.neg_e is not None
+        return replace(s, pos_e=s.pos_e * self.factor(exposure.t_pos), neg_e=s.neg_e * self.factor(exposure.t_neg))
+
+
+@dataclass(frozen=True)
 class Backscatter:
     """The veil of light scattered back by the lit fog (Eq. 12): ``κ N_white(1 m) (1 − e^{−β ℓ})``
     on every reading, with ``ℓ`` the fog path of each pixel and κ = ``gain``."""
@@ -428,9 +493,15 @@ class Backscatter:
     def __post_init__(self) -> None:
         _check_rel("backscatter_gain", self.gain, 0.0, np.inf, "a factor >= 0")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def veil_e(self, medium: Medium, exposure: Exposure) -> np.ndarray:
+        """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
         from nirspi_pipe.physics.fog import backscatter
 
+        white_1m = float(exposure.budget.white_electrons(1.0)) / (exposure.n * exposure.n)
+        veil = backscatter(self.gain, white_1m, medium.beta_per_m, medium.path_m)
+        return np.asarray(veil, dtype=np.float64) * np.ones(exposure.scene.radiance.shape)
+
+    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
         med = signal.medium
         if med is None:
             raise ValueError("backscatter must follow the fog effect in the chain")
@@ -439,8 +510,7 @@ class Backscatter:
         shape = exposure.scene.radiance.shape
         s = signal.measured(exposure)
         if s.depth_scale_pos is None or s.depth_scale_neg is None:
-            veil = backscatter(self.gain, white_1m, med.beta_per_m, med.path_m) * np.ones(shape)
-            veil_pos, veil_neg = split_measure(veil, idx)
+            veil_pos, veil_neg = split_measure(self.veil_e(med, exposure), idx)
         else:  # Eq. (12) with β(t): κ N_white(1 m) (1 − e^{−β(t) ℓ})
             k = np.full(shape, self.gain * white_1m)
             a_pos, a_neg = split_measure(k, idx)
@@ -618,6 +688,8 @@ def forward_model(
     detector: Any = None,
     noise_rel: float = 0.0,
     extra: Sequence[Effect] = (),
+    led_droop_rel: float = 0.0,
+    led_droop_time_s: float = 0.05,
 ) -> tuple[Effect, ...]:
     """The ordered chain of the effects that the models enable (off effects are left out).
 
@@ -626,6 +698,8 @@ def forward_model(
         illumination: the background light (0 kLux or None: none).
         detector: ``Photodiode`` (budget + readout effects) or ``IdealDetector``/None.
         noise_rel: idealised Gaussian noise, relative (0: none).
+        led_droop_rel, led_droop_time_s: LED power droop during the acquisition (:class:`LedDroop`;
+            0: none).
         extra: further effects (plugins), in the order given, each placed by its ``domain``:
             ``"image"`` after the fog attenuation (before anything is measured), ``"readings"``
             (the default) after the background light and before the detector, ``"output"`` at
@@ -642,6 +716,7 @@ def forward_model(
                 "extra", effect, "effects with a name, apply(signal, exposure) and domain image, readings or output"
             )
         placed[where].append(effect)
+    _check_rel("led_droop_rel", led_droop_rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
     physical = bool(getattr(detector, "physical", False))
     chain: list[Effect] = []
     if physical:
@@ -650,9 +725,13 @@ def forward_model(
         chain.append(FogAttenuation(fog))
         if float(getattr(fog, "fluctuation_rel", 0.0)) > 0:
             chain.append(FogFluctuation(float(fog.fluctuation_rel), float(fog.fluctuation_time_s)))
+        if float(getattr(fog, "trend_rel", 0.0)) != 0:
+            chain.append(FogTrend(float(fog.trend_rel)))
     chain += placed["image"]
     if _active(fog) and float(getattr(fog, "backscatter_gain", 0.0)) > 0:
         chain.append(Backscatter(float(fog.backscatter_gain)))
+    if led_droop_rel != 0:
+        chain.append(LedDroop(float(led_droop_rel), float(led_droop_time_s)))
     if _active(illumination):
         assert illumination is not None
         chain.append(BackgroundLight(illumination))

@@ -174,6 +174,7 @@ class NoFog:
     extinction_per_m = 0.0
     backscatter_gain = 0.0
     fluctuation_rel = 0.0
+    trend_rel = 0.0
     extent_m = float("inf")
     single_scattering_albedo = 1.0
 
@@ -198,6 +199,8 @@ class MieFog:
             ``min(distance, extent)`` along each ray.
         backscatter_gain: Eq. (12)'s ``Ω_k D_k G_s``, fraction of the light a white Lambertian
             target at 1 m would return; 0 turns backscatter off.
+        trend_rel: relative change of the droplet density from the first to the last reading,
+            linear in time (the nebuliser filling or the chamber clearing; 0 = steady).
         fluctuation_rel, fluctuation_time_s: relative standard deviation and correlation time of
             the fog density during the acquisition (Ornstein–Uhlenbeck, seeded); 0 = steady.
     """
@@ -212,6 +215,7 @@ class MieFog:
     backscatter_gain: float = 0.01
     fluctuation_rel: float = 0.0
     fluctuation_time_s: float = 0.05
+    trend_rel: float = 0.0
 
     active = True
 
@@ -229,6 +233,8 @@ class MieFog:
         if not 0.0 <= self.index_imag <= 10.0:
             raise ConfigError("index_imag", self.index_imag, "an imaginary index k in [0, 10]")
         _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
+        if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
+            raise ConfigError("trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]")
 
     @property
     def diameter_m(self) -> float:
@@ -286,6 +292,7 @@ class MeasuredFog:
     backscatter_gain: float = 0.01
     fluctuation_rel: float = 0.0
     fluctuation_time_s: float = 0.05
+    trend_rel: float = 0.0
     single_scattering_albedo: float = 1.0
 
     active = True
@@ -296,6 +303,8 @@ class MeasuredFog:
         if not 0 <= self.single_scattering_albedo <= 1:
             raise ConfigError("single_scattering_albedo", self.single_scattering_albedo, "a value in [0, 1]")
         _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
+        if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
+            raise ConfigError("trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]")
 
     @property
     def extinction_per_m(self) -> float:
@@ -310,4 +319,5 @@ class MeasuredFog:
     def derived(self) -> dict[str, float]:
         """Physical quantities this fog model used, for the record."""
         beta = self.extinction_per_m
-        return {"beta_per_m": beta, **({"visibility_m": visibility_m(beta)} if np.isfinite(visibility_m(beta)) else {})}
+        vis = visibility_m(beta)
+        return {"beta_per_m": beta, **({"visibility_m": vis} if np.isfinite(vis) else {})}  # subnormal β: inf

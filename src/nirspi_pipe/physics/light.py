@@ -2,9 +2,20 @@
 
 The conversion (docs/physics.md, "Background light"):
 
-1. The background light is assumed to have a solar-like spectrum, a blackbody at
-   ``spectrum_temperature_k`` (5778 K, the Sun's effective temperature; no atmospheric
-   absorption bands, which makes the near-infrared estimate slightly high for real sunlight).
+1. The spectrum is a choice (``spectrum``):
+
+   * ``sun`` (default): the ASTM G173-03 AM1.5 global-tilt reference spectrum, tabulated in
+     ``physics/data/astm_g173_global.csv`` (360–1800 nm: the photopic range for the illuminance and
+     the InGaAs range for the band; copied from the table pvlib ships). Its 1500–1600 nm band carries 25.5 W/m²
+     of the standard's 1000 W/m².
+   * ``halogen``: a halogen lamp, a blackbody at ``spectrum_temperature_k`` (3000 K assumed: the
+     colour temperature of tungsten-halogen lamps is 2800–3200 K).
+   * ``blackbody``: a blackbody at ``spectrum_temperature_k`` (5778 K = the Sun's effective
+     temperature, the model before the tabulated spectrum; no atmospheric absorption bands).
+
+   Each source has its own time behaviour (:meth:`Background.flicker_amplitude`): the sun has no
+   mains flicker; a lamp on 50 Hz mains flickers at 100 Hz with the amplitude its filament's
+   thermal inertia leaves (:func:`filament_flicker_rel`).
 2. Illuminance is ``E_v = 683 lm/W · ∫ V(λ) E_e(λ) dλ`` with the CIE photopic luminosity function
    V(λ) (Gaussian approximation ``1.019 exp(−285.4 (λ/µm − 0.559)²)``). For 5778 K this gives a
    luminous efficacy of ≈ 93 lm/W of total irradiance, so 100 kLux ≈ 1.08 kW/m² (direct
@@ -29,6 +40,9 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError
 
 __all__ = [
+    "SPECTRA",
+    "astm_g173_global",
+    "filament_flicker_rel",
     "H_PLANCK",
     "C_LIGHT",
     "K_BOLTZMANN",
@@ -45,6 +59,35 @@ H_PLANCK = 6.62607015e-34  # J s
 C_LIGHT = 299792458.0  # m/s
 K_BOLTZMANN = 1.380649e-23  # J/K
 _KM = 683.0  # lm/W, maximum luminous efficacy
+#: The background spectra (``illumination.spectrum``).
+SPECTRA = ("sun", "halogen", "blackbody")
+
+
+@lru_cache(maxsize=1)
+def astm_g173_global() -> tuple[np.ndarray, np.ndarray]:
+    """ASTM G173-03 AM1.5 global-tilt spectral irradiance: wavelengths (m) and W m⁻² m⁻¹, over
+    the rows kept in ``physics/data/astm_g173_global.csv`` (360–1800 nm)."""
+    from importlib import resources
+
+    path = resources.files("nirspi_pipe.physics").joinpath("data", "astm_g173_global.csv")
+    with path.open() as fh:
+        data = np.loadtxt(fh, delimiter=",", comments="#", skiprows=5)
+    return data[:, 0] * 1e-9, data[:, 1] * 1e9
+
+
+def filament_flicker_rel(
+    time_constant_s: float, mains_hz: float = 50.0, temperature_k: float = 3000.0, wavelength_nm: float = 1550.0
+) -> float:
+    """Relative amplitude of a filament lamp's in-band radiance ripple at ``2 mains_hz``.
+
+    The electrical power ``P₀ (1 − cos 2ωt)`` heats a filament that radiates ``∝ T⁴`` and has a
+    thermal time constant τ: a first-order low-pass leaves a temperature ripple
+    ``ΔT/T = ¼ / √(1 + (2ωτ)²)``, and the spectral radiance at λ changes as
+    ``d ln B/d ln T = x/(1 − e^{−x})`` with ``x = hc/(λkT)`` (Planck). Dimensionless."""
+    x = H_PLANCK * C_LIGHT / (wavelength_nm * 1e-9 * K_BOLTZMANN * temperature_k)
+    sensitivity = x / -np.expm1(-x)
+    w = 2.0 * np.pi * 2.0 * mains_hz
+    return float(0.25 * sensitivity / np.sqrt(1.0 + (w * time_constant_s) ** 2))
 
 
 def planck_spectral_irradiance(wavelength_m: np.ndarray, temperature_k: float) -> np.ndarray:
@@ -88,14 +131,38 @@ def band_fraction(band_nm: tuple[float, float], temperature_k: float = 5778.0) -
     return float(frac), float(photons_per_w)
 
 
-def klux_to_irradiance_w_m2(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0) -> float:
-    """Irradiance (W/m²) inside ``band_nm`` of a solar-like illuminance of ``klux`` kilolux."""
+@lru_cache(maxsize=64)
+def _sun_per_lux(band_nm: tuple[float, float]) -> tuple[float, float]:
+    """ASTM G173 global: in-band W/m² and photons s⁻¹ m⁻² per lux of its illuminance."""
+    lam, e = astm_g173_global()
+    vis = lam <= 830e-9
+    lux = _KM * np.trapezoid(e[vis] * photopic_luminosity(lam[vis]), lam[vis])
+    lo, hi = band_nm[0] * 1e-9, band_nm[1] * 1e-9
+    if lo < 360e-9 or hi > 1800e-9:
+        raise ConfigError("band_nm", list(band_nm), "a band inside 360-1800 nm for spectrum=sun (the tabulated rows)")
+    grid = np.linspace(lo, hi, 2001)
+    e_band = np.interp(grid, lam, e)
+    watts = np.trapezoid(e_band, grid)
+    photons = np.trapezoid(e_band * grid / (H_PLANCK * C_LIGHT), grid)
+    return float(watts / lux), float(photons / lux)
+
+
+def klux_to_irradiance_w_m2(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0,
+                            spectrum: str = "blackbody") -> float:
+    """Irradiance (W/m²) inside ``band_nm`` of an illuminance of ``klux`` kilolux, with the
+    ``spectrum`` of :data:`SPECTRA` (``temperature_k`` for a blackbody or halogen lamp)."""
+    if spectrum == "sun":
+        return klux * 1e3 * _sun_per_lux(tuple(band_nm))[0]
     total = klux * 1e3 / luminous_efficacy_lm_per_w(temperature_k)
     return total * band_fraction(tuple(band_nm), temperature_k)[0]
 
 
-def klux_to_photon_irradiance(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0) -> float:
-    """Photon irradiance (photons s⁻¹ m⁻²) inside ``band_nm`` of ``klux`` kilolux of solar-like light."""
+def klux_to_photon_irradiance(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0,
+                              spectrum: str = "blackbody") -> float:
+    """Photon irradiance (photons s⁻¹ m⁻²) inside ``band_nm`` of ``klux`` kilolux (see
+    :func:`klux_to_irradiance_w_m2`)."""
+    if spectrum == "sun":
+        return klux * 1e3 * _sun_per_lux(tuple(band_nm))[1]
     total = klux * 1e3 / luminous_efficacy_lm_per_w(temperature_k)
     return total * band_fraction(tuple(band_nm), temperature_k)[1]
 
@@ -107,21 +174,31 @@ class Background:
     Attributes:
         klux: illuminance on the scene, kLux, in [0, 100] (0 = dark).
         band_nm: detector band ``[lo, hi]`` in nm (see the module docstring).
-        spectrum_temperature_k: blackbody temperature of the assumed spectrum, K.
+        spectrum: ``sun`` (ASTM G173 AM1.5 global), ``halogen`` or ``blackbody`` (module docstring).
+        spectrum_temperature_k: temperature of the halogen or blackbody spectrum, K (the sun's
+            tabulated spectrum ignores it).
+        filament_time_s: thermal time constant of a halogen lamp's filament, s (sets its flicker,
+            :func:`filament_flicker_rel`).
+        mains_hz: mains frequency of a lamp, Hz (50 Hz in Europe; flicker at twice it).
         surround_reflectance: Lambertian reflectance of what the camera sees around the object
             (the chamber walls), in [0, 1].
         drift_rel_per_s: linear drift of the level, relative per second (time-varying).
-        flicker_rel, flicker_hz: sinusoidal flicker amplitude (relative) and frequency (Hz).
+        flicker_rel, flicker_hz: sinusoidal flicker amplitude (relative) and frequency (Hz); with
+            ``flicker_rel: null`` the source's own (:meth:`flicker_amplitude`): 0 for the sun and
+            a blackbody, the filament's for a halogen lamp at ``2 mains_hz``.
         wander_rel, wander_time_s: random slow fluctuation (Ornstein–Uhlenbeck, seeded):
             relative standard deviation and correlation time.
     """
 
     klux: float = 0.0
     band_nm: tuple[float, float] = (1500.0, 1600.0)
+    spectrum: str = "blackbody"
     spectrum_temperature_k: float = 5778.0
+    filament_time_s: float = 0.05
+    mains_hz: float = 50.0
     surround_reflectance: float = 0.2
     drift_rel_per_s: float = 0.0
-    flicker_rel: float = 0.0
+    flicker_rel: float | None = 0.0
     flicker_hz: float = 100.0
     wander_rel: float = 0.0
     wander_time_s: float = 0.1
@@ -133,6 +210,18 @@ class Background:
         if len(band) != 2 or not 200.0 <= band[0] < band[1] <= 20000.0:
             raise ConfigError("band_nm", self.band_nm, "[lo, hi] in nm with 200 <= lo < hi <= 20000")
         object.__setattr__(self, "band_nm", band)
+        if self.spectrum not in SPECTRA:
+            raise ConfigError("spectrum", self.spectrum, f"one of {list(SPECTRA)}")
+        if self.spectrum == "sun" and not 360.0 <= band[0] < band[1] <= 1800.0:
+            raise ConfigError("band_nm", list(band), "a band inside 360-1800 nm for spectrum=sun (the tabulated rows)")
+        if not np.isfinite(self.filament_time_s) or self.filament_time_s <= 0:
+            raise ConfigError("filament_time_s", self.filament_time_s, "a thermal time constant in s > 0")
+        if not np.isfinite(self.mains_hz) or self.mains_hz <= 0:
+            raise ConfigError("mains_hz", self.mains_hz, "a mains frequency in Hz > 0")
+        if self.flicker_rel is None:
+            object.__setattr__(self, "flicker_rel", self.flicker_amplitude())
+            if self.spectrum == "halogen":
+                object.__setattr__(self, "flicker_hz", 2.0 * self.mains_hz)
         if not 1000.0 <= self.spectrum_temperature_k <= 20000.0:
             raise ConfigError("spectrum_temperature_k", self.spectrum_temperature_k, "a temperature in K in [1000, 20000]")
         if not 0.0 <= self.surround_reflectance <= 1.0:
@@ -145,6 +234,14 @@ class Background:
             raise ConfigError("flicker_hz", self.flicker_hz, "a frequency in Hz >= 0")
         if not np.isfinite(self.wander_time_s) or self.wander_time_s <= 0:
             raise ConfigError("wander_time_s", self.wander_time_s, "a correlation time in s > 0")
+
+    def flicker_amplitude(self) -> float:
+        """The source's own flicker (relative): none for the sun (no mains) or a generic blackbody;
+        for a halogen lamp, the ripple its filament's thermal inertia leaves at ``2 mains_hz``."""
+        if self.spectrum != "halogen":
+            return 0.0
+        centre = 0.5 * (self.band_nm[0] + self.band_nm[1])
+        return filament_flicker_rel(self.filament_time_s, self.mains_hz, self.spectrum_temperature_k, centre)
 
     @property
     def active(self) -> bool:
@@ -159,9 +256,9 @@ class Background:
     @property
     def irradiance_w_m2(self) -> float:
         """In-band irradiance on the scene, W/m²."""
-        return klux_to_irradiance_w_m2(self.klux, self.band_nm, self.spectrum_temperature_k)
+        return klux_to_irradiance_w_m2(self.klux, self.band_nm, self.spectrum_temperature_k, self.spectrum)
 
     @property
     def photon_irradiance(self) -> float:
         """In-band photon irradiance on the scene, photons s⁻¹ m⁻²."""
-        return klux_to_photon_irradiance(self.klux, self.band_nm, self.spectrum_temperature_k)
+        return klux_to_photon_irradiance(self.klux, self.band_nm, self.spectrum_temperature_k, self.spectrum)

@@ -72,12 +72,15 @@ def bisect(fn: Any, lo: float, hi: float, xtol: float = 1e-9) -> float:
     return float(0.5 * (lo + hi))
 
 
-def signal_electrons(z_m: Any, reflectance: float, budget: PhotonBudget, beta_per_m: float = 0.0) -> np.ndarray:
+def signal_electrons(
+    z_m: Any, reflectance: float, budget: PhotonBudget, beta_per_m: float = 0.0, fog_extent_m: float = float("inf")
+) -> np.ndarray:
     """Photoelectrons per integration, all LEDs on, from an on-axis Lambertian target of
     ``reflectance`` filling the view at ``z_m`` metres through fog of extinction ``beta_per_m``
-    (round trip): ``R N_white(z) e^{−2βz}``  # Eqs. (6), (10)."""
+    that fills ``min(z, fog_extent_m)`` of the path (round trip; the chamber is 35 cm deep):
+    ``R N_white(z) e^{−2β min(z, ℓ)}``  # Eqs. (6), (10)."""
     z = np.asarray(z_m, dtype=np.float64)
-    return reflectance * budget.white_electrons(z) * np.exp(-2.0 * beta_per_m * z)
+    return reflectance * budget.white_electrons(z) * np.exp(-2.0 * beta_per_m * np.minimum(z, fog_extent_m))
 
 
 def reading_noise_electrons(
@@ -97,7 +100,7 @@ def reading_noise_electrons(
     fog's airlight ``albedo``)."""
     z = np.asarray(z_m, dtype=np.float64)
     budget = detector.budget
-    s = signal_electrons(z, reflectance, budget, beta_per_m)
+    s = signal_electrons(z, reflectance, budget, beta_per_m, fog_extent_m)
     fog_path = np.minimum(z, fog_extent_m)
     veil = backscatter(backscatter_gain, budget.white_electrons(1.0), beta_per_m, fog_path)
     ambient = budget.ambient_electrons(photon_irradiance, koschmieder_radiance(reflectance, albedo, beta_per_m, fog_path))
@@ -107,7 +110,8 @@ def reading_noise_electrons(
 def snr(z_m: Any, reflectance: float, detector: Photodiode, **conditions: Any) -> np.ndarray:
     """Signal of one LED patch over the reading noise (dimensionless) at ``z_m`` metres."""
     beta = conditions.get("beta_per_m", 0.0)
-    patch = signal_electrons(z_m, reflectance, detector.budget, beta) / detector.budget.led_count
+    extent = conditions.get("fog_extent_m", float("inf"))
+    patch = signal_electrons(z_m, reflectance, detector.budget, beta, extent) / detector.budget.led_count
     noise = reading_noise_electrons(z_m, reflectance, detector, **conditions)
     return patch / np.maximum(noise, 1e-300)
 

@@ -28,7 +28,15 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
-from nirspi_pipe.physics.effects import Effect, Exposure, Illumination, Signal, modulated_split, split_measure
+from nirspi_pipe.physics.effects import (
+    Backscatter,
+    Effect,
+    Exposure,
+    Illumination,
+    Signal,
+    modulated_split,
+    split_measure,
+)
 from nirspi_pipe.types import Acquisition, Medium, Scene
 
 __all__ = ["Simulator", "split_measure", "modulated_split"]
@@ -84,6 +92,33 @@ class Simulator:
     def budget(self) -> PhotonBudget:
         """The camera's photon budget: the illumination effect's, or the default one."""
         return next((e.budget for e in self.effects if isinstance(e, Illumination)), PhotonBudget())
+
+    def reference_image(self, scene: Scene) -> np.ndarray:
+        """``(n, n)`` the noise-free, static image this camera forms of ``scene``, relative radiance.
+
+        The image-domain effects of the chain that declare ``reference = True`` (the 1/r²
+        fall-off of the photon budget, the fog's round-trip transmission, the device optics) act
+        on the scene radiance, and the backscatter veil (Eq. 12) is added per pixel; effects that
+        change during the acquisition (fog fluctuation, background drift, LED droop, …) and noise
+        do not. Steady background light cancels in the split difference and does not appear.
+        Divided by the clear-air gain at the nominal distance, as the solver's image is. Works at
+        any resolution (the metrics render the scene again on an upscaled grid).
+        """
+        n = int(scene.radiance.shape[0])
+        empty = np.zeros(0)
+        exposure = Exposure(scene=scene, indices=np.zeros(0, dtype=np.int64), n=n, t_pos=empty, t_neg=empty,
+                            t_dark=empty, budget=self.budget)
+        signal = Signal(image_e=scene.radiance * exposure.ref_e)
+        veil = None
+        for effect in self.effects:
+            if isinstance(effect, Backscatter) and signal.medium is not None:
+                veil = effect.veil_e(signal.medium, exposure)
+            elif getattr(effect, "reference", False):
+                signal = effect.apply(signal, exposure)
+        img = signal.image_e if signal.optical_depth is None else signal.image_e * np.exp(-signal.optical_depth)
+        if veil is not None:
+            img = img + veil
+        return np.asarray(img / exposure.ref_e, dtype=np.float64)
 
     def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Measure ``scene`` with the patterns ``indices``, in that order (see module docstring)."""
@@ -144,4 +179,5 @@ class Simulator:
             medium=Medium(beta, float(derived["background_irradiance_w_m2"])),
             derived=derived,
             info=info,
+            reference=self.reference_image(scene),
         )

@@ -31,12 +31,16 @@ from nirspi_pipe.tables._common import (
 __all__ = ["build"]
 
 METRICS = {"ssim": "metrics.ssim", "psnr_db": "metrics.psnr"}
+#: On an upscaled run (the device preset) the figure shows the scores on the upscaled grid.
+UPSCALED = {"ssim": "metrics.upscale_ssim", "psnr_db": "metrics.upscale_psnr"}
 
 
 def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
-    """Build Figure 9 (PNG, CSV, Markdown) from a results frame into ``out_dir``."""
+    """Build Figure 9 (PNG, CSV, Markdown) from a results frame into ``out_dir``: the normalised
+    scores (:mod:`nirspi_pipe.metrics`), on the upscaled grid when the runs were upscaled."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, [*METRICS.values(), "illumination.klux"], "figure9")
+    metrics = UPSCALED if all(c in frame.columns for c in UPSCALED.values()) else METRICS
+    df = ok_rows(frame, [*metrics.values(), "illumination.klux"], "figure9")
     paper = paper_reference("figure9").set_index(["scan", "klux"])
     rows = []
     for klux in sorted(df["illumination.klux"].unique()):
@@ -46,7 +50,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             if g.empty:
                 continue
             row: dict = {"scan": scan, "klux": float(klux), "n": int(len(g))}
-            for key, col in METRICS.items():
+            for key, col in metrics.items():
                 row.update(stats(g[col], key))
                 d, se, _ = paired_vs_basic(dk, col, scan)
                 row.update({f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})

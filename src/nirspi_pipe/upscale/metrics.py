@@ -9,6 +9,11 @@ of view at the upscaled side length. Nothing else changes: the low-resolution ca
 measurements and the solver are those of the run. Next to the upscaler's scores it reports the
 bicubic interpolation of the *same* reconstruction (``bicubic_*``) and the PSNR gain over it,
 so every run carries its own baseline.
+
+As at the camera resolution (:mod:`nirspi_pipe.metrics`), ``upscale_psnr``/``upscale_ssim`` are
+normalised against the noise-free image the camera forms of the fine scene (the run's source,
+``source: ${source}``, renders it with :meth:`Simulator.reference_image`), and
+``upscale_psnr_raw``/``upscale_ssim_raw`` are the radiometric scores against the fine radiance.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.metrics import ImageMetrics, psnr, rmse, ssim
+from nirspi_pipe.metrics import ImageMetrics
 from nirspi_pipe.stages import Products
 from nirspi_pipe.upscale.base import finish
 from nirspi_pipe.upscale.bicubic import bicubic
@@ -37,9 +42,12 @@ class UpscaleMetrics(ImageMetrics):
 
     Attributes:
         scene: the run's scene model (``${scene}``), rendered again on the fine grid.
+        source: the run's source (``${source}``); when it has ``reference_image`` (the
+            simulator), the normalised scores use the camera's noise-free image of the fine scene.
     """
 
     scene: Any = None
+    source: Any = None
 
     def compute(self, products: Products) -> dict[str, float]:
         out = super().compute(products)
@@ -55,15 +63,11 @@ class UpscaleMetrics(ImageMetrics):
             raise ValueError(f"upscaled image {est.shape} is not an integer multiple of {n}x{n}")
         fine = self.scene.render(RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
-        funcs = {"ssim": ssim, "psnr": psnr, "rmse": rmse}
-        if self.clip:
-            est = np.clip(est, 0.0, 1.0)
-        for name in self.names:
-            out[f"upscale_{name}"] = funcs[name](ref, est)
+        reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
+        out.update(self.score(ref, est, reference, prefix="upscale_"))
         if scale > 1:
             bic = finish(bicubic(np.asarray(products.image.data, dtype=np.float64), scale), True)
-            for name in self.names:
-                out[f"bicubic_{name}"] = funcs[name](ref, bic)
+            out.update(self.score(ref, bic, reference, prefix="bicubic_"))
             if "psnr" in self.names:
                 out["upscale_gain_db"] = out["upscale_psnr"] - out["bicubic_psnr"]
         return out
