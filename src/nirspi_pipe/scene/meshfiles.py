@@ -324,7 +324,10 @@ def _ply_ascii(body: bytes, elements: list[tuple[str, int, list[tuple[str, ...]]
 def _numbers(text: bytes, expected: int, where: str, what: str) -> np.ndarray:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        vals = np.fromstring(text.decode("latin1"), dtype=np.float64, sep=" ")
+        try:  # unmatched data: a DeprecationWarning in older numpy, a ValueError in newer
+            vals = np.fromstring(text.decode("latin1"), dtype=np.float64, sep=" ")
+        except ValueError:
+            raise _fail(where, f"{what} rows: a value that is not a number (a malformed row)") from None
     if vals.size != expected:
         raise _fail(where, f"{what} rows: expected {expected} numbers, read {vals.size} (a malformed row)")
     return vals
