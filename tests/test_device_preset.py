@@ -48,3 +48,23 @@ def test_noise_free_device_run_is_exact_at_8_and_resolution_limited_at_32(klux: 
     up = out.metrics["upscale_psnr"]
     assert np.isfinite(up) and 10.0 < up < 60.0
     assert out.products.upscaled.data.shape == (32, 32)
+
+
+@pytest.mark.parametrize(
+    ("mechanism", "detector", "fog", "light"),
+    [("none", "Ideal", False, False), ("additive", "Photodiode", False, False), ("fog_trend", "Ideal", True, False),
+     ("led_droop", "Ideal", False, False), ("flicker", "Ideal", False, True)],
+)
+def test_scan_order_mechanisms_switch_on_one_effect_each(mechanism: str, detector: str, fog: bool, light: bool) -> None:
+    """experiments/mechanism/*.yaml: each mechanism of the scan-order study on the device model, alone."""
+    cfg = _compose(["+experiment=scan_order", f"mechanism={mechanism}"])
+    assert cfg.camera.resolution == 8 and cfg.upscale.scale == 4
+    assert detector in cfg.source.effects.detector._target_
+    assert ("NoFog" not in cfg.fog._target_) is fog
+    assert ((cfg.illumination or {}).get("klux", 0.0) > 0) is light
+    if fog:
+        assert cfg.fog.trend_rel == pytest.approx(0.3)
+    if light:
+        assert cfg.illumination.flicker_rel == pytest.approx(0.05)
+    droop = cfg.source.effects.get("led_droop_rel", 0.0) or 0.0
+    assert (droop != 0.0) is (mechanism == "led_droop")
