@@ -243,6 +243,8 @@ class NirspiSweeperBase(Sweeper):
 
         self.hydra_context = hydra_context
         self.config = config
+        if "slurm" in str(config.hydra.launcher.get("_target_", "")).lower():
+            quiet_sacct_without_accounting()
         self.launcher = Plugins.instance().instantiate_launcher(
             hydra_context=hydra_context, task_function=task_function, config=config
         )
@@ -471,6 +473,43 @@ class NirspiSweeperBase(Sweeper):
                       f"{first[0] if first else ''}", file=sys.stderr, flush=True)
                 return True
         return False
+
+
+class _DropSacctNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Bypassing sacct error" not in record.getMessage()
+
+
+def quiet_sacct_without_accounting() -> bool:
+    """On a SLURM cluster without accounting, ``sacct`` fails on every poll and submitit warns
+    each time ("Bypassing sacct error", plus sacct's own "accounting storage is disabled" on
+    stderr). Detect that once, say it in one line, drop those warnings and run ``sacct`` through a
+    shim that silences its stderr (first on ``PATH`` of the sweeping process only). Job states
+    then come from submitit's result files, which is all the sweep needs. True when quieted."""
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    sacct = shutil.which("sacct")
+    if sacct is None:
+        return False
+    try:
+        probe = subprocess.run([sacct, "-n", "-X", "-j", "1", "-o", "JobID"], capture_output=True, text=True,
+                               timeout=20, stdin=subprocess.DEVNULL)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    if "accounting storage is disabled" not in (probe.stderr or "").lower():
+        return False
+    shim_dir = Path(tempfile.mkdtemp(prefix="nirspi-sacct-"))
+    shim = shim_dir / "sacct"
+    shim.write_text(f'#!/bin/sh\nexec "{sacct}" "$@" 2>/dev/null\n')
+    shim.chmod(0o755)
+    os.environ["PATH"] = f"{shim_dir}{os.pathsep}{os.environ.get('PATH', '')}"
+    logging.getLogger("submitit").addFilter(_DropSacctNoise())
+    print("nirspi-run: this SLURM cluster keeps no accounting (sacct): job states come from the "
+          "result files", flush=True)
+    return True
 
 
 def _written_since(path: Path, reference: Path) -> bool:
