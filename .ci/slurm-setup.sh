@@ -49,6 +49,8 @@ SelectType=select/cons_tres
 SelectTypeParameters=CR_Core_Memory
 ReturnToService=2
 MpiDefault=none
+# bind every daemon to its own address (127.0.0.1), not to all interfaces
+CommunicationParameters=NoCtldInAddrAny,NoInAddrAny
 StateSaveLocation=/var/spool/slurmctld
 SlurmdSpoolDir=/var/spool/slurmd
 SlurmctldPidFile=/run/slurmctld.pid

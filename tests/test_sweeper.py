@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
 from nirspi_pipe.sweeper import subdir_override
@@ -18,8 +19,6 @@ def test_hex_job_keys_stay_strings() -> None:
 
 
 # -- job keys come from Hydra's own composition -------------------------------------------------
-
-import pytest  # noqa: E402
 
 
 def _experiments() -> list[str]:

@@ -495,8 +495,8 @@ def quiet_sacct_without_accounting() -> bool:
     if sacct is None:
         return False
     try:
-        probe = subprocess.run([sacct, "-n", "-X", "-j", "1", "-o", "JobID"], capture_output=True, text=True,
-                               timeout=20, stdin=subprocess.DEVNULL)
+        probe = subprocess.run([sacct, "-n", "-X", "-j", "1", "-o", "JobID"], check=False, capture_output=True,
+                               text=True, timeout=20, stdin=subprocess.DEVNULL)
     except (OSError, subprocess.SubprocessError):
         return False
     if "accounting storage is disabled" not in (probe.stderr or "").lower():
