@@ -112,3 +112,9 @@ def test_slurm_sweep_cancelled_half_way_resumes_to_the_local_metrics(tmp_path: P
     assert len(on_slurm) == 6 and list(on_slurm.index) == list(here.index)  # same job keys
     assert (pd.read_parquet(sweep / "results.parquet")["status"] == "ok").all()
     pd.testing.assert_frame_equal(on_slurm, here, check_exact=True)
+
+
+def test_the_skip_names_what_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    reason = _slurm_unavailable()
+    assert reason is not None and "sinfo" in reason and ".ci/slurm-setup.sh" in reason
