@@ -9,7 +9,11 @@
 # SIGILL) is skipped, loudly. OpenBLAS maps some names to the same kernels (Zen -> Haswell): each
 # distinct set runs once. The plain (auto-detected) set is the one `pytest` already checked.
 set -uo pipefail
+# NIRSPI_CI_SWEEPS: folder for the sweeps (default: a new temporary one); NIRSPI_CI_REFERENCE: the
+# reference folder to check against (default: the installed experiments/reference/ci).
 out=${NIRSPI_CI_SWEEPS:-$(mktemp -d -t nirspi-cpus-XXXX)}
+ref_args=()
+if [ -n "${NIRSPI_CI_REFERENCE:-}" ]; then ref_args=(--reference "$NIRSPI_CI_REFERENCE"); fi
 export OPENBLAS_NUM_THREADS=1
 
 blas_core() {  # the kernel set OpenBLAS really uses for OPENBLAS_CORETYPE=$1 (empty: it crashed)
@@ -27,7 +31,7 @@ check_one() {  # name, then env assignments
     echo "!!! the paper_ci sweep failed under $name: tail of $out/$name.log"; tail -5 "$out/$name.log"
     failed+=("$name"); return
   fi
-  env "$@" python -m nirspi_pipe.reproduce check "$out/$name" || failed+=("$name")
+  env "$@" python -m nirspi_pipe.reproduce check "$out/$name" "${ref_args[@]}" || failed+=("$name")
 }
 
 for want in Haswell SkylakeX Zen Sandybridge Prescott; do
