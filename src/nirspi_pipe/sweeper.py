@@ -27,13 +27,14 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import math
 import re
 import sys
 import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.plugins.sweeper import Sweeper
@@ -72,10 +73,10 @@ _KEY = re.compile(r"^[0-9a-f]{16}$")
 def _resolved(job_cfg: Any) -> dict[str, Any]:
     from omegaconf.errors import InterpolationResolutionError
 
-    plain = OmegaConf.to_container(job_cfg, resolve=False)
+    plain = cast("dict[str, Any]", OmegaConf.to_container(job_cfg, resolve=False))
     plain.pop("hydra", None)
     try:
-        return OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+        return cast("dict[str, Any]", OmegaConf.to_container(OmegaConf.create(plain), resolve=True))
     except InterpolationResolutionError as exc:
         raise ValueError(
             "a job config interpolates ${hydra:...} outside the hydra node, so it cannot be keyed "
@@ -202,9 +203,9 @@ def progress_line(sweep_dir: Path) -> str | None:
     eta = elapsed / done * (total - done) if done else float("nan")
 
     def hms(s: float) -> str:
-        if s != s:  # NaN
+        if math.isnan(s):
             return "?"
-        s = int(round(s))
+        s = round(s)
         return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
 
     skipped = sum(bool(j.get("skipped")) and not j.get("duplicate") for j in info["jobs"])
@@ -270,8 +271,8 @@ class NirspiSweeperBase(Sweeper):
         jobs: list[list[str]] = []
         for name in self.experiments:
             sub = loader.load_sweep_config(self.config, [f"+experiment={name}", *shared])
-            params = OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False)
-            params = {str(k): str(v) for k, v in params.items()}
+            raw = cast("dict[Any, Any]", OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False))
+            params = {str(k): str(v) for k, v in raw.items()}
             jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))
         return jobs
 
@@ -388,13 +389,13 @@ class NirspiSweeperBase(Sweeper):
         for overrides, key in zip(grid, keys, strict=True):
             job: dict[str, Any] = {"overrides": overrides}
             if isinstance(key, Exception):
-                exc, key = key, config_hash({"uncomposable": overrides})
+                failure, key = key, config_hash({"uncomposable": overrides})
                 job.update(key=key, skipped=False, launched=False, uncomposable=True)
                 if key not in seen:
                     n_bad += 1
-                    message = self._compose_failure(overrides, exc)
+                    message = self._compose_failure(overrides, failure)
                     log.error("%s", message)
-                    _record_uncomposable(sweep_dir / key, overrides, message, type(exc).__name__)
+                    _record_uncomposable(sweep_dir / key, overrides, message, type(failure).__name__)
             else:
                 status = _record_status(sweep_dir / key)
                 skipped = self.resume and status == "ok"
