@@ -2,10 +2,20 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
+import pytest
 
-from nirspi_pipe.reproduce import compare_tables, is_timing_column
+from nirspi_pipe.reproduce import (
+    _tolerances,
+    check,
+    compare_tables,
+    is_timing_column,
+    reference_dir,
+)
 
 
 def test_timing_columns_are_excluded() -> None:
@@ -29,3 +39,60 @@ def test_numeric_tolerance_and_text_differences_are_reported() -> None:
 def test_all_nan_columns_compare_equal() -> None:
     ref = pd.DataFrame({"scan": ["basic"], "skew": [np.nan]})
     assert compare_tables(ref.copy(), ref, rtol=1e-6, atol=0) == []
+
+
+# -- the check catches a real change (issue 12) --------------------------------------------------
+
+def _fake_sweep(tmp_path: Path) -> tuple[Path, Path]:
+    """A sweep whose tables are the committed references, and a copy of the reference folder."""
+    ref = tmp_path / "ref"
+    shutil.copytree(reference_dir(), ref)
+    tables = tmp_path / "sweep" / "tables"
+    tables.mkdir(parents=True)
+    for csv in ref.glob("*.csv"):
+        shutil.copyfile(csv, tables / csv.name)
+    return tmp_path / "sweep", ref
+
+
+def test_every_compared_cell_catches_a_one_percent_change(tmp_path: Path) -> None:
+    """The tolerances are tight enough that moving any compared, non-zero number of any reference
+    table by 1 % fails the check (and the unmodified tables pass)."""
+    sweep, ref = _fake_sweep(tmp_path)
+    assert all(not problems for problems in check(sweep, ref).values())
+    moved = 0
+    for csv in sorted(ref.glob("*.csv")):
+        frame = pd.read_csv(csv)
+        for col in frame.columns:
+            if is_timing_column(col) or not pd.api.types.is_numeric_dtype(frame[col]):
+                continue
+            for i in np.flatnonzero(np.isfinite(frame[col].to_numpy(float)) & (frame[col] != 0).to_numpy()):
+                new = frame.astype({col: float})
+                new.loc[i, col] = float(frame.loc[i, col]) * 1.01
+                rtol, atol = _tolerances(ref, csv.stem)
+                problems = compare_tables(new, frame, rtol, atol)
+                assert len(problems) == 1 and col in problems[0], (csv.name, col, i, problems)
+                moved += 1
+    assert moved > 100  # the check above ran over the real tables
+
+
+@pytest.mark.slow
+def test_a_one_percent_change_of_plancks_constant_fails_the_table3_check(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One CI job of Table 3 (basic scan, 5 kLux, sphere, seed 0), run as shipped and with the
+    Planck constant of the photon budget 1 % larger (1 % fewer signal photons per watt): the
+    Table 3 cells it feeds (depth RMSE of SFS and fused depth, improvement, Eq. 16/17) move by
+    more than Table 3's stated tolerance, so the CI check would fail."""
+    from hydra import compose, initialize_config_module
+
+    from nirspi_pipe.physics import budget
+    from nirspi_pipe.pipeline import run_pipeline
+
+    overrides = ["+experiment=table3_ci", "scan=basic", "illumination.klux=5", "scene=sphere", "seed=0"]
+    with initialize_config_module(config_module="nirspi_pipe.conf", version_base="1.3"):
+        cfg = compose("config", overrides)
+    cols = ["depth_rmse_sfs_mm", "depth_rmse_fused_mm", "improvement_pct"]
+    nominal = pd.DataFrame([{c: run_pipeline(cfg).metrics[c] for c in cols}])
+    monkeypatch.setattr(budget, "H_PLANCK", budget.H_PLANCK * 1.01)
+    changed = pd.DataFrame([{c: run_pipeline(cfg).metrics[c] for c in cols}])
+    rtol, atol = _tolerances(reference_dir(), "table3")
+    problems = compare_tables(changed, nominal, rtol, atol)
+    assert problems, (nominal, changed, rtol)

@@ -33,7 +33,9 @@ def _cfg(*overrides: str):
     from hydra import compose, initialize_config_module
 
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        return compose("config", overrides=list(overrides))
+        # noise-free and 64², whatever the default run is (conf/config.yaml)
+        return compose("config", overrides=["fog=none", "illumination=none", "detector=ideal",
+                                            "camera.resolution=64", *overrides])
 
 
 # -- the shape set end to end ---------------------------------------------------------------------

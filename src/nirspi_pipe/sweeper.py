@@ -27,13 +27,14 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import math
 import re
 import sys
 import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.plugins.sweeper import Sweeper
@@ -72,10 +73,10 @@ _KEY = re.compile(r"^[0-9a-f]{16}$")
 def _resolved(job_cfg: Any) -> dict[str, Any]:
     from omegaconf.errors import InterpolationResolutionError
 
-    plain = OmegaConf.to_container(job_cfg, resolve=False)
+    plain = cast("dict[str, Any]", OmegaConf.to_container(job_cfg, resolve=False))
     plain.pop("hydra", None)
     try:
-        return OmegaConf.to_container(OmegaConf.create(plain), resolve=True)
+        return cast("dict[str, Any]", OmegaConf.to_container(OmegaConf.create(plain), resolve=True))
     except InterpolationResolutionError as exc:
         raise ValueError(
             "a job config interpolates ${hydra:...} outside the hydra node, so it cannot be keyed "
@@ -202,9 +203,9 @@ def progress_line(sweep_dir: Path) -> str | None:
     eta = elapsed / done * (total - done) if done else float("nan")
 
     def hms(s: float) -> str:
-        if s != s:  # NaN
+        if math.isnan(s):
             return "?"
-        s = int(round(s))
+        s = round(s)
         return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
 
     skipped = sum(bool(j.get("skipped")) and not j.get("duplicate") for j in info["jobs"])
@@ -243,6 +244,8 @@ class NirspiSweeperBase(Sweeper):
 
         self.hydra_context = hydra_context
         self.config = config
+        if "slurm" in str(config.hydra.launcher.get("_target_", "")).lower():
+            quiet_sacct_without_accounting()
         self.launcher = Plugins.instance().instantiate_launcher(
             hydra_context=hydra_context, task_function=task_function, config=config
         )
@@ -268,8 +271,8 @@ class NirspiSweeperBase(Sweeper):
         jobs: list[list[str]] = []
         for name in self.experiments:
             sub = loader.load_sweep_config(self.config, [f"+experiment={name}", *shared])
-            params = OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False)
-            params = {str(k): str(v) for k, v in params.items()}
+            raw = cast("dict[Any, Any]", OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False))
+            params = {str(k): str(v) for k, v in raw.items()}
             jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))
         return jobs
 
@@ -386,13 +389,13 @@ class NirspiSweeperBase(Sweeper):
         for overrides, key in zip(grid, keys, strict=True):
             job: dict[str, Any] = {"overrides": overrides}
             if isinstance(key, Exception):
-                exc, key = key, config_hash({"uncomposable": overrides})
+                failure, key = key, config_hash({"uncomposable": overrides})
                 job.update(key=key, skipped=False, launched=False, uncomposable=True)
                 if key not in seen:
                     n_bad += 1
-                    message = self._compose_failure(overrides, exc)
+                    message = self._compose_failure(overrides, failure)
                     log.error("%s", message)
-                    _record_uncomposable(sweep_dir / key, overrides, message, type(exc).__name__)
+                    _record_uncomposable(sweep_dir / key, overrides, message, type(failure).__name__)
             else:
                 status = _record_status(sweep_dir / key)
                 skipped = self.resume and status == "ok"
@@ -471,6 +474,43 @@ class NirspiSweeperBase(Sweeper):
                       f"{first[0] if first else ''}", file=sys.stderr, flush=True)
                 return True
         return False
+
+
+class _DropSacctNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Bypassing sacct error" not in record.getMessage()
+
+
+def quiet_sacct_without_accounting() -> bool:
+    """On a SLURM cluster without accounting, ``sacct`` fails on every poll and submitit warns
+    each time ("Bypassing sacct error", plus sacct's own "accounting storage is disabled" on
+    stderr). Detect that once, say it in one line, drop those warnings and run ``sacct`` through a
+    shim that silences its stderr (first on ``PATH`` of the sweeping process only). Job states
+    then come from submitit's result files, which is all the sweep needs. True when quieted."""
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    sacct = shutil.which("sacct")
+    if sacct is None:
+        return False
+    try:
+        probe = subprocess.run([sacct, "-n", "-X", "-j", "1", "-o", "JobID"], check=False, capture_output=True,
+                               text=True, timeout=20, stdin=subprocess.DEVNULL)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    if "accounting storage is disabled" not in (probe.stderr or "").lower():
+        return False
+    shim_dir = Path(tempfile.mkdtemp(prefix="nirspi-sacct-"))
+    shim = shim_dir / "sacct"
+    shim.write_text(f'#!/bin/sh\nexec "{sacct}" "$@" 2>/dev/null\n')
+    shim.chmod(0o755)
+    os.environ["PATH"] = f"{shim_dir}{os.pathsep}{os.environ.get('PATH', '')}"
+    logging.getLogger("submitit").addFilter(_DropSacctNoise())
+    print("nirspi-run: this SLURM cluster keeps no accounting (sacct): job states come from the "
+          "result files", flush=True)
+    return True
 
 
 def _written_since(path: Path, reference: Path) -> bool:
