@@ -1,4 +1,4 @@
-"""The device preset (+preset=device, issue 11): the paper's 8 x 8 LED camera with FSRCNN x4, and
+"""The device preset (preset=device, issue 11): the paper's 8 x 8 LED camera with FSRCNN x4, and
 the 64² study reachable from the same experiments with '~preset' camera.resolution=64."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ def _compose(overrides: list[str]):
 
 
 def test_device_preset_is_the_papers_camera() -> None:
-    cfg = _compose(["+preset=device"])
+    cfg = _compose(["preset=device"])
     assert cfg.camera.resolution == 8  # §3: an array of 8 x 8 NIR LEDs
     assert cfg.camera.fov_deg == pytest.approx(20.0)  # Table 1: alpha_FOV = 10° half angle
     assert cfg.upscale.scale == 4 and "fsrcnn" in cfg.upscale._target_.lower()
@@ -39,7 +39,7 @@ def test_noise_free_device_run_is_exact_at_8_and_resolution_limited_at_32(klux: 
     PSNR cap (an exact reconstruction after the gain/offset normalisation), and the x4 upscaled
     image is limited by resolution alone: finite, and far below the cap (docs/paper.md, Figure 9)."""
     cfg = _compose([
-        "+preset=device", "detector=ideal", "fog=chamber", "illumination=klux", f"illumination.klux={klux}",
+        "preset=device", "detector=ideal", "fog=chamber", "illumination=klux", f"illumination.klux={klux}",
         "metrics=upscale", "scene=sphere", "seed=0",
     ])
     out = run_pipeline(cfg)
