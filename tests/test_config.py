@@ -69,9 +69,16 @@ def test_experiments_compose() -> None:
 
 
 def test_default_config_has_null_optional_stages() -> None:
+    """The default is the paper's 2D device: FSRCNN x4 on, the 3D stages off; preset=null drops
+    the super-resolution too (the 64² study)."""
     cfg = _compose([])
-    for g in ("upscale", "sfs", "itof", "fusion", "surface"):
+    assert cfg.camera.resolution == 8 and cfg.upscale.scale == 4
+    for g in ("sfs", "itof", "fusion", "surface"):
         assert cfg.get(g) is None
+    study = _compose(["preset=off"])
+    assert study.camera.resolution == 64
+    for g in ("upscale", "sfs", "itof", "fusion", "surface"):
+        assert study.get(g) is None
     assert set(STAGE_GROUPS) >= {"scene", "source", "scan", "solver", "metrics"}
 
 
@@ -143,7 +150,8 @@ def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
     for group in REQUIRED_GROUPS:
         _, problem = rewrite_nulls([f"{group}=null"])
         assert problem is not None and problem.startswith(f"{group}=null is not allowed") and "allowed:" in problem
-    for group in ("scene", "fog", "illumination", "detector", "upscale", "sfs", "itof", "fusion", "surface", "metrics"):
+    for group in ("scene", "fog", "illumination", "detector", "upscale", "sfs", "itof", "fusion", "surface", "metrics",
+                  "preset"):
         assert OFF_OPTION in group_options(group), group
         assert _compose([f"{group}={OFF_OPTION}"]).get(group) is None
 

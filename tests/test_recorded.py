@@ -179,12 +179,12 @@ def test_match_hadamard_rejects_near_misses() -> None:
 
 
 def test_resolution_mismatch_warns_and_uses_the_file(tmp_path: Path) -> None:
-    n = 8
+    n = 16
     img = sphere(n)
     path = save_recording(tmp_path / "f.npz", measurements=fwht2(img).ravel(), basis="hadamard", resolution=n, split="differential", indices=np.arange(n * n), image=img)
-    out = run_pipeline(config("source=recorded", f"source.path={path}"))  # camera.resolution=64
-    assert out.products.image.data.shape == (8, 8) and out.metrics["rmse"] < 1e-12
-    assert any("camera.resolution=8" in w for w in out.warnings)
+    out = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=64"))
+    assert out.products.image.data.shape == (16, 16) and out.metrics["rmse"] < 1e-12
+    assert any("camera.resolution=16" in w for w in out.warnings)
 
 
 # --- bad input ---------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ def _cfg(*overrides: str):
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         # noise-free and 64², whatever the default run is (conf/config.yaml)
         return compose("config", overrides=["fog=none", "illumination=none", "detector=ideal",
-                                            "camera.resolution=64", *overrides])
+                                            "preset=null", *overrides])
 
 
 # -- the shape set end to end ---------------------------------------------------------------------
