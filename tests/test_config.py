@@ -7,7 +7,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.pipeline import STAGE_GROUPS, build
+from nirspi_pipe.pipeline import EFFECT_GROUPS, STAGE_GROUPS, build
 from nirspi_pipe.validate import check_overrides, config_groups, group_options
 
 CONFIG_MODULE = "nirspi_pipe.conf"
@@ -31,7 +31,8 @@ def test_groups_are_discovered() -> None:
 
 @pytest.mark.parametrize(("group", "option"), _options())
 def test_every_option_composes_and_instantiates(group: str, option: str) -> None:
-    cfg = _compose([f"{group}={option}"])
+    # Groups outside the primary defaults list (mechanism, preset: @package _global_) are added.
+    cfg = _compose([f"{'' if group in STAGE_GROUPS or group in EFFECT_GROUPS else '+'}{group}={option}"])
     node = cfg.get(group)
     if node is None:  # an explicit "off" option
         return

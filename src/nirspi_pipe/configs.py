@@ -1,5 +1,16 @@
-"""The config catalogue, through Hydra's public API only: which groups and options exist, and
-composing a config (the runner's side; no stage imports this module).
+"""The config catalogue, through Hydra's public API only: which groups and options exist, the
+schemas that make the stages' Python signatures the one source of config defaults, and composing
+a config (the runner's side; no stage imports this module).
+
+**Defaults live in Python.** The defaults of a config option are the defaults of its ``_target_``
+(the dataclass fields, or the signature's parameters). :func:`register_schemas` reads every
+option file ``<group>/<option>.yaml`` of a config package whose defaults list names
+``/schema/<group>/<option>@_here_`` and stores, in Hydra's public ``ConfigStore``, the node
+``schema/<group>/<option>``: every field of the target with its default (:func:`schema_defaults`).
+The option file then keeps only its ``_target_`` and the values that differ from the target's
+defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
+Types come from the same annotations: the runner checks them before building a stage
+(:func:`nirspi_pipe.pipeline.check_types`), and a wrong type reads like a wrong value.
 
 Group and option listings go through ``hydra.initialize_config_module`` and the public
 :class:`hydra.core.config_loader.ConfigLoader` interface of ``GlobalHydra``; when a Hydra app is
@@ -10,6 +21,9 @@ registers a public ``SearchPathPlugin``).
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
@@ -18,13 +32,158 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "CONFIG_MODULE", "CONFIG_NAME", "group_options", "config_groups", "all_groups", "scan_indices", "render_scene",
+    "CONFIG_MODULE", "CONFIG_NAME", "SCHEMA_GROUP", "group_options", "config_groups", "all_groups", "scan_indices",
+    "render_scene", "locate", "schema_defaults", "register_schemas", "schema_reference",
 ]
+
+log = logging.getLogger("nirspi_pipe.configs")
 
 #: The package holding the primary config and its groups.
 CONFIG_MODULE = "nirspi_pipe.conf"
 #: The primary config's name.
 CONFIG_NAME = "config"
+#: The ConfigStore group holding the generated defaults: ``schema/<group>/<option>``.
+SCHEMA_GROUP = "schema"
+#: A dataclass field with ``metadata={CONFIG_FIELD: False}`` is set by the runner, not a config key
+#: (``Recorded.scan_indices``): it is left out of the schema.
+CONFIG_FIELD = "config"
+
+
+class _NotPlain(TypeError):
+    """A default that a config cannot spell (a callable, an arbitrary object)."""
+
+
+def _plain(value: Any) -> Any:
+    """A default as a config value: scalars as they are, tuples as lists, a dataclass instance as
+    a node with its ``_target_`` and its own fields (``Photodiode.budget``)."""
+    import numpy as np
+
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        cls = type(value)
+        node: dict[str, Any] = {"_target_": f"{cls.__module__}.{cls.__qualname__}"}
+        for f in _config_fields(cls):
+            node[f.name] = _plain(getattr(value, f.name))
+        return node
+    raise _NotPlain(type(value).__name__)
+
+
+def _config_fields(cls: Any) -> list[dataclasses.Field[Any]]:
+    return [f for f in dataclasses.fields(cls) if f.init and f.metadata.get(CONFIG_FIELD, True)]
+
+
+def schema_defaults(target: Any) -> dict[str, Any]:
+    """The config node of a ``_target_`` (a class or function, or its dotted path): every
+    parameter with its Python default (``???`` when it has none), in signature order. Parameters
+    whose default a config cannot spell, and dataclass fields marked
+    ``metadata={"config": False}``, are left out. Raises ``ImportError`` when the target does not
+    import."""
+    obj = locate(target) if isinstance(target, str) else target
+    if obj is None:
+        raise ImportError(f"_target_ {target} does not import")
+    items: list[tuple[str, Any]] = []
+    if dataclasses.is_dataclass(obj):
+        for f in _config_fields(obj):
+            if f.default is not dataclasses.MISSING:
+                items.append((f.name, f.default))
+            elif f.default_factory is not dataclasses.MISSING:
+                items.append((f.name, f.default_factory()))
+            else:
+                items.append((f.name, "???"))
+    else:
+        kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        for name, p in inspect.signature(obj).parameters.items():
+            if p.kind in kinds:
+                items.append((name, "???" if p.default is inspect.Parameter.empty else p.default))
+    out: dict[str, Any] = {}
+    for name, default in items:
+        try:
+            out[name] = _plain(default)
+        except _NotPlain:
+            continue
+    return out
+
+
+def locate(target: str) -> Any:
+    """The object a dotted path (``package.module.Name``) names, or None."""
+    import importlib
+
+    parts = target.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        try:
+            obj: Any = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return None
+        return obj
+    return None
+
+
+def schema_reference(group: str, option: str) -> str:
+    """The defaults-list entry an option file lists first: ``/schema/<group>/<option>@_here_``."""
+    return f"/{SCHEMA_GROUP}/{group}/{option}@_here_"
+
+
+def _option_files(conf_package: str) -> Iterator[tuple[str, str, Any]]:
+    """``(group, option, file)`` of every ``<group>/<option>.yaml`` below a config package."""
+    from importlib import resources
+
+    def walk(node: Any, group: str) -> Iterator[tuple[str, str, Any]]:
+        for entry in sorted(node.iterdir(), key=lambda e: e.name):
+            if entry.is_dir() and not entry.name.startswith(("_", ".")):
+                if not group and entry.name in ("hydra", SCHEMA_GROUP):
+                    continue
+                yield from walk(entry, f"{group}/{entry.name}" if group else entry.name)
+            elif group and entry.is_file() and entry.name.endswith(".yaml"):
+                yield group, entry.name[: -len(".yaml")], entry
+
+    yield from walk(resources.files(conf_package), "")
+
+
+def register_schemas(conf_package: str) -> list[str]:
+    """Store ``schema/<group>/<option>`` in Hydra's ``ConfigStore`` for every option file of
+    ``conf_package`` (a config package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list
+    names it (:func:`schema_reference`), generated from the option's ``_target_``
+    (:func:`schema_defaults`); a key the file sets to a node of its own (``source.effects``, with
+    its ``_target_`` and interpolations) is left to the file. Returns the names stored. A target that does not import gets an
+    empty schema (its run then fails on that import, naming it; the other options work)."""
+    import yaml
+    from hydra.core.config_store import ConfigStore
+
+    store = ConfigStore.instance()
+    stored: list[str] = []
+    for group, option, entry in _option_files(conf_package):
+        try:
+            raw = yaml.safe_load(entry.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError):
+            continue  # Hydra reports a broken file when it is composed
+        if not isinstance(raw, dict) or not isinstance(raw.get("_target_"), str):
+            continue
+        ref = schema_reference(group, option)
+        if ref not in [d for d in raw.get("defaults") or [] if isinstance(d, str)]:
+            continue
+        try:
+            node = schema_defaults(raw["_target_"])
+        except Exception as exc:  # noqa: BLE001 - one option's broken target must not stop the others
+            log.warning("%s/%s: no schema (%s: %s)", group, option, type(exc).__name__, exc)
+            node = {}
+        for key, value in raw.items():  # a node the file spells out (source.effects) is the file's alone
+            if isinstance(value, dict):
+                node.pop(key, None)
+        store.store(group=f"{SCHEMA_GROUP}/{group}", name=option, node=node, provider=conf_package)
+        stored.append(f"{group}/{option}")
+    return stored
 
 
 @contextmanager
@@ -55,7 +214,7 @@ def _catalogue() -> dict[str, tuple[str, ...]]:
         def walk(parent: str) -> None:
             for g in loader.get_group_options(parent, ObjectType.GROUP):
                 path = f"{parent}/{g}" if parent else g
-                if path == "hydra":
+                if path in ("hydra", SCHEMA_GROUP):
                     continue
                 found[path] = tuple(sorted(loader.get_group_options(path, ObjectType.CONFIG)))
                 walk(path)

@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 import numpy as np
 from omegaconf import DictConfig
 
+from nirspi_pipe.configs import locate
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
@@ -173,25 +174,6 @@ def _allowed_for(cls: Any, params: dict[str, Any], name: str, kinds: tuple[type,
     return fallback
 
 
-def _locate(target: str) -> Any:
-    """The object a ``_target_`` names (``package.module.Name``), or None; imports quietly."""
-    import importlib
-
-    parts = target.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        try:
-            for attr in parts[i:]:
-                obj = getattr(obj, attr)
-        except AttributeError:
-            return None
-        return obj
-    return None
-
-
 def _check_types(node: Any, key: str) -> None:
     """Scalar fields of every ``_target_`` dataclass in ``node`` have their annotated type; a
     string for a number (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming
@@ -215,7 +197,7 @@ def _check_types(node: Any, key: str) -> None:
         target = sub.get("_target_") if "_target_" in sub else None
         if not isinstance(target, str):
             return
-        fn = _locate(target)
+        fn = locate(target)
         if fn is None:
             return
         try:
