@@ -56,8 +56,6 @@ class _NotPlain(TypeError):
 def _plain(value: Any) -> Any:
     """A default as a config value: scalars as they are, tuples as lists, a dataclass instance as
     a node with its ``_target_`` and its own fields (``Photodiode.budget``)."""
-    import numpy as np
-
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
     if isinstance(value, np.generic):
@@ -151,38 +149,69 @@ def _option_files(conf_package: str) -> Iterator[tuple[str, str, Any]]:
     yield from walk(resources.files(conf_package), "")
 
 
+def _schema_node(target: str, where: str) -> dict[str, Any]:
+    try:
+        return schema_defaults(target)
+    except Exception as exc:  # noqa: BLE001 - one option's broken target must not stop the others
+        log.warning("%s: no schema (%s: %s)", where, type(exc).__name__, exc)
+        return {}
+
+
+def _nested(raw: dict[str, Any], node: dict[str, Any], where: str) -> dict[str, Any]:
+    """``node`` (a target's defaults) where the file sets a key to a node of its own: a node with
+    a ``_target_`` (``source.effects``) gets that target's defaults, recursively; any other node
+    is the file's alone."""
+    for key, value in raw.items():
+        if isinstance(value, dict) and isinstance(value.get("_target_"), str):
+            node[key] = _nested(value, _schema_node(value["_target_"], f"{where}.{key}"), f"{where}.{key}")
+        elif isinstance(value, dict):
+            node.pop(key, None)
+    return node
+
+
 def register_schemas(conf_package: str) -> list[str]:
     """Store ``schema/<group>/<option>`` in Hydra's ``ConfigStore`` for every option file of
     ``conf_package`` (a config package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list
     names it (:func:`schema_reference`), generated from the option's ``_target_``
-    (:func:`schema_defaults`); a key the file sets to a node of its own (``source.effects``, with
-    its ``_target_`` and interpolations) is left to the file. Returns the names stored. A target that does not import gets an
+    (:func:`schema_defaults`); a key the file sets to a node with a ``_target_`` of its own
+    (``source.effects``) gets that target's defaults in turn, so the file keeps only what differs
+    (there: the ``${fog}`` interpolations). A node ``<key>`` of the primary
+    config (``camera``) gets ``schema/<key>`` when the primary defaults list names
+    ``/schema/<key>@<key>``. Returns the names stored. A target that does not import gets an
     empty schema (its run then fails on that import, naming it; the other options work)."""
+    from importlib import resources
+
     import yaml
     from hydra.core.config_store import ConfigStore
 
     store = ConfigStore.instance()
     stored: list[str] = []
-    for group, option, entry in _option_files(conf_package):
+
+    def load(entry: Any) -> dict[str, Any] | None:
         try:
             raw = yaml.safe_load(entry.read_text(encoding="utf-8"))
         except (OSError, yaml.YAMLError):
-            continue  # Hydra reports a broken file when it is composed
-        if not isinstance(raw, dict) or not isinstance(raw.get("_target_"), str):
+            return None  # Hydra reports a broken file when it is composed
+        return raw if isinstance(raw, dict) else None
+
+    def listed(raw: dict[str, Any]) -> list[str]:
+        return [d for d in raw.get("defaults") or [] if isinstance(d, str)]
+
+    for group, option, entry in _option_files(conf_package):
+        raw = load(entry)
+        if raw is None or not isinstance(raw.get("_target_"), str) or schema_reference(group, option) not in listed(raw):
             continue
-        ref = schema_reference(group, option)
-        if ref not in [d for d in raw.get("defaults") or [] if isinstance(d, str)]:
-            continue
-        try:
-            node = schema_defaults(raw["_target_"])
-        except Exception as exc:  # noqa: BLE001 - one option's broken target must not stop the others
-            log.warning("%s/%s: no schema (%s: %s)", group, option, type(exc).__name__, exc)
-            node = {}
-        for key, value in raw.items():  # a node the file spells out (source.effects) is the file's alone
-            if isinstance(value, dict):
-                node.pop(key, None)
+        node = _nested(raw, _schema_node(raw["_target_"], f"{group}/{option}"), f"{group}/{option}")
         store.store(group=f"{SCHEMA_GROUP}/{group}", name=option, node=node, provider=conf_package)
         stored.append(f"{group}/{option}")
+    primary = resources.files(conf_package) / f"{CONFIG_NAME}.yaml"
+    raw = load(primary) if primary.is_file() else None
+    for key, value in (raw or {}).items():
+        if isinstance(value, dict) and isinstance(value.get("_target_"), str):
+            if f"/{SCHEMA_GROUP}/{key}@{key}" in listed(raw or {}):
+                store.store(group=SCHEMA_GROUP, name=str(key), node=_schema_node(value["_target_"], str(key)),
+                            provider=conf_package)
+                stored.append(str(key))
     return stored
 
 
