@@ -169,6 +169,16 @@ def _nested(raw: dict[str, Any], node: dict[str, Any], where: str) -> dict[str, 
     return node
 
 
+def _stored_by_another(store: Any, group: str, name: str, provider: str) -> bool:
+    """Whether ``group/name`` is already in the ConfigStore from another provider (a plugin must
+    not replace a built-in schema; the plugin's clash with the built-in option refuses it)."""
+    node: Any = store.repo
+    for part in group.split("/"):
+        node = node.get(part) if isinstance(node, dict) else None
+    entry = node.get(f"{name}.yaml") if isinstance(node, dict) else None
+    return entry is not None and getattr(entry, "provider", provider) != provider
+
+
 def register_schemas(conf_package: str) -> list[str]:
     """Store ``schema/<group>/<option>`` in Hydra's ``ConfigStore`` for every option file of
     ``conf_package`` (a config package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list
@@ -200,6 +210,9 @@ def register_schemas(conf_package: str) -> list[str]:
     for group, option, entry in _option_files(conf_package):
         raw = load(entry)
         if raw is None or not isinstance(raw.get("_target_"), str) or schema_reference(group, option) not in listed(raw):
+            continue
+        if _stored_by_another(store, f"{SCHEMA_GROUP}/{group}", option, conf_package):
+            log.warning("%s/%s: schema/%s/%s is registered by another package; not replaced", group, option, group, option)
             continue
         node = _nested(raw, _schema_node(raw["_target_"], f"{group}/{option}"), f"{group}/{option}")
         store.store(group=f"{SCHEMA_GROUP}/{group}", name=option, node=node, provider=conf_package)
