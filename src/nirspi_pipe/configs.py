@@ -9,8 +9,10 @@ option file ``<group>/<option>.yaml`` of a config package whose defaults list na
 ``schema/<group>/<option>``: every field of the target with its default (:func:`schema_defaults`).
 The option file then keeps only its ``_target_`` and the values that differ from the target's
 defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
-Types come from the same annotations: the runner checks them before building a stage
-(:func:`nirspi_pipe.pipeline.check_types`), and a wrong type reads like a wrong value.
+Types come from the same annotations (:func:`nirspi_pipe.pipeline.check_types`): ``nirspi-run``
+checks them before any job starts (:mod:`nirspi_pipe.validate`), the runner before it builds a
+stage, and a wrong type reads like a wrong value. docs/architecture.md, "Where defaults and
+types live", says why the schemas are plain nodes rather than typed structured configs.
 
 Group and option listings go through ``hydra.initialize_config_module`` and the public
 :class:`hydra.core.config_loader.ConfigLoader` interface of ``GlobalHydra``; when a Hydra app is
@@ -44,8 +46,9 @@ CONFIG_MODULE = "nirspi_pipe.conf"
 CONFIG_NAME = "config"
 #: The ConfigStore group holding the generated defaults: ``schema/<group>/<option>``.
 SCHEMA_GROUP = "schema"
-#: A dataclass field with ``metadata={CONFIG_FIELD: False}`` is set by the runner, not a config key
-#: (``Recorded.scan_indices``): it is left out of the schema.
+#: A dataclass field with ``metadata={CONFIG_FIELD: False}`` is left out of the schema: a field the
+#: runner sets (``Recorded.scan_indices``), or one that is not a key of its options unless an
+#: option sets it (``LaxFriedrichsSFS.slope_average``: sfs=second_order).
 CONFIG_FIELD = "config"
 
 
