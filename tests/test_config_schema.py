@@ -21,6 +21,7 @@ from nirspi_pipe.configs import (
     locate,
     register_schemas,
     schema_defaults,
+    schema_node,
     schema_reference,
 )
 
@@ -128,8 +129,6 @@ def test_the_composed_config_has_every_key_at_its_python_default() -> None:
 
 def test_a_new_python_default_reaches_the_config_without_touching_yaml(monkeypatch: pytest.MonkeyPatch) -> None:
     # The schema is generated from the signature: change the default, re-register, compose.
-    from hydra.core.config_store import ConfigStore
-
     from nirspi_pipe.scene import objects
 
     cls = objects.Sphere
@@ -142,7 +141,7 @@ def test_a_new_python_default_reaches_the_config_without_touching_yaml(monkeypat
     finally:
         monkeypatch.undo()
         register_schemas(CONFIG_MODULE)
-    assert ConfigStore.instance().load("schema/scene/sphere.yaml").node.diameter_mm == 50.0
+    assert schema_node("scene/sphere")["diameter_mm"] == 50.0
 
 
 def test_schema_defaults_spell_every_parameter() -> None:

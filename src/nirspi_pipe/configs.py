@@ -5,8 +5,9 @@ a config (the runner's side; no stage imports this module).
 **Defaults live in Python.** The defaults of a config option are the defaults of its ``_target_``
 (the dataclass fields, or the signature's parameters). :func:`register_schemas` reads every
 option file ``<group>/<option>.yaml`` of a config package whose defaults list names
-``/schema/<group>/<option>@_here_`` and stores, in Hydra's public ``ConfigStore``, the node
-``schema/<group>/<option>``: every field of the target with its default (:func:`schema_defaults`).
+``/schema/<group>/<option>@_here_`` and announces the node ``schema/<group>/<option>``: every
+field of the target with its default (:func:`schema_defaults`), served to Hydra by the config
+source :class:`SchemaSource` (public plugin API) and generated when first composed.
 The option file then keeps only its ``_target_`` and the values that differ from the target's
 defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
 Types come from the same annotations (:func:`nirspi_pipe.pipeline.check_types`): ``nirspi-run``
@@ -32,10 +33,14 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from hydra.core.object_type import ObjectType
+from hydra.plugins.config_source import ConfigLoadError, ConfigResult, ConfigSource
+from omegaconf import OmegaConf
 
 __all__ = [
     "CONFIG_MODULE", "CONFIG_NAME", "SCHEMA_GROUP", "group_options", "config_groups", "all_groups", "scan_indices",
-    "render_scene", "locate", "schema_defaults", "register_schemas", "schema_reference",
+    "render_scene", "locate", "schema_defaults", "schema_node", "register_schemas", "schema_reference",
+    "SchemaSource",
 ]
 
 log = logging.getLogger("nirspi_pipe.configs")
@@ -172,33 +177,41 @@ def _nested(raw: dict[str, Any], node: dict[str, Any], where: str) -> dict[str, 
     return node
 
 
-def _stored_by_another(store: Any, group: str, name: str, provider: str) -> bool:
-    """Whether ``group/name`` is already in the ConfigStore from another provider (a plugin must
-    not replace a built-in schema; the plugin's clash with the built-in option refuses it)."""
-    node: Any = store.repo
-    for part in group.split("/"):
-        node = node.get(part) if isinstance(node, dict) else None
-    entry = node.get(f"{name}.yaml") if isinstance(node, dict) else None
-    return entry is not None and getattr(entry, "provider", provider) != provider
+#: ``{"<group>/<option>": (provider package, the option file's content)}``: the schemas that
+#: :func:`register_schemas` announced. Generated on first load (:class:`SchemaSource`), cached.
+_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {}
+_GENERATED: dict[str, dict[str, Any]] = {}
+
+
+def schema_node(name: str) -> dict[str, Any]:
+    """The generated schema ``schema/<name>`` (``scene/sphere``; ``camera``), built on first use
+    from the option's ``_target_`` (only the options a run composes import their targets)."""
+    if name not in _GENERATED:
+        _, raw = _SCHEMAS[name]
+        _GENERATED[name] = _nested(raw, _schema_node(raw["_target_"], name), name)
+    return _GENERATED[name]
 
 
 def register_schemas(conf_package: str) -> list[str]:
-    """Store ``schema/<group>/<option>`` in Hydra's ``ConfigStore`` for every option file of
-    ``conf_package`` (a config package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list
-    names it (:func:`schema_reference`), generated from the option's ``_target_``
+    """Announce ``schema/<group>/<option>`` for every option file of ``conf_package`` (a config
+    package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list names it
+    (:func:`schema_reference`): the defaults of the option's ``_target_``
     (:func:`schema_defaults`); a key the file sets to a node with a ``_target_`` of its own
     (``source.effects``) gets that target's defaults in turn, so the file keeps only what differs
-    (there: the ``${fog}`` interpolations). A node ``<key>`` of the primary
-    config (``camera``) gets ``schema/<key>`` when the primary defaults list names
-    ``/schema/<key>@<key>``. Returns the names stored. A target that does not import gets an
-    empty schema (its run then fails on that import, naming it; the other options work)."""
+    (there: the ``${fog}`` interpolations). A node ``<key>`` of the primary config (``camera``)
+    gets ``schema/<key>`` when the primary defaults list names ``/schema/<key>@<key>``.
+
+    Hydra reads them through :class:`SchemaSource` (a public ``ConfigSource`` plugin; the
+    primary config puts ``nirspi-schema://`` on its ``hydra.searchpath``), which builds each on first load: targets are imported only
+    when their option is composed, and nothing is added to Hydra's ``ConfigStore`` (which Hydra
+    deep-copies for every composition). A name another package announced is not replaced.
+    Returns the names announced."""
     from importlib import resources
 
     import yaml
-    from hydra.core.config_store import ConfigStore
 
-    store = ConfigStore.instance()
-    stored: list[str] = []
+    _register_source()
+    announced: list[str] = []
 
     def load(entry: Any) -> dict[str, Any] | None:
         try:
@@ -210,25 +223,87 @@ def register_schemas(conf_package: str) -> list[str]:
     def listed(raw: dict[str, Any]) -> list[str]:
         return [d for d in raw.get("defaults") or [] if isinstance(d, str)]
 
+    def announce(name: str, raw: dict[str, Any]) -> None:
+        if name in _SCHEMAS and _SCHEMAS[name][0] != conf_package:
+            log.warning("schema/%s is announced by %s; %s does not replace it", name, _SCHEMAS[name][0], conf_package)
+            return
+        _SCHEMAS[name] = (conf_package, raw)
+        _GENERATED.pop(name, None)
+        announced.append(name)
+
     for group, option, entry in _option_files(conf_package):
         raw = load(entry)
-        if raw is None or not isinstance(raw.get("_target_"), str) or schema_reference(group, option) not in listed(raw):
-            continue
-        if _stored_by_another(store, f"{SCHEMA_GROUP}/{group}", option, conf_package):
-            log.warning("%s/%s: schema/%s/%s is registered by another package; not replaced", group, option, group, option)
-            continue
-        node = _nested(raw, _schema_node(raw["_target_"], f"{group}/{option}"), f"{group}/{option}")
-        store.store(group=f"{SCHEMA_GROUP}/{group}", name=option, node=node, provider=conf_package)
-        stored.append(f"{group}/{option}")
+        if raw is not None and isinstance(raw.get("_target_"), str) and schema_reference(group, option) in listed(raw):
+            announce(f"{group}/{option}", raw)
     primary = resources.files(conf_package) / f"{CONFIG_NAME}.yaml"
     raw = load(primary) if primary.is_file() else None
     for key, value in (raw or {}).items():
         if isinstance(value, dict) and isinstance(value.get("_target_"), str):
             if f"/{SCHEMA_GROUP}/{key}@{key}" in listed(raw or {}):
-                store.store(group=SCHEMA_GROUP, name=str(key), node=_schema_node(value["_target_"], str(key)),
-                            provider=conf_package)
-                stored.append(str(key))
-    return stored
+                announce(str(key), value)
+    return announced
+
+
+def _register_source() -> None:
+    from hydra.core.plugins import Plugins
+
+    Plugins.instance().register(SchemaSource)  # the scheme nirspi-schema:// (conf/config.yaml's hydra.searchpath)
+
+
+class SchemaSource(ConfigSource):
+    """Hydra config source ``nirspi-schema://``: serves ``schema/<group>/<option>`` from
+    :func:`schema_node`. It holds no configs itself (Hydra deep-copies its sources for every
+    composition), and it lists nothing at the top level, so ``schema`` is not shown as a group."""
+
+    @staticmethod
+    def scheme() -> str:
+        return "nirspi-schema"
+
+    def _name(self, config_path: str) -> str | None:
+        path = config_path.strip("/")
+        path = path[: -len(".yaml")] if path.endswith(".yaml") else path
+        return path[len(SCHEMA_GROUP) + 1:] if path.startswith(f"{SCHEMA_GROUP}/") else None
+
+    def load_config(self, config_path: str) -> ConfigResult:
+        name = self._name(config_path)
+        if name is None or name not in _SCHEMAS:
+            raise ConfigLoadError(f"schema not found: {config_path}")
+        return ConfigResult(
+            config=OmegaConf.create(schema_node(name)),
+            path=f"{self.scheme()}://{self.path}",
+            provider=_SCHEMAS[name][0],
+            header={"package": None},  # as a ConfigStore entry: the package the defaults list gives (_here_)
+        )
+
+    def available(self) -> bool:
+        return True
+
+    def is_group(self, config_path: str) -> bool:
+        path = config_path.strip("/")
+        if path == SCHEMA_GROUP:
+            return True
+        name = self._name(path)
+        return name is not None and any(k.startswith(name + "/") for k in _SCHEMAS)
+
+    def is_config(self, config_path: str) -> bool:
+        name = self._name(config_path)
+        return name is not None and name in _SCHEMAS
+
+    def list(self, config_path: str, results_filter: ObjectType | None) -> list[str]:
+        path = config_path.strip("/")
+        if path != SCHEMA_GROUP and not path.startswith(SCHEMA_GROUP + "/"):
+            return []  # not at the top level: the schemas are not config groups of their own
+        prefix = path[len(SCHEMA_GROUP) + 1:]
+        prefix = f"{prefix}/" if prefix else ""
+        out: set[str] = set()
+        for key in _SCHEMAS:
+            if key.startswith(prefix):
+                head, _, rest = key[len(prefix):].partition("/")
+                if rest and results_filter in (None, ObjectType.GROUP):
+                    out.add(head)
+                elif not rest and results_filter in (None, ObjectType.CONFIG):
+                    out.add(head)
+        return sorted(out)
 
 
 @contextmanager
