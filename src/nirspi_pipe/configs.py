@@ -49,7 +49,7 @@ log = logging.getLogger("nirspi_pipe.configs")
 CONFIG_MODULE = "nirspi_pipe.conf"
 #: The primary config's name.
 CONFIG_NAME = "config"
-#: The ConfigStore group holding the generated defaults: ``schema/<group>/<option>``.
+#: The config group of the generated defaults: ``schema/<group>/<option>`` (:class:`SchemaSource`).
 SCHEMA_GROUP = "schema"
 #: A dataclass field with ``metadata={CONFIG_FIELD: False}`` is left out of the schema: a field the
 #: runner sets (``Recorded.scan_indices``), or one that is not a key of its options unless an
