@@ -33,14 +33,16 @@ from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from hydra.core.config_search_path import ConfigSearchPath
 from hydra.core.object_type import ObjectType
 from hydra.plugins.config_source import ConfigLoadError, ConfigResult, ConfigSource
+from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import OmegaConf
 
 __all__ = [
     "CONFIG_MODULE", "CONFIG_NAME", "SCHEMA_GROUP", "group_options", "config_groups", "all_groups", "scan_indices",
     "render_scene", "locate", "schema_defaults", "schema_node", "register_schemas", "schema_reference",
-    "SchemaSource",
+    "SchemaSource", "SchemaSearchPath",
 ]
 
 log = logging.getLogger("nirspi_pipe.configs")
@@ -245,9 +247,15 @@ def register_schemas(conf_package: str) -> list[str]:
 
 
 def _register_source() -> None:
+    """Register :class:`SchemaSource` (the scheme ``nirspi-schema://``) and
+    :class:`SchemaSearchPath` with Hydra's public ``Plugins.register`` (idempotent). Done when
+    this module is imported, so that a search path replaced on the command line
+    (``hydra.searchpath=[…]``) keeps the schemas; the primary config lists the source too, for a
+    composition whose search path was made before this module was imported."""
     from hydra.core.plugins import Plugins
 
-    Plugins.instance().register(SchemaSource)  # the scheme nirspi-schema:// (conf/config.yaml's hydra.searchpath)
+    Plugins.instance().register(SchemaSource)
+    Plugins.instance().register(SchemaSearchPath)
 
 
 class SchemaSource(ConfigSource):
@@ -304,6 +312,17 @@ class SchemaSource(ConfigSource):
                 elif not rest and results_filter in (None, ObjectType.CONFIG):
                     out.add(head)
         return sorted(out)
+
+
+class SchemaSearchPath(SearchPathPlugin):
+    """Appends :class:`SchemaSource` to every Hydra search path made after this module is
+    imported (registered by :func:`_register_source`)."""
+
+    def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
+        search_path.append(provider="nirspi-schema", path=f"{SchemaSource.scheme()}://{CONFIG_MODULE}")
+
+
+_register_source()
 
 
 @contextmanager
