@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.pipeline import STAGE_GROUPS, build
+from nirspi_pipe.pipeline import EFFECT_GROUPS, STAGE_GROUPS, build
 from nirspi_pipe.validate import check_overrides, config_groups, group_options
 
 CONFIG_MODULE = "nirspi_pipe.conf"

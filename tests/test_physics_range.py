@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
+from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -16,8 +15,6 @@ from nirspi_pipe.physics.detector import Photodiode
 from nirspi_pipe.physics.fog import MieFog
 from nirspi_pipe.physics.range_model import calibrate, max_distance_m, paper_table2, snr
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
-
 
 @pytest.fixture(scope="module")
 def cal():
@@ -25,8 +22,10 @@ def cal():
 
 
 def test_config_defaults_are_the_calibration(cal):
-    det = yaml.safe_load((CONF / "detector" / "ingaas.yaml").read_text())
-    fog = yaml.safe_load((CONF / "fog" / "chamber.yaml").read_text())
+    # What a run uses: the composed config (the classes' defaults, through the option schemas).
+    with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
+        cfg = compose("config", overrides=["detector=ingaas", "fog=chamber"])
+    det, fog = cfg.detector, cfg.fog
     assert det["read_noise_e"] == pytest.approx(cal["read_noise_e"], rel=1e-3)
     assert fog["number_density_per_cm3"] == pytest.approx(cal["number_density_per_cm3"], rel=1e-3)
     assert Photodiode().read_noise_e == pytest.approx(det["read_noise_e"])

@@ -1,5 +1,19 @@
-"""The config catalogue, through Hydra's public API only: which groups and options exist, and
-composing a config (the runner's side; no stage imports this module).
+"""The config catalogue, through Hydra's public API only: which groups and options exist, the
+schemas that make the stages' Python signatures the one source of config defaults, and composing
+a config (the runner's side; no stage imports this module).
+
+**Defaults live in Python.** The defaults of a config option are the defaults of its ``_target_``
+(the dataclass fields, or the signature's parameters). :func:`register_schemas` reads every
+option file ``<group>/<option>.yaml`` of a config package whose defaults list names
+``/schema/<group>/<option>@_here_`` and announces the node ``schema/<group>/<option>``: every
+field of the target with its default (:func:`schema_defaults`), served to Hydra by the config
+source :class:`SchemaSource` (public plugin API) and generated when first composed.
+The option file then keeps only its ``_target_`` and the values that differ from the target's
+defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
+Types come from the same annotations (:func:`nirspi_pipe.pipeline.check_types`): ``nirspi-run``
+checks them before any job starts (:mod:`nirspi_pipe.validate`), the runner before it builds a
+stage, and a wrong type reads like a wrong value. docs/architecture.md, "Where defaults and
+types live", says why the schemas are plain nodes rather than typed structured configs.
 
 Group and option listings go through ``hydra.initialize_config_module`` and the public
 :class:`hydra.core.config_loader.ConfigLoader` interface of ``GlobalHydra``; when a Hydra app is
@@ -10,21 +24,305 @@ registers a public ``SearchPathPlugin``).
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
 from typing import Any
 
 import numpy as np
+from hydra.core.config_search_path import ConfigSearchPath
+from hydra.core.object_type import ObjectType
+from hydra.plugins.config_source import ConfigLoadError, ConfigResult, ConfigSource
+from hydra.plugins.search_path_plugin import SearchPathPlugin
+from omegaconf import OmegaConf
 
 __all__ = [
-    "CONFIG_MODULE", "CONFIG_NAME", "group_options", "config_groups", "all_groups", "scan_indices", "render_scene",
+    "CONFIG_MODULE", "CONFIG_NAME", "SCHEMA_GROUP", "group_options", "config_groups", "all_groups", "scan_indices",
+    "render_scene", "locate", "schema_defaults", "schema_node", "register_schemas", "schema_reference",
+    "SchemaSource", "SchemaSearchPath",
 ]
+
+log = logging.getLogger("nirspi_pipe.configs")
 
 #: The package holding the primary config and its groups.
 CONFIG_MODULE = "nirspi_pipe.conf"
 #: The primary config's name.
 CONFIG_NAME = "config"
+#: The config group of the generated defaults: ``schema/<group>/<option>`` (:class:`SchemaSource`).
+SCHEMA_GROUP = "schema"
+#: A dataclass field with ``metadata={CONFIG_FIELD: False}`` is left out of the schema: a field the
+#: runner sets (``Recorded.scan_indices``), or one that is not a key of its options unless an
+#: option sets it (``LaxFriedrichsSFS.slope_average``: sfs=second_order).
+CONFIG_FIELD = "config"
+
+
+class _NotPlain(TypeError):
+    """A default that a config cannot spell (a callable, an arbitrary object)."""
+
+
+def _plain(value: Any) -> Any:
+    """A default as a config value: scalars as they are, tuples as lists, a dataclass instance as
+    a node with its ``_target_`` and its own fields (``Photodiode.budget``)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        cls = type(value)
+        node: dict[str, Any] = {"_target_": f"{cls.__module__}.{cls.__qualname__}"}
+        for f in _config_fields(cls):
+            node[f.name] = _plain(getattr(value, f.name))
+        return node
+    raise _NotPlain(type(value).__name__)
+
+
+def _config_fields(cls: Any) -> list[dataclasses.Field[Any]]:
+    return [f for f in dataclasses.fields(cls) if f.init and f.metadata.get(CONFIG_FIELD, True)]
+
+
+def schema_defaults(target: Any) -> dict[str, Any]:
+    """The config node of a ``_target_`` (a class or function, or its dotted path): every
+    parameter with its Python default (``???`` when it has none), in signature order. Parameters
+    whose default a config cannot spell, and dataclass fields marked
+    ``metadata={"config": False}``, are left out. Raises ``ImportError`` when the target does not
+    import."""
+    obj = locate(target) if isinstance(target, str) else target
+    if obj is None:
+        raise ImportError(f"_target_ {target} does not import")
+    items: list[tuple[str, Any]] = []
+    if dataclasses.is_dataclass(obj):
+        for f in _config_fields(obj):
+            if f.default is not dataclasses.MISSING:
+                items.append((f.name, f.default))
+            elif f.default_factory is not dataclasses.MISSING:
+                items.append((f.name, f.default_factory()))
+            else:
+                items.append((f.name, "???"))
+    else:
+        kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        for name, p in inspect.signature(obj).parameters.items():
+            if p.kind in kinds:
+                items.append((name, "???" if p.default is inspect.Parameter.empty else p.default))
+    out: dict[str, Any] = {}
+    for name, default in items:
+        try:
+            out[name] = _plain(default)
+        except _NotPlain:
+            continue
+    return out
+
+
+def locate(target: str) -> Any:
+    """The object a dotted path (``package.module.Name``) names, or None."""
+    import importlib
+
+    parts = target.split(".")
+    for i in range(len(parts) - 1, 0, -1):
+        try:
+            obj: Any = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for attr in parts[i:]:
+                obj = getattr(obj, attr)
+        except AttributeError:
+            return None
+        return obj
+    return None
+
+
+def schema_reference(group: str, option: str) -> str:
+    """The defaults-list entry an option file lists first: ``/schema/<group>/<option>@_here_``."""
+    return f"/{SCHEMA_GROUP}/{group}/{option}@_here_"
+
+
+def _option_files(conf_package: str) -> Iterator[tuple[str, str, Any]]:
+    """``(group, option, file)`` of every ``<group>/<option>.yaml`` below a config package."""
+    from importlib import resources
+
+    def walk(node: Any, group: str) -> Iterator[tuple[str, str, Any]]:
+        for entry in sorted(node.iterdir(), key=lambda e: e.name):
+            if entry.is_dir() and not entry.name.startswith(("_", ".")):
+                if not group and entry.name in ("hydra", SCHEMA_GROUP):
+                    continue
+                yield from walk(entry, f"{group}/{entry.name}" if group else entry.name)
+            elif group and entry.is_file() and entry.name.endswith(".yaml"):
+                yield group, entry.name[: -len(".yaml")], entry
+
+    yield from walk(resources.files(conf_package), "")
+
+
+def _schema_node(target: str, where: str) -> dict[str, Any]:
+    try:
+        return schema_defaults(target)
+    except Exception as exc:  # noqa: BLE001 - one option's broken target must not stop the others
+        log.warning("%s: no schema (%s: %s)", where, type(exc).__name__, exc)
+        return {}
+
+
+def _nested(raw: dict[str, Any], node: dict[str, Any], where: str) -> dict[str, Any]:
+    """``node`` (a target's defaults) where the file sets a key to a node of its own: a node with
+    a ``_target_`` (``source.effects``) gets that target's defaults, recursively; any other node
+    is the file's alone."""
+    for key, value in raw.items():
+        if isinstance(value, dict) and isinstance(value.get("_target_"), str):
+            node[key] = _nested(value, _schema_node(value["_target_"], f"{where}.{key}"), f"{where}.{key}")
+        elif isinstance(value, dict):
+            node.pop(key, None)
+    return node
+
+
+#: ``{"<group>/<option>": (provider package, the option file's content)}``: the schemas that
+#: :func:`register_schemas` announced. Generated on first load (:class:`SchemaSource`), cached.
+_SCHEMAS: dict[str, tuple[str, dict[str, Any]]] = {}
+_GENERATED: dict[str, dict[str, Any]] = {}
+
+
+def schema_node(name: str) -> dict[str, Any]:
+    """The generated schema ``schema/<name>`` (``scene/sphere``; ``camera``), built on first use
+    from the option's ``_target_`` (only the options a run composes import their targets)."""
+    if name not in _GENERATED:
+        _, raw = _SCHEMAS[name]
+        _GENERATED[name] = _nested(raw, _schema_node(raw["_target_"], name), name)
+    return _GENERATED[name]
+
+
+def register_schemas(conf_package: str) -> list[str]:
+    """Announce ``schema/<group>/<option>`` for every option file of ``conf_package`` (a config
+    package: ``nirspi_pipe.conf``, or a plugin's) whose defaults list names it
+    (:func:`schema_reference`): the defaults of the option's ``_target_``
+    (:func:`schema_defaults`); a key the file sets to a node with a ``_target_`` of its own
+    (``source.effects``) gets that target's defaults in turn, so the file keeps only what differs
+    (there: the ``${fog}`` interpolations). A node ``<key>`` of the primary config (``camera``)
+    gets ``schema/<key>`` when the primary defaults list names ``/schema/<key>@<key>``.
+
+    Hydra reads them through :class:`SchemaSource` (a public ``ConfigSource`` plugin; the
+    primary config puts ``nirspi-schema://`` on its ``hydra.searchpath``), which builds each on first load: targets are imported only
+    when their option is composed, and nothing is added to Hydra's ``ConfigStore`` (which Hydra
+    deep-copies for every composition). A name another package announced is not replaced.
+    Returns the names announced."""
+    from importlib import resources
+
+    import yaml
+
+    _register_source()
+    announced: list[str] = []
+
+    def load(entry: Any) -> dict[str, Any] | None:
+        try:
+            raw = yaml.safe_load(entry.read_text(encoding="utf-8"))
+        except (OSError, yaml.YAMLError):
+            return None  # Hydra reports a broken file when it is composed
+        return raw if isinstance(raw, dict) else None
+
+    def listed(raw: dict[str, Any]) -> list[str]:
+        return [d for d in raw.get("defaults") or [] if isinstance(d, str)]
+
+    def announce(name: str, raw: dict[str, Any]) -> None:
+        if name in _SCHEMAS and _SCHEMAS[name][0] != conf_package:
+            log.warning("schema/%s is announced by %s; %s does not replace it", name, _SCHEMAS[name][0], conf_package)
+            return
+        _SCHEMAS[name] = (conf_package, raw)
+        _GENERATED.pop(name, None)
+        announced.append(name)
+
+    for group, option, entry in _option_files(conf_package):
+        raw = load(entry)
+        if raw is not None and isinstance(raw.get("_target_"), str) and schema_reference(group, option) in listed(raw):
+            announce(f"{group}/{option}", raw)
+    primary = resources.files(conf_package) / f"{CONFIG_NAME}.yaml"
+    raw = load(primary) if primary.is_file() else None
+    for key, value in (raw or {}).items():
+        if isinstance(value, dict) and isinstance(value.get("_target_"), str):
+            if f"/{SCHEMA_GROUP}/{key}@{key}" in listed(raw or {}):
+                announce(str(key), value)
+    return announced
+
+
+def _register_source() -> None:
+    """Register :class:`SchemaSource` (the scheme ``nirspi-schema://``) and
+    :class:`SchemaSearchPath` with Hydra's public ``Plugins.register`` (idempotent). Done when
+    this module is imported, so that a search path replaced on the command line
+    (``hydra.searchpath=[…]``) keeps the schemas; the primary config lists the source too, for a
+    composition whose search path was made before this module was imported."""
+    from hydra.core.plugins import Plugins
+
+    Plugins.instance().register(SchemaSource)
+    Plugins.instance().register(SchemaSearchPath)
+
+
+class SchemaSource(ConfigSource):
+    """Hydra config source ``nirspi-schema://``: serves ``schema/<group>/<option>`` from
+    :func:`schema_node`. It holds no configs itself (Hydra deep-copies its sources for every
+    composition), and it lists nothing at the top level, so ``schema`` is not shown as a group."""
+
+    @staticmethod
+    def scheme() -> str:
+        return "nirspi-schema"
+
+    def _name(self, config_path: str) -> str | None:
+        path = config_path.strip("/")
+        path = path[: -len(".yaml")] if path.endswith(".yaml") else path
+        return path[len(SCHEMA_GROUP) + 1:] if path.startswith(f"{SCHEMA_GROUP}/") else None
+
+    def load_config(self, config_path: str) -> ConfigResult:
+        name = self._name(config_path)
+        if name is None or name not in _SCHEMAS:
+            raise ConfigLoadError(f"schema not found: {config_path}")
+        return ConfigResult(
+            config=OmegaConf.create(schema_node(name)),
+            path=f"{self.scheme()}://{self.path}",
+            provider=_SCHEMAS[name][0],
+            header={"package": None},  # as a ConfigStore entry: the package the defaults list gives (_here_)
+        )
+
+    def available(self) -> bool:
+        return True
+
+    def is_group(self, config_path: str) -> bool:
+        path = config_path.strip("/")
+        if path == SCHEMA_GROUP:
+            return True
+        name = self._name(path)
+        return name is not None and any(k.startswith(name + "/") for k in _SCHEMAS)
+
+    def is_config(self, config_path: str) -> bool:
+        name = self._name(config_path)
+        return name is not None and name in _SCHEMAS
+
+    def list(self, config_path: str, results_filter: ObjectType | None) -> list[str]:
+        path = config_path.strip("/")
+        if path != SCHEMA_GROUP and not path.startswith(SCHEMA_GROUP + "/"):
+            return []  # not at the top level: the schemas are not config groups of their own
+        prefix = path[len(SCHEMA_GROUP) + 1:]
+        prefix = f"{prefix}/" if prefix else ""
+        out: set[str] = set()
+        for key in _SCHEMAS:
+            if key.startswith(prefix):
+                head, _, rest = key[len(prefix):].partition("/")
+                if rest and results_filter in (None, ObjectType.GROUP):
+                    out.add(head)
+                elif not rest and results_filter in (None, ObjectType.CONFIG):
+                    out.add(head)
+        return sorted(out)
+
+
+class SchemaSearchPath(SearchPathPlugin):
+    """Appends :class:`SchemaSource` to every Hydra search path made after this module is
+    imported (registered by :func:`_register_source`)."""
+
+    def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
+        search_path.append(provider="nirspi-schema", path=f"{SchemaSource.scheme()}://{CONFIG_MODULE}")
+
+
+_register_source()
 
 
 @contextmanager
@@ -55,7 +353,7 @@ def _catalogue() -> dict[str, tuple[str, ...]]:
         def walk(parent: str) -> None:
             for g in loader.get_group_options(parent, ObjectType.GROUP):
                 path = f"{parent}/{g}" if parent else g
-                if path == "hydra":
+                if path in ("hydra", SCHEMA_GROUP):
                     continue
                 found[path] = tuple(sorted(loader.get_group_options(path, ObjectType.CONFIG)))
                 walk(path)

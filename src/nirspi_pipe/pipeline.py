@@ -17,11 +17,12 @@ from typing import Any, TypeVar
 import numpy as np
 from omegaconf import DictConfig
 
+from nirspi_pipe.configs import locate
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
 
-__all__ = ["STAGE_GROUPS", "RunOutput", "build", "build_stages", "run_pipeline"]
+__all__ = ["STAGE_GROUPS", "RunOutput", "build", "build_stages", "check_types", "run_pipeline"]
 
 #: Config groups in pipeline order. ``camera`` is a plain node, not a group.
 STAGE_GROUPS = (
@@ -117,7 +118,7 @@ def build(node: DictConfig, key: str) -> Any:
     """
     from hydra.utils import instantiate
 
-    _check_types(node, key)
+    check_types(node, key)
     try:
         return instantiate(node, _convert_="all")
     except Exception as exc:  # noqa: BLE001 - translated below
@@ -173,26 +174,7 @@ def _allowed_for(cls: Any, params: dict[str, Any], name: str, kinds: tuple[type,
     return fallback
 
 
-def _locate(target: str) -> Any:
-    """The object a ``_target_`` names (``package.module.Name``), or None; imports quietly."""
-    import importlib
-
-    parts = target.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        try:
-            for attr in parts[i:]:
-                obj = getattr(obj, attr)
-        except AttributeError:
-            return None
-        return obj
-    return None
-
-
-def _check_types(node: Any, key: str) -> None:
+def check_types(node: Any, key: str) -> None:
     """Scalar fields of every ``_target_`` dataclass in ``node`` have their annotated type; a
     string for a number (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming
     the key and the stage's allowed values. The dataclass annotations are the source of types."""
@@ -215,7 +197,7 @@ def _check_types(node: Any, key: str) -> None:
         target = sub.get("_target_") if "_target_" in sub else None
         if not isinstance(target, str):
             return
-        fn = _locate(target)
+        fn = locate(target)
         if fn is None:
             return
         try:

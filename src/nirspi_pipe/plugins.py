@@ -297,7 +297,8 @@ def _load_one(ep: metadata.EntryPoint, builtin: set[tuple[str, str]]) -> PluginI
         value=ep.value,
         distribution=_distribution(ep),
         searchpath=paths,
-        options={g: sorted(o) for g, o in sorted(options.items())},
+        # its generated schemas (schema/<group>/<option>, nirspi_pipe.configs) are not options
+        options={g: sorted(o) for g, o in sorted(options.items()) if g.split("/", 1)[0] != "schema"},
     )
 
 

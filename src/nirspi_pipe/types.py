@@ -46,7 +46,7 @@ class Camera:
     fov_deg: float = 20.0
     #: False for a camera grid that no pattern is shown on (e.g. after ×3 upscaling): then any
     #: resolution from 2 to 16384 is allowed. See :meth:`resampled`.
-    patterned: bool = field(default=True, repr=False)
+    patterned: bool = field(default=True, repr=False, metadata={"config": False})  # set by resampled()
 
     def __post_init__(self) -> None:
         if self.patterned:

@@ -108,16 +108,19 @@ def check_overrides(args: list[str]) -> str | None:
 
 
 def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
-    """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones."""
+    """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones; then
+    values of the wrong type (``scene.distance_mm=abc``, also in a sweep list), in the words of a
+    wrong value."""
     from hydra import compose, initialize_config_module
     from omegaconf import DictConfig, OmegaConf
 
-    keys = [
-        ov.key_or_group
+    values = [
+        ov
         for ov in parsed
         if not ov.is_add() and not ov.is_delete() and not ov.is_force_add()
         and not ov.key_or_group.startswith("hydra") and not _group_exists(ov.key_or_group)
     ]
+    keys = [ov.key_or_group for ov in values]
     if not keys:
         return None
     try:
@@ -140,4 +143,43 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
             where = parent or "the top level"
             known = ", ".join(sorted(str(k) for k in node if str(k) != "_target_"))
             return f"{key} is not a key of {where}; allowed keys: {known} (or +{key}=... to add one)"
+    return _check_types(values, choices)
+
+
+def _check_types(values: list[Any], choices: list[str]) -> str | None:
+    """The value overrides composed with the group choices and the stage nodes checked against
+    their targets' annotations (:func:`nirspi_pipe.pipeline.check_types`); each value of a sweep
+    list is put in turn into the composed config. The first wrong type as one line."""
+    from hydra import compose, initialize_config_module
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
+
+    fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            cfg = compose(CONFIG_NAME, overrides=[*choices, *fixed])
+    except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
+        return None
+    runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
+    for ov in values:
+        if not ov.is_sweep_override():
+            continue
+        for value in ov.sweep_iterator():
+            one = cfg.copy()
+            try:
+                OmegaConf.update(one, ov.key_or_group, value, merge=False)
+            except Exception:  # noqa: BLE001 - Hydra reports it when it composes the job
+                continue
+            runs.append((one, (ov.key_or_group.split(".", 1)[0],)))
+    for config, groups in runs:
+        for group in groups:
+            node = config.get(group)
+            if node is None:
+                continue
+            try:
+                check_types(node, group)
+            except ConfigError as exc:
+                return str(exc)
     return None

@@ -95,6 +95,21 @@ def test_discovered_by_nirspi_pipe() -> None:
     names = {p.name: p for p in report.plugins}
     assert "admm" in names, report
     assert names["admm"].options.get("solver") == ["admm_tv"]
+    assert not any(g.startswith("schema") for g in names["admm"].options)  # its schema is not an option
+
+
+def test_the_config_takes_its_defaults_from_the_class() -> None:
+    # admm_tv.yaml names only its _target_: every key comes from ADMMTVSolver's fields.
+    from hydra import compose, initialize_config_module
+
+    from nirspi_pipe.plugins import activate
+
+    activate()  # plugin config folders join the search path
+    with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
+        cfg = compose("config", overrides=["solver=admm_tv"])
+    default = ADMMTVSolver()
+    for key in ("tv_weight", "lam_floor", "rho", "max_iter", "tol", "nonneg"):
+        assert cfg.solver[key] == getattr(default, key), key
 
 
 def test_runs_through_nirspi_run(tmp_path: Path) -> None:

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import heapq
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -357,7 +357,9 @@ class PowerCrust:
     remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
     box_factor: float = 3.0
-    weld_factor: float = 0.25
+    # Not in the generated config schema (never a key of surface=power_crust; +surface.weld_factor=…
+    # sets it): the configs, job keys and derived seeds of power-crust runs stay as they were.
+    weld_factor: float = field(default=0.25, metadata={"config": False})
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)

@@ -163,7 +163,9 @@ class Recorded:
     path: str | None = None
     subtract_offset: bool = True
     use_scan_ratio: bool = True
-    scan_indices: ScanIndices | None = field(default=None, repr=False, compare=False)
+    scan_indices: ScanIndices | None = field(
+        default=None, repr=False, compare=False, metadata={"config": False}  # set by the runner, not a config key
+    )
 
     needs_scene: ClassVar[bool] = False
     #: The runner sets :attr:`scan_indices` on sources that say they use it.
