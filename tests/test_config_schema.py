@@ -115,7 +115,7 @@ def test_the_composed_config_has_every_key_at_its_python_default() -> None:
     from nirspi_pipe.types import Camera
 
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-        cfg = compose(CONFIG_NAME, overrides=["fog=chamber", "sfs=oren_nayar", "source=simulator"])
+        cfg = compose(CONFIG_NAME, overrides=["preset=off", "fog=chamber", "sfs=oren_nayar", "source=simulator"])
     fog = OmegaConf.to_container(cfg.fog)
     assert isinstance(fog, dict)
     for f in dataclasses.fields(MieFog):

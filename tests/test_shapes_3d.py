@@ -33,9 +33,10 @@ def _cfg(*overrides: str):
     from hydra import compose, initialize_config_module
 
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        # noise-free and 64², whatever the default run is (conf/config.yaml)
+        # noise-free and 64², whatever the default run is (conf/config.yaml); the compose API takes
+        # preset=off where nirspi-run also takes preset=null
         return compose("config", overrides=["fog=none", "illumination=none", "detector=ideal",
-                                            "preset=null", *overrides])
+                                            "preset=off", *overrides])
 
 
 # -- the shape set end to end ---------------------------------------------------------------------

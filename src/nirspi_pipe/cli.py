@@ -183,6 +183,8 @@ def _hydra_task(cfg: Any) -> None:
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
+    # hc.job is a DictConfig at run time (typed as the JobConf dataclass); num is '???' in a single run
+    job_num: int | None = hc.job.get("num")  # type: ignore[attr-defined]
     from nirspi_pipe.records import OutputError
 
     if hc.mode == RunMode.MULTIRUN:  # crash-isolated, locked and counted (nirspi_pipe.jobs)
@@ -191,12 +193,12 @@ def _hydra_task(cfg: Any) -> None:
 
         sweep_file = Path(str(hc.sweep.dir)) / SWEEP_FILE
         ours = "nirspi" in str(hc.sweeper.get("_target_", ""))  # keyed folders (basic: numbered)
-        record = run_sweep_job(execute_job, cfg, out_dir, choices, overrides, job_num=hc.job.get("num"),
+        record = run_sweep_job(execute_job, cfg, out_dir, choices, overrides, job_num=job_num,
                                sweep_file=sweep_file if sweep_file.is_file() else None,
                                resume=ours and bool(hc.sweeper.get("resume", False)))
     else:
         try:
-            record = execute_job(cfg, out_dir, choices, overrides, job_num=hc.job.get("num"))
+            record = execute_job(cfg, out_dir, choices, overrides, job_num=job_num)
         except OutputError as exc:
             print(f"nirspi-run: error: {exc}", file=sys.stderr)
             raise SystemExit(1) from None

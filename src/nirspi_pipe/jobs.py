@@ -90,11 +90,12 @@ def crash_message(status: int) -> tuple[str, dict[str, Any]]:
             name = signal.Signals(sig).name
         except ValueError:
             name = f"signal {sig}"
-        hint = {
-            signal.SIGKILL: " (killed: out of memory, or by a scheduler or a user)",
-            signal.SIGSEGV: " (a crash in native code)",
-            signal.SIGABRT: " (aborted in native code)",
-        }.get(sig, "")
+        hints: dict[int, str] = {
+            int(signal.SIGKILL): " (killed: out of memory, or by a scheduler or a user)",
+            int(signal.SIGSEGV): " (a crash in native code)",
+            int(signal.SIGABRT): " (aborted in native code)",
+        }
+        hint = hints.get(sig, "")
         return f"job process killed by {name} ({sig}){hint}", {"signal": sig, "exit_code": -sig}
     code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else status
     return (f"job process exited with code {code} before writing its record",
@@ -189,8 +190,10 @@ def _record_crash(out_dir: Path, status: int, rec: dict[str, Any] | None, cfg: A
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":
         return rec  # the child recorded its own failure, then exited non-zero: keep its words
+    config: dict[str, Any]
     try:
-        config = OmegaConf.to_container(cfg, resolve=True)
+        container = OmegaConf.to_container(cfg, resolve=True)
+        config = {str(k): v for k, v in container.items()} if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}
     inputs = InputHasher().hashes(config)

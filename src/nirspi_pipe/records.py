@@ -398,7 +398,7 @@ def opencl_devices() -> tuple[str, ...]:
 def provenance() -> dict[str, Any]:
     """Package versions, platform, OpenCL devices and the code that ran (:func:`code_identity`:
     version, git SHA when imported from its own checkout, and a hash of the source files)."""
-    versions = {}
+    versions: dict[str, str | None] = {}
     for dist in _VERSIONED:
         try:
             versions[dist] = metadata.version(dist)
@@ -438,7 +438,7 @@ def write_arrays(folder: Path, arrays: Mapping[str, np.ndarray | None], images: 
     present = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
     if present:
         buf = io.BytesIO()
-        np.savez_compressed(buf, **present)
+        np.savez_compressed(buf, **present)  # type: ignore[arg-type]  # numpy stubs type **kwds as allow_pickle
         atomic_write(Path(folder) / "arrays.npz", buf.getvalue())
     if images:
         from matplotlib.image import imsave

@@ -47,6 +47,8 @@ def _tolerances(ref_dir: Path, name: str) -> tuple[float, float]:
     path = ref_dir / "tolerances.yaml"
     if path.is_file():
         spec = OmegaConf.to_container(OmegaConf.load(path))
+        if not isinstance(spec, dict):
+            raise ValueError(f"{path}: must be a mapping of table names to {{rtol, atol}}")
         tol.update(spec.get("default", {}) or {})
         tol.update(spec.get(name, {}) or {})
     return float(tol["rtol"]), float(tol["atol"])

@@ -60,7 +60,8 @@ def test_the_installed_plugin_adds_the_effect_through_the_config():
     report = discover(refresh=True)
     assert "rain" in {p.name for p in report.plugins}, report
     activate()
-    overrides = ["camera.resolution=8", "fog=measured", "output.images=false"]
+    # the effect chain of this test is pinned, whatever the default run enables (no light, ideal detector)
+    overrides = ["camera.resolution=8", "fog=measured", "illumination=none", "detector=ideal", "output.images=false"]
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         wet_cfg = compose("config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=100", *overrides])
         dry_cfg = compose("config", overrides=overrides)

@@ -23,6 +23,7 @@ reading, a missing end marker) is an error naming the field.
 from __future__ import annotations
 
 import json
+import socket
 import struct
 import time
 from typing import Any, BinaryIO

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -90,7 +91,7 @@ class ScreenedPoisson:
         m = ms.current_mesh()
         verts = np.asarray(m.vertex_matrix(), dtype=np.float64) * 1e-3
         faces = np.asarray(m.face_matrix(), dtype=np.int64)
-        info = {"faces_closed": int(len(faces))}
+        info: dict[str, Any] = {"faces_closed": int(len(faces))}
         if not self.closed and len(faces):
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
         if len(faces) == 0:

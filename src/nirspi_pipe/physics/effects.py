@@ -493,7 +493,7 @@ class Backscatter:
     def __post_init__(self) -> None:
         _check_rel("backscatter_gain", self.gain, 0.0, np.inf, "a factor >= 0")
 
-    def veil_e(self, medium: Medium, exposure: Exposure) -> np.ndarray:
+    def veil_e(self, medium: FogPath, exposure: Exposure) -> np.ndarray:
         """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
         from nirspi_pipe.physics.fog import backscatter
 
@@ -738,7 +738,7 @@ def forward_model(
         if illumination.time_varying:
             chain.append(
                 BackgroundDrift(
-                    illumination.drift_rel_per_s, illumination.flicker_rel, illumination.flicker_hz,
+                    illumination.drift_rel_per_s, float(illumination.flicker_rel or 0.0), illumination.flicker_hz,
                     illumination.wander_rel, illumination.wander_time_s,
                 )
             )

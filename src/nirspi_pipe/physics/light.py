@@ -69,7 +69,7 @@ def astm_g173_global() -> tuple[np.ndarray, np.ndarray]:
     the rows kept in ``physics/data/astm_g173_global.csv`` (360–1800 nm)."""
     from importlib import resources
 
-    path = resources.files("nirspi_pipe.physics").joinpath("data", "astm_g173_global.csv")
+    path = resources.files("nirspi_pipe.physics").joinpath("data").joinpath("astm_g173_global.csv")
     with path.open() as fh:
         data = np.loadtxt(fh, delimiter=",", comments="#", skiprows=5)
     return data[:, 0] * 1e-9, data[:, 1] * 1e9

@@ -26,6 +26,7 @@ Lambertian, light at the camera (:func:`~nirspi_pipe.scene.render.compose_scene`
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -49,13 +50,13 @@ def grid_surface(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, n
     return points.reshape(-1, 3), normals.reshape(-1, 3), faces
 
 
-def _sphere(radius: float, centre: tuple[float, float, float], n: int = 48) -> tuple[np.ndarray, ...]:
+def _sphere(radius: float, centre: tuple[float, float, float], n: int = 48) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     th, ph = np.meshgrid(np.linspace(0.0, np.pi, n + 1), np.linspace(0.0, 2 * np.pi, 2 * n + 1), indexing="ij")
     nrm = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
     return grid_surface(radius * nrm + np.asarray(centre), nrm)
 
 
-def _merge(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _merge(parts: Sequence[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     verts, norms, faces, off = [], [], [], 0
     for v, nr, f in parts:
         verts.append(v)

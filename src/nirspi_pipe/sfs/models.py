@@ -362,7 +362,7 @@ class LaxFriedrichsSFS:
         f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
         scheme = _effective_scheme(self.scheme, f.shape)
         backend = _resolve(self.backend, 0, scheme, self.slope_average)
-        z_src, sing = np.zeros(f.shape), {}
+        z_src, sing = np.zeros(f.shape), dict[str, Any]()
         if self.singular == "maximal":
             z_src, sing = singular_depths(f, prep, scheme, backend, float(self.tol), int(self.max_sweeps),
                                           self.slope_average)

@@ -131,7 +131,7 @@ class FistaTVSolver:
         x = (op.rmatvec(y) / scale).reshape(n, n)
         z, t = x.copy(), 1.0
         stop, it = "max_iter", 0
-        for it in range(1, self.max_iter + 1):
+        for it in range(1, self.max_iter + 1):  # noqa: B007 - the last count is returned as iterations
             grad = (op.rmatvec(op.matvec(z.ravel()) - y) / scale).reshape(n, n)
             x_new = self._prox(z - step * grad, step * lam)
             t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
