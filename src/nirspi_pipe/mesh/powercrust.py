@@ -45,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.mesh.remesh import check_remesh_keys, clean_and_remesh
+from nirspi_pipe.mesh.remesh import check_remesh_keys, remesh_to_cloud
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
@@ -383,12 +383,8 @@ class PowerCrust:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
             if len(faces) == 0:
                 warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
-        if len(faces):
-            spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
-            verts, faces, rinfo = clean_and_remesh(
-                verts, faces, spacing, int(self.remesh_iterations), float(self.remesh_edge_factor),
-                int(self.max_hole_edges),
-            )
-            info.update(rinfo)
+        verts, faces, rinfo = remesh_to_cloud(verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor,
+                                              self.max_hole_edges)
+        info.update(rinfo)
         info["faces"] = int(len(faces))
         return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)

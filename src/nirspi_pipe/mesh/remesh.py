@@ -23,7 +23,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 
-__all__ = ["check_remesh_keys", "clean_and_remesh"]
+__all__ = ["check_remesh_keys", "clean_and_remesh", "remesh_to_cloud", "sample_spacing"]
 
 
 def check_remesh_keys(iterations: int, edge_factor: float, max_hole_edges: int) -> None:
@@ -34,6 +34,26 @@ def check_remesh_keys(iterations: int, edge_factor: float, max_hole_edges: int) 
         raise ConfigError("remesh_edge_factor", edge_factor, "a factor of the sample spacing in [0.1, 20]")
     if isinstance(max_hole_edges, bool) or int(max_hole_edges) != max_hole_edges or not 0 <= max_hole_edges <= 10_000:
         raise ConfigError("max_hole_edges", max_hole_edges, "an integer from 0 (keep holes) to 10000")
+
+
+def sample_spacing(points_m: np.ndarray) -> float:
+    """Median nearest-neighbour distance of a ``(k, 3)`` cloud, metres (0 for fewer than 2 points)."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(points_m, dtype=np.float64)
+    return float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
+
+
+def remesh_to_cloud(
+    vertices_m: np.ndarray, faces: np.ndarray, points_m: np.ndarray, iterations: int, edge_factor: float,
+    max_hole_edges: int,
+) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """:func:`clean_and_remesh` at the cloud's own :func:`sample_spacing`, as the surface stages
+    call it on their reconstruction of ``points_m``; an empty mesh is returned unchanged."""
+    if len(faces) == 0:
+        return vertices_m, faces, {}
+    return clean_and_remesh(vertices_m, faces, sample_spacing(points_m), int(iterations), float(edge_factor),
+                            int(max_hole_edges))
 
 
 def clean_and_remesh(
