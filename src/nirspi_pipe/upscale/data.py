@@ -165,34 +165,39 @@ def sphere_hr(side: int, distance_mm: float, diameter_mm: float, reflectance: fl
     return scene.render(RenderCamera(resolution=side, fov_deg=fov_deg)).radiance
 
 
-def _noise(rng: np.random.Generator, noise_max: float) -> float:
-    """Training noise level: 0 with probability 1/3, else log-uniform in [noise_max/30, noise_max]."""
+def _noise(rng: np.random.Generator, noise_max: float, noise_min: float | None = None) -> float:
+    """Training noise level: 0 with probability 1/3, else log-uniform in [noise_min, noise_max]
+    (``noise_min`` None: ``noise_max/30``)."""
     if noise_max <= 0 or rng.random() < 1 / 3:
         return 0.0
-    return float(np.exp(rng.uniform(np.log(noise_max / 30), np.log(noise_max))))
+    lo = noise_max / 30 if noise_min is None else noise_min
+    if not 0 < lo <= noise_max:
+        raise ValueError(f"noise_min={lo} must lie in (0, noise_max={noise_max}]")
+    return float(np.exp(rng.uniform(np.log(lo), np.log(noise_max))))
 
 
 def training_pairs(
     scale: int, n_lr: int = 64, variants: int = 3, n_shapes: int = 30, n_spheres: int = 10,
-    noise_max: float = 2e-3, seed: int = TRAIN_SEED,
+    noise_max: float = 2e-3, seed: int = TRAIN_SEED, noise_min: float | None = None,
 ) -> Iterator[Pair]:
     """Training examples: each training sample image ``variants`` times (random crop, flip,
     rotation, reflectance in [0.3, 1], noise), ``n_shapes`` synthetic scenes and ``n_spheres``
-    spheres at random distances and sizes. Low-res side ``n_lr`` (a power of two)."""
+    spheres at random distances and sizes. Low-res side ``n_lr`` (a power of two; 64 for the
+    64² study, 8 for the paper's 8 × 8 LED device). Noise: :func:`_noise`."""
     rng = np.random.default_rng([seed, scale])
     side = n_lr * scale
     for name in TRAIN_SAMPLES:
         for v in range(variants):
             hr = texture_hr(name, side, rng, reflectance=rng.uniform(0.3, 1.0))
-            nr = _noise(rng, noise_max)
+            nr = _noise(rng, noise_max, noise_min)
             yield Pair(f"{name}#{v}", hr, spi_lowres(hr, scale, nr, rng), nr)
     for i in range(n_shapes):
         hr = random_shapes_hr(side, rng)
-        nr = _noise(rng, noise_max)
+        nr = _noise(rng, noise_max, noise_min)
         yield Pair(f"shapes#{i}", hr, spi_lowres(hr, scale, nr, rng), nr)
     for i in range(n_spheres):
         hr = sphere_hr(side, rng.uniform(120, 400), rng.uniform(20, 80), rng.uniform(0.3, 1.0))
-        nr = _noise(rng, noise_max)
+        nr = _noise(rng, noise_max, noise_min)
         yield Pair(f"sphere#{i}", hr, spi_lowres(hr, scale, nr, rng), nr)
 
 
