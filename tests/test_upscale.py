@@ -281,8 +281,8 @@ def test_pipeline_fsrcnn_with_upscale_metrics(scale: int) -> None:
 
 
 def test_pipeline_upscale_none_is_the_identity() -> None:
-    base = run_pipeline(_cfg(["camera.resolution=16"]))
-    none = run_pipeline(_cfg(["camera.resolution=16", "upscale=none"]))
+    base = run_pipeline(_cfg(["~preset", "camera.resolution=16"]))  # the 64² study's chain: no upscale stage
+    none = run_pipeline(_cfg(["~preset", "camera.resolution=16", "upscale=none"]))
     assert base.products.upscaled is None
     np.testing.assert_array_equal(none.products.upscaled.data, base.products.image.data)
     assert none.info["upscale"]["model"] == "none"
