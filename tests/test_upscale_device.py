@@ -113,3 +113,28 @@ def test_train_command_whole_image_mode_smoke(tmp_path: Path) -> None:
     assert meta["whole_images"] and meta["patch_lr"] == 8 and meta["train_images"] == len(TRAIN_SAMPLES) + 3
     assert meta["numpy_vs_torch_max_abs"] < 1e-4
     assert {r["noise_rel"] for r in meta["heldout"]} == {0.0, 0.03}
+
+
+def test_equivalent_noise_rel_recovers_the_noise_of_spi_lowres() -> None:
+    from nirspi_pipe.upscale.base import block_mean
+    from nirspi_pipe.upscale.data import equivalent_noise_rel, sphere_hr, spi_lowres
+
+    hr = sphere_hr(32, 200.0, 50.0, 0.8)
+    for nr in (0.01, 0.03):
+        est = [equivalent_noise_rel(spi_lowres(hr, 4, nr, np.random.default_rng(s)), block_mean(hr, 4)) for s in range(20)]
+        assert np.mean(est) == pytest.approx(nr, rel=0.15)  # a 64-pixel std: ~9 % per image
+    assert equivalent_noise_rel(block_mean(hr, 4), block_mean(hr, 4)) < 1e-12
+
+
+@pytest.mark.parametrize("klux", [5, 50])
+def test_the_devices_noise_lies_inside_the_training_range(klux: int) -> None:
+    """The device run under Figure 9's settings (noise, daylight wander, fog fluctuation) has an
+    error equivalent to a noise_rel inside the range the device weights were trained on."""
+    from nirspi_pipe.pipeline import run_pipeline
+    from nirspi_pipe.upscale.data import equivalent_noise_rel
+
+    meta = load_weights(4, DEVICE_WEIGHTS).meta or {}
+    out = run_pipeline(_cfg(["+experiment=figure9", f"illumination.klux={klux}", "scene=sphere", "seed=0"]))
+    nr = equivalent_noise_rel(out.products.image.data, out.products.acquisition.reference)
+    assert meta["noise_min"] < nr < meta["noise_max"]
+    assert nr == pytest.approx(DEVICE_NOISE_REL, rel=0.4)

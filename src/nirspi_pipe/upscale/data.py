@@ -44,6 +44,7 @@ __all__ = [
     "sphere_hr",
     "training_pairs",
     "heldout_pairs",
+    "equivalent_noise_rel",
 ]
 
 #: scikit-image samples used for training (all ship with scikit-image; none is downloaded).
@@ -211,3 +212,23 @@ def heldout_pairs(scale: int, noise_rel: float, n_lr: int = 64, n_shapes: int = 
     hrs += [("sphere200", sphere_hr(side, 200.0, 50.0, 0.8)), ("sphere150", sphere_hr(side, 150.0, 50.0, 0.8))]
     hrs += [(f"shapes#{i}", random_shapes_hr(side, rng)) for i in range(n_shapes)]
     return [Pair(name, hr, spi_lowres(hr, scale, noise_rel, rng), noise_rel) for name, hr in hrs]
+
+
+def equivalent_noise_rel(image: np.ndarray, reference: np.ndarray) -> float:
+    """The ``noise_rel`` of :func:`spi_lowres` that would give ``image`` (an ``n × n`` full-sampling
+    reconstruction, relative radiance) its error against ``reference`` (the camera's noise-free
+    image, e.g. ``Acquisition.reference``): the residual after the least-squares gain and offset
+    (as the normalised metrics fit them), whose per-pixel std is ``noise_rel · n · mean / √2``
+    for white noise on each of the ``2n²`` split readings. Dimensionless; how the device's noise
+    level is matched by the training data (docs/upscale.md)."""
+    from nirspi_pipe.metrics import fit_gain_offset
+
+    img = np.asarray(image, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    if img.ndim != 2 or img.shape != ref.shape or img.shape[0] != img.shape[1]:
+        raise ValueError(f"image {img.shape} and reference {ref.shape} must be the same square shape")
+    mean = float(img.mean())
+    if not mean > 0:
+        raise ValueError("image has no positive mean: no relative noise level")
+    a, b = fit_gain_offset(img, ref)
+    return float(np.std(img - (a * ref + b)) / mean / (img.shape[0] / np.sqrt(2.0)))
