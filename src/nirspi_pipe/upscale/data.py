@@ -44,6 +44,7 @@ __all__ = [
     "sphere_hr",
     "training_pairs",
     "heldout_pairs",
+    "equivalent_noise_rel",
 ]
 
 #: scikit-image samples used for training (all ship with scikit-image; none is downloaded).
@@ -165,34 +166,39 @@ def sphere_hr(side: int, distance_mm: float, diameter_mm: float, reflectance: fl
     return scene.render(RenderCamera(resolution=side, fov_deg=fov_deg)).radiance
 
 
-def _noise(rng: np.random.Generator, noise_max: float) -> float:
-    """Training noise level: 0 with probability 1/3, else log-uniform in [noise_max/30, noise_max]."""
+def _noise(rng: np.random.Generator, noise_max: float, noise_min: float | None = None) -> float:
+    """Training noise level: 0 with probability 1/3, else log-uniform in [noise_min, noise_max]
+    (``noise_min`` None: ``noise_max/30``)."""
     if noise_max <= 0 or rng.random() < 1 / 3:
         return 0.0
-    return float(np.exp(rng.uniform(np.log(noise_max / 30), np.log(noise_max))))
+    lo = noise_max / 30 if noise_min is None else noise_min
+    if not 0 < lo <= noise_max:
+        raise ValueError(f"noise_min={lo} must lie in (0, noise_max={noise_max}]")
+    return float(np.exp(rng.uniform(np.log(lo), np.log(noise_max))))
 
 
 def training_pairs(
     scale: int, n_lr: int = 64, variants: int = 3, n_shapes: int = 30, n_spheres: int = 10,
-    noise_max: float = 2e-3, seed: int = TRAIN_SEED,
+    noise_max: float = 2e-3, seed: int = TRAIN_SEED, noise_min: float | None = None,
 ) -> Iterator[Pair]:
     """Training examples: each training sample image ``variants`` times (random crop, flip,
     rotation, reflectance in [0.3, 1], noise), ``n_shapes`` synthetic scenes and ``n_spheres``
-    spheres at random distances and sizes. Low-res side ``n_lr`` (a power of two)."""
+    spheres at random distances and sizes. Low-res side ``n_lr`` (a power of two; 64 for the
+    64² study, 8 for the paper's 8 × 8 LED device). Noise: :func:`_noise`."""
     rng = np.random.default_rng([seed, scale])
     side = n_lr * scale
     for name in TRAIN_SAMPLES:
         for v in range(variants):
             hr = texture_hr(name, side, rng, reflectance=rng.uniform(0.3, 1.0))
-            nr = _noise(rng, noise_max)
+            nr = _noise(rng, noise_max, noise_min)
             yield Pair(f"{name}#{v}", hr, spi_lowres(hr, scale, nr, rng), nr)
     for i in range(n_shapes):
         hr = random_shapes_hr(side, rng)
-        nr = _noise(rng, noise_max)
+        nr = _noise(rng, noise_max, noise_min)
         yield Pair(f"shapes#{i}", hr, spi_lowres(hr, scale, nr, rng), nr)
     for i in range(n_spheres):
         hr = sphere_hr(side, rng.uniform(120, 400), rng.uniform(20, 80), rng.uniform(0.3, 1.0))
-        nr = _noise(rng, noise_max)
+        nr = _noise(rng, noise_max, noise_min)
         yield Pair(f"sphere#{i}", hr, spi_lowres(hr, scale, nr, rng), nr)
 
 
@@ -206,3 +212,23 @@ def heldout_pairs(scale: int, noise_rel: float, n_lr: int = 64, n_shapes: int = 
     hrs += [("sphere200", sphere_hr(side, 200.0, 50.0, 0.8)), ("sphere150", sphere_hr(side, 150.0, 50.0, 0.8))]
     hrs += [(f"shapes#{i}", random_shapes_hr(side, rng)) for i in range(n_shapes)]
     return [Pair(name, hr, spi_lowres(hr, scale, noise_rel, rng), noise_rel) for name, hr in hrs]
+
+
+def equivalent_noise_rel(image: np.ndarray, reference: np.ndarray) -> float:
+    """The ``noise_rel`` of :func:`spi_lowres` that would give ``image`` (an ``n × n`` full-sampling
+    reconstruction, relative radiance) its error against ``reference`` (the camera's noise-free
+    image, e.g. ``Acquisition.reference``): the residual after the least-squares gain and offset
+    (as the normalised metrics fit them), whose per-pixel std is ``noise_rel · n · mean / √2``
+    for white noise on each of the ``2n²`` split readings. Dimensionless; how the device's noise
+    level is matched by the training data (docs/upscale.md)."""
+    from nirspi_pipe.metrics import fit_gain_offset
+
+    img = np.asarray(image, dtype=np.float64)
+    ref = np.asarray(reference, dtype=np.float64)
+    if img.ndim != 2 or img.shape != ref.shape or img.shape[0] != img.shape[1]:
+        raise ValueError(f"image {img.shape} and reference {ref.shape} must be the same square shape")
+    mean = float(img.mean())
+    if not mean > 0:
+        raise ValueError("image has no positive mean: no relative noise level")
+    a, b = fit_gain_offset(img, ref)
+    return float(np.std(img - (a * ref + b)) / mean / (img.shape[0] / np.sqrt(2.0)))

@@ -46,6 +46,8 @@ __all__ = [
     "load_weights",
     "save_weights",
     "packaged_weights_path",
+    "resolve_weights",
+    "shipped_weights",
     "FSRCNN",
 ]
 
@@ -256,15 +258,36 @@ def packaged_weights_path(scale: int) -> Path:
     return Path(str(resources.files("nirspi_pipe.upscale") / "weights" / f"fsrcnn_x{int(scale)}.npz"))
 
 
+def shipped_weights() -> tuple[str, ...]:
+    """File names of the weights shipped in the package (``nirspi_pipe/upscale/weights``)."""
+    folder = Path(str(resources.files("nirspi_pipe.upscale") / "weights"))
+    return tuple(sorted(p.name for p in folder.glob("*.npz")))
+
+
+def resolve_weights(scale: int, path: str | Path | None = None) -> Path:
+    """The weights file for ``scale``: the packaged ``fsrcnn_x{scale}.npz`` when ``path`` is None;
+    a bare file name that is not a file in the working directory but one of
+    :func:`shipped_weights` (e.g. ``fsrcnn_x4_led8.npz``) is the packaged file; anything else is
+    a path."""
+    if path is None:
+        return packaged_weights_path(scale)
+    file = Path(path).expanduser()
+    if str(path) == file.name and not file.is_file() and file.name in shipped_weights():
+        return packaged_weights_path(scale).with_name(file.name)
+    return file
+
+
 def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
-    """Load FSRCNN weights: the packaged ones for ``scale``, or the file ``path``.
+    """Load FSRCNN weights: the packaged ones for ``scale``, a shipped file by name, or the file
+    ``path`` (:func:`resolve_weights`).
 
     Raises :class:`ConfigError` (key ``weights``) when the file is missing, unreadable or trained
     for another scale.
     """
-    file = Path(path).expanduser() if path is not None else packaged_weights_path(scale)
+    file = resolve_weights(scale, path)
     if not file.is_file():
-        raise ConfigError("weights", str(path) if path else None, f"an existing .npz file ({file} not found)")
+        raise ConfigError("weights", str(path) if path else None,
+                          f"an existing .npz file or a shipped name ({', '.join(shipped_weights())}); {file} not found")
     try:
         weights = _load_cached(str(file.resolve()))
     except Exception as exc:  # noqa: BLE001 - any unreadable file is a config problem
@@ -282,8 +305,9 @@ class FSRCNN:
 
     Attributes:
         scale: upscaling factor, 2, 3 or 4.
-        weights: path of an ``.npz`` from ``nirspi-train-fsrcnn``; null uses the packaged
-            ``fsrcnn_x{scale}.npz``.
+        weights: path of an ``.npz`` from ``nirspi-train-fsrcnn``, or the name of a shipped file
+            (``fsrcnn_x4_led8.npz``: ×4 for the 8 × 8 LED device); null uses the packaged
+            ``fsrcnn_x{scale}.npz`` (trained on 64² inputs).
         clip: clip the result to the physical range [0, 1].
     """
 

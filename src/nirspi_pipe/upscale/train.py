@@ -94,18 +94,28 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
     border = 4 + ns.m  # receptive radius in low-res pixels: conv5 2 + m·1 + deconv 2 (≤ 4 + m)
 
     t0 = time.perf_counter()
-    pairs = list(training_pairs(scale, n_lr=ns.n_lr, variants=ns.variants, noise_max=ns.noise_max, seed=ns.data_seed))
+    pairs = list(training_pairs(scale, n_lr=ns.n_lr, variants=ns.variants, n_shapes=ns.shapes, n_spheres=ns.spheres,
+                                noise_max=ns.noise_max, noise_min=ns.noise_min, seed=ns.data_seed))
     lr = np.stack([p.lr for p in pairs]).astype(np.float32)
     hr = np.stack([p.hr for p in pairs]).astype(np.float32)
     if ns.residual:  # predict hr − bicubic(lr), bicubic over the whole image as at inference
         hr = hr - np.stack([bicubic(p.lr, scale) for p in pairs]).astype(np.float32)
     log(f"x{scale}: {len(pairs)} training images ({lr.shape[1]}² → {hr.shape[1]}²) in {time.perf_counter() - t0:.1f} s")
+    # Whole-image mode (a low-res side no larger than the patch, e.g. the device's 8²): the network
+    # sees every image whole, mirrored by ``border`` pixels exactly as fsrcnn_forward pads it at
+    # inference, and the loss covers the whole image. Symmetric padding of the low-res image by
+    # ``border`` and of the target by ``border·scale`` keeps the pixel blocks aligned.
+    whole = ns.patch >= ns.n_lr
+    patch = ns.n_lr if whole else ns.patch
+    if whole:
+        lr = np.pad(lr, ((0, 0), (border, border), (border, border)), mode="symmetric")
+        hr = np.pad(hr, ((0, 0), (border * scale,) * 2, (border * scale,) * 2), mode="symmetric")
 
     net = _build_net(torch, scale, ns.d, ns.s, ns.m)
     opt = torch.optim.Adam(net.parameters(), lr=ns.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=ns.iters, eta_min=ns.lr * 0.01)
     lr_t, hr_t = torch.from_numpy(lr), torch.from_numpy(hr)
-    win = ns.patch + 2 * border
+    win = patch + 2 * border
     n_img, side = lr.shape[0], lr.shape[1]
     losses: list[float] = []
     t0 = time.perf_counter()
@@ -114,14 +124,14 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
         ys, xs = rng.integers(0, side - win + 1, (2, ns.batch))
         xb = torch.stack([lr_t[i, y : y + win, x : x + win] for i, y, x in zip(k, ys, xs)])[:, None]
         yb = torch.stack(
-            [hr_t[i, (y + border) * scale : (y + border + ns.patch) * scale, (x + border) * scale : (x + border + ns.patch) * scale]
+            [hr_t[i, (y + border) * scale : (y + border + patch) * scale, (x + border) * scale : (x + border + patch) * scale]
              for i, y, x in zip(k, ys, xs)]
         )[:, None]
         rot, flip = int(rng.integers(4)), bool(rng.integers(2))  # same for LR and HR: blocks stay aligned
         xb, yb = torch.rot90(xb, rot, (2, 3)), torch.rot90(yb, rot, (2, 3))
         if flip:
             xb, yb = torch.flip(xb, (3,)), torch.flip(yb, (3,))
-        out = net(xb)[:, :, border * scale : (border + ns.patch) * scale, border * scale : (border + ns.patch) * scale]
+        out = net(xb)[:, :, border * scale : (border + patch) * scale, border * scale : (border + patch) * scale]
         loss = torch.mean((out - yb) ** 2)
         opt.zero_grad()
         loss.backward()
@@ -138,12 +148,13 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
         "trained_by": "nirspi-train-fsrcnn",
         "argv": " ".join(ns.argv),
         "d_s_m": [ns.d, ns.s, ns.m],
-        "iters": ns.iters, "batch": ns.batch, "patch_lr": ns.patch, "border_lr": border,
+        "iters": ns.iters, "batch": ns.batch, "patch_lr": patch, "whole_images": whole, "border_lr": border,
         "adam_lr": ns.lr, "seed": ns.seed, "data_seed": ns.data_seed,
-        "n_lr": ns.n_lr, "variants": ns.variants, "noise_max": ns.noise_max,
+        "n_lr": ns.n_lr, "variants": ns.variants, "shapes": ns.shapes, "spheres": ns.spheres, "noise_max": ns.noise_max,
+        "noise_min": ns.noise_min,
         "train_images": len(pairs), "train_samples": list(TRAIN_SAMPLES), "heldout_samples": list(HELDOUT_SAMPLES),
         "final_train_mse": float(np.mean(losses[-200:])), "train_seconds": round(train_s, 1),
-        "torch": torch.__version__,
+        "heldout_noise": list(ns.heldout_noise), "torch": torch.__version__,
     }
     weights = _to_weights(net, scale, ns.residual, border, meta)
 
@@ -158,7 +169,7 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
     err = float(np.max(np.abs(fsrcnn_forward(probe, weights) - ref)))
     if err > 1e-4:
         raise RuntimeError(f"numpy inference differs from torch by {err:.2e}")
-    summary = summarise(score_heldout(weights))
+    summary = summarise(score_heldout(weights, tuple(ns.heldout_noise), n_lr=ns.n_lr))
     meta["numpy_vs_torch_max_abs"] = err
     meta["heldout"] = summary
     for row in summary:
@@ -185,7 +196,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (cosine decay to 1%%)")
     p.add_argument("--n-lr", type=int, default=64, help="low-res side of training images (power of two)")
     p.add_argument("--variants", type=int, default=3, help="random crops per training sample image")
+    p.add_argument("--shapes", type=int, default=30, help="synthetic shape scenes in the training set")
+    p.add_argument("--spheres", type=int, default=10, help="rendered spheres in the training set")
     p.add_argument("--noise-max", type=float, default=2e-3, help="largest training noise_rel")
+    p.add_argument("--noise-min", type=float, default=None,
+                   help="smallest non-zero training noise_rel (default: noise-max/30)")
+    p.add_argument("--heldout-noise", type=float, nargs="+", default=[0.0, 1e-3],
+                   help="noise_rel levels of the held-out scores written into meta")
+    p.add_argument("--name", default="fsrcnn_x{scale}.npz", help="output file name ({scale} is replaced)")
     p.add_argument("--plain", action="store_true", help="the paper's plain FSRCNN (default: learn a correction to bicubic)")
     p.add_argument("--seed", type=int, default=0, help="initialisation and batch seed")
     p.add_argument("--data-seed", type=int, default=20160, help="training-data seed")
@@ -196,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     ns.out.mkdir(parents=True, exist_ok=True)
     for scale in ns.scales:
         weights = train_scale(scale, ns)
-        path = ns.out / f"fsrcnn_x{scale}.npz"
+        path = ns.out / ns.name.format(scale=scale)
         save_weights(path, weights)
         print(f"x{scale}: {weights.n_params} parameters -> {path} ({path.stat().st_size / 1024:.1f} kB)")
     return 0
