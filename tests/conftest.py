@@ -46,6 +46,7 @@ def run_cli(args: list[str], cwd: Path, timeout: float = 300.0) -> subprocess.Co
 @pytest.fixture
 def cli(tmp_path: Path):
     """Run ``nirspi-*`` commands from an empty temporary directory."""
+
     def _run(*args: str, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:
         return run_cli(list(args), tmp_path, timeout)
 

@@ -49,7 +49,9 @@ def stl_binary(v: np.ndarray, f: np.ndarray, declared: int | None = None) -> byt
 
 
 def obj_text(v: np.ndarray, f: np.ndarray) -> bytes:
-    return ("".join(f"v {a:g} {b:g} {c:g}\n" for a, b, c in v) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)).encode()
+    return (
+        "".join(f"v {a:g} {b:g} {c:g}\n" for a, b, c in v) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
+    ).encode()
 
 
 def npy_bytes(arr: np.ndarray) -> bytes:
@@ -148,8 +150,14 @@ def run_isolated(kind: str, paths: list[Path], budget_mb: float | None = None, t
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
     if budget_mb is not None:
         env["NIRSPI_READ_BUDGET_MB"] = str(budget_mb)
-    res = subprocess.run([sys.executable, "-c", ISOLATED_RUNNER, kind, *map(str, paths)],
-                         capture_output=True, text=True, timeout=timeout, env=env, check=False)
+    res = subprocess.run(
+        [sys.executable, "-c", ISOLATED_RUNNER, kind, *map(str, paths)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        check=False,
+    )
     lines = [json.loads(ln) for ln in res.stdout.splitlines() if ln.startswith("{")]
     done = [ln for ln in lines if "result" in ln]
     if res.returncode != 0 or len(done) != len(paths):

@@ -61,7 +61,9 @@ def test_default_beats_pseudo_inverse_by_6_db(poisson_case, solver) -> None:  # 
     x, acq, base = poisson_case
     out = solver.solve(acq)
     gain = psnr(x, out.data) - base
-    print(f"{type(solver).__name__}: {psnr(x, out.data):.2f} dB, pinv {base:.2f} dB, +{gain:.2f}, λ={out.info['lam']:.4f}")
+    print(
+        f"{type(solver).__name__}: {psnr(x, out.data):.2f} dB, pinv {base:.2f} dB, +{gain:.2f}, λ={out.info['lam']:.4f}"
+    )
     assert out.info["lam_rule"] == "sure"
     assert gain >= 6.0
 
@@ -89,14 +91,16 @@ def test_weight_follows_the_scale_of_the_data(scale: float, seed: int) -> None:
     with gain ×k give the same image (hard case: any scale of the detector units)."""
     x = camera(16)
     acq = split_poisson(x, 50.0, seed=seed)
-    scaled = Acquisition(n=16, indices=acq.indices, y_pos=acq.y_pos * scale, y_neg=acq.y_neg * scale,
-                         gain=acq.gain * scale)
+    scaled = Acquisition(
+        n=16, indices=acq.indices, y_pos=acq.y_pos * scale, y_neg=acq.y_neg * scale, gain=acq.gain * scale
+    )
     a, b = FistaTVSolver().solve(acq), FistaTVSolver().solve(scaled)
     assert b.info["lam"] == pytest.approx(a.info["lam"], rel=1e-6)
     assert np.allclose(a.data, b.data, atol=1e-6)
 
 
 # --- any pattern ---------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def random_binary() -> tuple[np.ndarray, Acquisition]:

@@ -22,18 +22,24 @@ NOISE_FREE = ["fog=none", "illumination=none", "detector=ideal"]
 
 def test_docs_api_md_doctest() -> None:
     """Every example in docs/api.md runs and prints what the page says."""
-    res = doctest.testfile(str(DOCS / "api.md"), module_relative=False,
-                           optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE, verbose=False)
+    res = doctest.testfile(
+        str(DOCS / "api.md"),
+        module_relative=False,
+        optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE,
+        verbose=False,
+    )
     assert res.attempted >= 20 and res.failed == 0
 
 
 def test_import_is_cheap_and_lazy() -> None:
-    code = ("import sys, nirspi_pipe; heavy = [m for m in ('numpy', 'pandas', 'hydra', 'omegaconf', 'matplotlib') "
-            "if m in sys.modules]; print(heavy); assert callable(nirspi_pipe.run); print('nirspi_pipe.api' in sys.modules)")
+    code = (
+        "import sys, nirspi_pipe; heavy = [m for m in ('numpy', 'pandas', 'hydra', 'omegaconf', 'matplotlib') "
+        "if m in sys.modules]; print(heavy); assert callable(nirspi_pipe.run); print('nirspi_pipe.api' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     lines = out.stdout.split()
     assert out.stdout.splitlines()[0] == "[]"  # nothing heavy on import
-    assert lines[-1] == "True"                # loaded on first attribute use
+    assert lines[-1] == "True"  # loaded on first attribute use
 
 
 def test_unknown_attribute_is_an_attribute_error() -> None:
@@ -93,8 +99,9 @@ def test_run_with_output_dir_writes_a_job_folder(tmp_path: Path) -> None:
 def test_failed_run_with_output_dir_raises_run_failed(tmp_path: Path) -> None:
     # a mesh file that does not exist fails inside the pipeline, not at composition
     with pytest.raises(nirspi_pipe.RunFailed, match="error.txt"):
-        nirspi_pipe.run(["scene=mesh", "scene.path=/nonexistent/x.ply", "camera.resolution=8"],
-                        output_dir=tmp_path / "bad")
+        nirspi_pipe.run(
+            ["scene=mesh", "scene.path=/nonexistent/x.ply", "camera.resolution=8"], output_dir=tmp_path / "bad"
+        )
     assert (tmp_path / "bad" / "error.txt").exists()
 
 
@@ -116,28 +123,57 @@ def test_load_results_reads_files_and_names_bad_paths(tmp_path: Path) -> None:
 
 # ---- the summary text -----------------------------------------------------------------------
 
+
 def _record(choices: dict, derived: dict, metrics: dict, config: dict | None = None) -> dict:
-    return {"choices": choices, "derived": derived, "metrics": metrics, "config": config or {},
-            "timings_ms": {"solver": 1.0, "total": 2.0}, "meta": {"seed": 0, "status": "ok", "warnings": []}}
+    return {
+        "choices": choices,
+        "derived": derived,
+        "metrics": metrics,
+        "config": config or {},
+        "timings_ms": {"solver": 1.0, "total": 2.0},
+        "meta": {"seed": 0, "status": "ok", "warnings": []},
+    }
 
 
 def test_summary_names_every_active_effect_with_its_size() -> None:
     rec = _record(
         {"source": "simulator", "fog": "chamber", "illumination": "klux", "detector": "ingaas"},
-        {"beta_per_m": 1.149, "visibility_m": 2.607, "transmittance_roundtrip": 0.63, "klux": 15.0,
-         "background_irradiance_w_m2": 2.71, "snr_db": 30.2, "saturated_patterns": 3},
+        {
+            "beta_per_m": 1.149,
+            "visibility_m": 2.607,
+            "transmittance_roundtrip": 0.63,
+            "klux": 15.0,
+            "background_irradiance_w_m2": 2.71,
+            "snr_db": 30.2,
+            "saturated_patterns": 3,
+        },
         {"ssim": 0.5},
         {"illumination": {"band_nm": [1500.0, 1600.0], "flicker_rel": 0.05}, "fog": {"fluctuation_rel": 0.2}},
     )
     text = "\n".join(effects_lines(rec))
-    for part in ("β = 1.15 /m", "visibility 2.61 m", "15 kLux", "2.71 W/m²", "1500–1600 nm", "ingaas",
-                 "SNR 30.2 dB", "3 saturated patterns", "flicker 5 %", "density fluctuation 20 %"):
+    for part in (
+        "β = 1.15 /m",
+        "visibility 2.61 m",
+        "15 kLux",
+        "2.71 W/m²",
+        "1500–1600 nm",
+        "ingaas",
+        "SNR 30.2 dB",
+        "3 saturated patterns",
+        "flicker 5 %",
+        "density fluctuation 20 %",
+    ):
         assert part in text, part
 
 
 def test_summary_says_when_effects_are_off_and_for_measured_data() -> None:
-    off = effects_lines(_record({"source": "simulator", "fog": "none", "illumination": "none",
-                                 "detector": "ideal"}, {"beta_per_m": 0.0, "snr_db": 200.0}, {}))
+    off = effects_lines(
+        _record(
+            {"source": "simulator", "fog": "none", "illumination": "none", "detector": "ideal"},
+            {"beta_per_m": 0.0, "snr_db": 200.0},
+            {},
+        )
+    )
     assert [line.split()[0] for line in off] == ["fog", "background", "detector"]
     assert all("off" in line or "ideal" in line for line in off)
     measured = effects_lines(_record({"source": "recorded"}, {}, {}))
@@ -161,6 +197,7 @@ def test_format_summary_of_a_failed_record() -> None:
 
 # ---- summary.png ----------------------------------------------------------------------------
 
+
 def _png_size(path: Path) -> tuple[int, int]:
     from matplotlib.image import imread
 
@@ -176,7 +213,7 @@ def test_summary_png_2d_and_3d(tmp_path: Path) -> None:
     w2, h2 = _png_size(p2)
     _, h3 = _png_size(p3)
     assert w2 > 2.5 * h2 * 0.8  # one row of three panels
-    assert h3 > 1.7 * h2        # a second row: the depth maps
+    assert h3 > 1.7 * h2  # a second row: the depth maps
     # the run keeps going when the picture is off
     r = nirspi_pipe.run(["camera.resolution=16", "output.images=false"], output_dir=tmp_path / "noimg")
     assert not (tmp_path / "noimg" / "summary.png").exists() and r.metrics
@@ -189,8 +226,14 @@ def test_default_run_is_the_fog_chamber_and_says_so(tmp_path: Path) -> None:
     res = run_cli(["nirspi-run", "camera.resolution=32", "hydra.run.dir=run"], tmp_path)
     assert res.returncode == 0, res.stderr
     out = res.stdout
-    for part in ("fog        chamber: extinction β = 1.15 /m", "visibility 2.61 m", "background 15 kLux",
-                 "detector   ingaas", "structural similarity", "summary.png"):
+    for part in (
+        "fog        chamber: extinction β = 1.15 /m",
+        "visibility 2.61 m",
+        "background 15 kLux",
+        "detector   ingaas",
+        "structural similarity",
+        "summary.png",
+    ):
         assert part in out, part
     rec = json.loads((tmp_path / "run" / "record.json").read_text())
     assert rec["choices"].items() >= {"fog": "chamber", "illumination": "klux", "detector": "ingaas"}.items()
@@ -202,7 +245,6 @@ def test_default_run_is_the_fog_chamber_and_says_so(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_help_teaches(tmp_path: Path) -> None:
     from conftest import run_cli
-
     from nirspi_pipe.validate import config_groups, group_options
 
     res = run_cli(["nirspi-run", "--help"], tmp_path)
@@ -224,6 +266,7 @@ def test_help_teaches(tmp_path: Path) -> None:
 
 
 # ---- the README numbers script --------------------------------------------------------------
+
 
 def test_readme_numbers_stamp_and_timer(tmp_path: Path) -> None:
     from nirspi_pipe.readme_numbers import machine_stamp, timed

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+
 from conftest import NOISE_FREE
 
 pytestmark = pytest.mark.slow
@@ -53,8 +54,9 @@ def test_bad_input_is_one_line_without_traceback(cli, args: list[str], needle: s
 
 
 def test_multirun_two_jobs_and_results_table(cli) -> None:
-    res = cli("nirspi-run", "-m", "scan=basic", "solver=fwht", "seed=0,1", "camera.resolution=16",
-              "hydra.sweep.dir=sweep")
+    res = cli(
+        "nirspi-run", "-m", "scan=basic", "solver=fwht", "seed=0,1", "camera.resolution=16", "hydra.sweep.dir=sweep"
+    )
     assert res.returncode == 0, res.stderr
     sweep = cli.cwd / "sweep"
     assert len(_records(sweep)) == 2
@@ -62,15 +64,22 @@ def test_multirun_two_jobs_and_results_table(cli) -> None:
     df = pd.read_parquet(sweep / "results.parquet")
     assert len(df) == 2 and (df["status"] == "ok").all()
     assert sorted(df["seed"]) == [0, 1]
-    for col in ("scan", "solver", "scene", "metrics.ssim", "metrics.psnr", "timings_ms.solver",
-                "timings_ms.total", "status"):
+    for col in (
+        "scan",
+        "solver",
+        "scene",
+        "metrics.ssim",
+        "metrics.psnr",
+        "timings_ms.solver",
+        "timings_ms.total",
+        "status",
+    ):
         assert col in df.columns, col
     assert (sweep / "results.csv").is_file()
 
 
 def test_failed_job_is_recorded_and_others_complete(cli) -> None:
-    res = cli("nirspi-run", "-m", "scene.reflectance=0.5,1.5,0.2", "camera.resolution=16",
-              "hydra.sweep.dir=sweep")
+    res = cli("nirspi-run", "-m", "scene.reflectance=0.5,1.5,0.2", "camera.resolution=16", "hydra.sweep.dir=sweep")
     assert res.returncode == 0, res.stderr
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert list(df["status"]) == ["ok", "failed", "ok"]
@@ -81,8 +90,16 @@ def test_failed_job_is_recorded_and_others_complete(cli) -> None:
 
 
 def test_joblib_launcher_and_collect(cli) -> None:
-    res = cli("nirspi-run", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "seed=0,1",
-              "camera.resolution=16", "output.images=false", "hydra.sweep.dir=sweep")
+    res = cli(
+        "nirspi-run",
+        "-m",
+        "hydra/launcher=joblib",
+        "hydra.launcher.n_jobs=2",
+        "seed=0,1",
+        "camera.resolution=16",
+        "output.images=false",
+        "hydra.sweep.dir=sweep",
+    )
     assert res.returncode == 0, res.stderr
     sweep = cli.cwd / "sweep"
     first = pd.read_parquet(sweep / "results.parquet")
@@ -108,16 +125,24 @@ def test_bench_lists_benchmarks(cli) -> None:
 
 
 def test_sweep_resumes_and_keys_folders_by_config_hash(cli) -> None:
-    args = ["nirspi-run", "-m", "seed=0,1", "scene.reflectance=0.5,1.5", "camera.resolution=16",
-            "output.images=false", "hydra.sweep.dir=sweep"]
+    args = [
+        "nirspi-run",
+        "-m",
+        "seed=0,1",
+        "scene.reflectance=0.5,1.5",
+        "camera.resolution=16",
+        "output.images=false",
+        "hydra.sweep.dir=sweep",
+    ]
     first = cli(*args)
     assert first.returncode == 0, first.stderr
     assert "4 to run" in first.stdout
     sweep = cli.cwd / "sweep"
     df = pd.read_parquet(sweep / "results.parquet")
     assert (df["job"] == df["config_hash"]).all()  # folder name = hash of the resolved config
-    ok_mtimes = {p: p.stat().st_mtime for p in sweep.glob("*/record.json")
-                 if json.loads(p.read_text())["meta"]["status"] == "ok"}
+    ok_mtimes = {
+        p: p.stat().st_mtime for p in sweep.glob("*/record.json") if json.loads(p.read_text())["meta"]["status"] == "ok"
+    }
     assert len(ok_mtimes) == 2
     again = cli(*args)
     assert again.returncode == 0, again.stderr
@@ -129,8 +154,7 @@ def test_sweep_resumes_and_keys_folders_by_config_hash(cli) -> None:
 
 
 def test_killed_job_shows_as_missing(cli) -> None:
-    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false",
-              "hydra.sweep.dir=sweep")
+    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false", "hydra.sweep.dir=sweep")
     assert res.returncode == 0, res.stderr
     sweep = cli.cwd / "sweep"
     victim = sorted(sweep.glob("*/record.json"))[0]
@@ -139,15 +163,22 @@ def test_killed_job_shows_as_missing(cli) -> None:
     assert res.returncode == 0, res.stderr
     df = pd.read_parquet(sweep / "results.parquet")
     assert sorted(df["status"]) == ["missing", "ok", "ok"]
-    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false",
-              "hydra.sweep.dir=sweep")
+    res = cli("nirspi-run", "-m", "seed=0,1,2", "camera.resolution=16", "output.images=false", "hydra.sweep.dir=sweep")
     assert "1 to run, 2 skipped" in res.stdout
     assert (pd.read_parquet(sweep / "results.parquet")["status"] == "ok").all()
 
 
 def test_submitit_local_launcher(cli) -> None:
-    res = cli("nirspi-run", "-m", "hydra/launcher=submitit_local", "seed=0,1", "camera.resolution=16",
-              "output.images=false", "hydra.sweep.dir=sweep", timeout=600)
+    res = cli(
+        "nirspi-run",
+        "-m",
+        "hydra/launcher=submitit_local",
+        "seed=0,1",
+        "camera.resolution=16",
+        "output.images=false",
+        "hydra.sweep.dir=sweep",
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert len(df) == 2 and (df["status"] == "ok").all()
@@ -180,16 +211,22 @@ def test_meta_experiment_runs_each_experiments_grid(cli) -> None:
         "# @package _global_\ncamera:\n  resolution: 16\nhydra:\n  sweeper:\n    params:\n"
         "      scene.reflectance: 0.2,0.4,0.6\n"
     )
-    (exp / "both.yaml").write_text(
-        "# @package _global_\nhydra:\n  sweeper:\n    experiments: [small_a, small_b]\n"
+    (exp / "both.yaml").write_text("# @package _global_\nhydra:\n  sweeper:\n    experiments: [small_a, small_b]\n")
+    res = cli(
+        "nirspi-run",
+        "-m",
+        "+experiment=both",
+        "output.images=false",
+        "hydra.sweep.dir=sweep",
+        f"hydra.searchpath=[pkg://nirspi_pipe.experiments,file://{cli.cwd / 'extra'}]",
     )
-    res = cli("nirspi-run", "-m", "+experiment=both", "output.images=false", "hydra.sweep.dir=sweep",
-              f"hydra.searchpath=[pkg://nirspi_pipe.experiments,file://{cli.cwd / 'extra'}]")
     assert res.returncode == 0, res.stderr
     assert "sweep of 5 jobs" in res.stdout
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert list(df["experiment"]) == ["small_a"] * 2 + ["small_b"] * 3
     assert (df["status"] == "ok").all()
-    res8 = [json.loads((cli.cwd / "sweep" / j / "record.json").read_text())["config"]["camera"]["resolution"]
-            for j in df["job"]]
+    res8 = [
+        json.loads((cli.cwd / "sweep" / j / "record.json").read_text())["config"]["camera"]["resolution"]
+        for j in df["job"]
+    ]
     assert res8 == [8, 8, 16, 16, 16]

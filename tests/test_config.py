@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.pipeline import EFFECT_GROUPS, STAGE_GROUPS, build
+from nirspi_pipe.pipeline import STAGE_GROUPS, build
 from nirspi_pipe.validate import check_overrides, config_groups, group_options
 
 CONFIG_MODULE = "nirspi_pipe.conf"
@@ -150,8 +150,19 @@ def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
     for group in REQUIRED_GROUPS:
         _, problem = rewrite_nulls([f"{group}=null"])
         assert problem is not None and problem.startswith(f"{group}=null is not allowed") and "allowed:" in problem
-    for group in ("scene", "fog", "illumination", "detector", "upscale", "sfs", "itof", "fusion", "surface", "metrics",
-                  "preset"):
+    for group in (
+        "scene",
+        "fog",
+        "illumination",
+        "detector",
+        "upscale",
+        "sfs",
+        "itof",
+        "fusion",
+        "surface",
+        "metrics",
+        "preset",
+    ):
         assert OFF_OPTION in group_options(group), group
         assert _compose([f"{group}={OFF_OPTION}"]).get(group) is None
 

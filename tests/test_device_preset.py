@@ -38,10 +38,18 @@ def test_noise_free_device_run_is_exact_at_8_and_resolution_limited_at_32(klux: 
     """Noise-free device in the fog chamber under daylight: the camera's 8² image scores at the
     PSNR cap (an exact reconstruction after the gain/offset normalisation), and the x4 upscaled
     image is limited by resolution alone: finite, and far below the cap (docs/paper.md, Figure 9)."""
-    cfg = _compose([
-        "preset=device", "detector=ideal", "fog=chamber", "illumination=klux", f"illumination.klux={klux}",
-        "metrics=upscale", "scene=sphere", "seed=0",
-    ])
+    cfg = _compose(
+        [
+            "preset=device",
+            "detector=ideal",
+            "fog=chamber",
+            "illumination=klux",
+            f"illumination.klux={klux}",
+            "metrics=upscale",
+            "scene=sphere",
+            "seed=0",
+        ]
+    )
     out = run_pipeline(cfg)
     assert out.metrics["psnr"] >= 100.0
     assert out.metrics["psnr"] == pytest.approx(PSNR_CAP_DB)
@@ -52,8 +60,13 @@ def test_noise_free_device_run_is_exact_at_8_and_resolution_limited_at_32(klux: 
 
 @pytest.mark.parametrize(
     ("mechanism", "detector", "fog", "light"),
-    [("none", "Ideal", False, False), ("additive", "Photodiode", False, False), ("fog_trend", "Ideal", True, False),
-     ("led_droop", "Ideal", False, False), ("flicker", "Ideal", False, True)],
+    [
+        ("none", "Ideal", False, False),
+        ("additive", "Photodiode", False, False),
+        ("fog_trend", "Ideal", True, False),
+        ("led_droop", "Ideal", False, False),
+        ("flicker", "Ideal", False, True),
+    ],
 )
 def test_scan_order_mechanisms_switch_on_one_effect_each(mechanism: str, detector: str, fog: bool, light: bool) -> None:
     """experiments/mechanism/*.yaml: each mechanism of the scan-order study on the device model, alone."""

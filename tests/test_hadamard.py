@@ -33,9 +33,7 @@ def test_fwht2_is_h_o_h(n: int) -> None:
     np.testing.assert_allclose(fwht2(img), h @ img @ h, atol=1e-9 * n * n)
     # Sylvester: H_{n²} = H_n ⊗ H_n, so the 2D transform is the 1D one of the row-major image
     if n <= 32:
-        np.testing.assert_allclose(
-            fwht2(img).ravel(), scipy.linalg.hadamard(n * n) @ img.ravel(), atol=1e-9 * n * n
-        )
+        np.testing.assert_allclose(fwht2(img).ravel(), scipy.linalg.hadamard(n * n) @ img.ravel(), atol=1e-9 * n * n)
 
 
 def test_patterns_follow_index_convention() -> None:

@@ -14,6 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from hostile_inputs import (
     npy_bytes,
     npz_bytes,
@@ -27,9 +30,6 @@ from hostile_inputs import (
     stl_binary,
     tetra,
 )
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
 from nirspi_pipe.device.recording import load_recording
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.safeio import UnsafeInputError, read_npz
@@ -145,7 +145,9 @@ def test_valid_recordings_still_load_compressed_and_stored(tmp_path: Path) -> No
 @FUZZ
 @given(data=st.data())
 def test_fuzzed_npz_bytes_load_or_fail_with_one_line(tmp_path: Path, data: st.DataObject) -> None:
-    good = bytearray(npz_bytes(recording_members(), data.draw(st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED]))))
+    good = bytearray(
+        npz_bytes(recording_members(), data.draw(st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED])))
+    )
     action = data.draw(st.sampled_from(["truncate", "flip", "splice"]))
     if action == "truncate":
         good = good[: data.draw(st.integers(0, len(good) - 1))]
@@ -267,7 +269,9 @@ def test_fuzzed_mesh_bytes_parse_or_fail_with_one_line(data: st.DataObject) -> N
             raw = raw[: data.draw(st.integers(0, len(raw)))]
         else:
             i = data.draw(st.integers(0, len(raw)))
-            raw[i:i] = data.draw(st.sampled_from([b"9999999999", b"-1", b"\n", b"element face 5\n", b"nan", b"\xff" * 4]))
+            raw[i:i] = data.draw(
+                st.sampled_from([b"9999999999", b"-1", b"\n", b"element face 5\n", b"nan", b"\xff" * 4])
+            )
     try:
         verts, faces = parse_mesh(bytes(raw), ext, "mesh file fuzz" + ext, budget=64 << 20)
     except (MeshFileError, UnsafeInputError) as exc:

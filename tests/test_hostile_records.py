@@ -15,9 +15,17 @@ from hypothesis import strategies as st
 from nirspi_pipe.cli import execute_job
 from nirspi_pipe.finite import drop_nonfinite, is_finite_tree
 
-leaf = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(), st.text(max_size=5), st.booleans(), st.none(),
-                 st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=3))
-tree = st.recursive(leaf, lambda inner: st.dictionaries(st.text(min_size=1, max_size=6), inner, max_size=4), max_leaves=8)
+leaf = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(),
+    st.text(max_size=5),
+    st.booleans(),
+    st.none(),
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=3),
+)
+tree = st.recursive(
+    leaf, lambda inner: st.dictionaries(st.text(min_size=1, max_size=6), inner, max_size=4), max_leaves=8
+)
 
 
 def count_bad(node: object) -> int:
@@ -27,8 +35,14 @@ def count_bad(node: object) -> int:
 
 
 @settings(max_examples=40, deadline=None)
-@given(sections=st.fixed_dictionaries({k: st.dictionaries(st.text(min_size=1, max_size=6), tree, max_size=3)
-                                       for k in ("metrics", "derived", "info", "timings_ms")}))
+@given(
+    sections=st.fixed_dictionaries(
+        {
+            k: st.dictionaries(st.text(min_size=1, max_size=6), tree, max_size=3)
+            for k in ("metrics", "derived", "info", "timings_ms")
+        }
+    )
+)
 def test_guard_leaves_only_finite_values_and_says_what_it_removed(sections: dict) -> None:
     record = {"config": {"x": float("nan")}, **copy.deepcopy(sections)}
     expected = sum(count_bad(v) for v in sections.values())
@@ -47,6 +61,9 @@ def test_resolution_2_records_no_nan_and_says_why(tmp_path: Path) -> None:
     rec = execute_job(cfg, tmp_path, {}, [])
     assert rec["meta"]["status"] == "ok"
     assert "ssim" not in rec["metrics"] and math.isfinite(rec["metrics"]["rmse"])
-    assert any("metrics.ssim=nan" in w and "SSIM is undefined for images smaller than 3x3" in w for w in rec["meta"]["warnings"])
+    assert any(
+        "metrics.ssim=nan" in w and "SSIM is undefined for images smaller than 3x3" in w
+        for w in rec["meta"]["warnings"]
+    )
     stored = json.loads((tmp_path / "record.json").read_text())
     assert all(is_finite_tree(stored[k]) for k in ("metrics", "derived", "info", "timings_ms"))

@@ -92,7 +92,11 @@ def test_trickling_device_hits_the_total_deadline() -> None:
     [
         ("nested header", b"[" * 5000 + b"]" * 5000 + b"\n", "header"),
         ("nested object", b'{"a":' * 20 + b"1" + b"}" * 20 + b"\n", "header"),
-        ("decreasing timestamps", header(16) + frames(16, t=np.array([0.0, 1, 2, 3, 2.5] + list(range(4, 15)), float)) + encode_end(16), "t_s"),
+        (
+            "decreasing timestamps",
+            header(16) + frames(16, t=np.array([0.0, 1, 2, 3, 2.5] + list(range(4, 15)), float)) + encode_end(16),
+            "t_s",
+        ),
         ("1e308 readings", header(16) + frames(16, y=1e308) + encode_end(16), "y_pos"),
         ("tiny gain", header(16, gain=1e-300) + frames(16) + encode_end(16), "y_pos"),
         ("count as bool", header(16).replace(b'"count": 16', b'"count": true'), "count"),
@@ -214,13 +218,23 @@ def test_emulator_and_client_use_loopback_only() -> None:
 
 
 @settings(max_examples=40, deadline=None)
-@given(req=st.one_of(
-    st.binary(max_size=200).map(lambda b: b.replace(b"\n", b"") + b"\n"),
-    st.dictionaries(st.sampled_from(["protocol", "n", "count", "x"]),
-                    st.one_of(st.none(), st.booleans(), st.integers(-10**20, 10**20), st.floats(allow_nan=True),
-                              st.text(max_size=20), st.lists(st.integers(), max_size=3)),
-                    max_size=4).map(lambda d: json.dumps(d).encode() + b"\n"),
-))
+@given(
+    req=st.one_of(
+        st.binary(max_size=200).map(lambda b: b.replace(b"\n", b"") + b"\n"),
+        st.dictionaries(
+            st.sampled_from(["protocol", "n", "count", "x"]),
+            st.one_of(
+                st.none(),
+                st.booleans(),
+                st.integers(-(10**20), 10**20),
+                st.floats(allow_nan=True),
+                st.text(max_size=20),
+                st.lists(st.integers(), max_size=3),
+            ),
+            max_size=4,
+        ).map(lambda d: json.dumps(d).encode() + b"\n"),
+    )
+)
 def test_fuzzed_requests_never_break_the_emulator(req: bytes) -> None:
     emu = emulator(io_timeout_s=0.5)
     fh_out = _Pipe(req + np.arange(16, dtype="<i8").tobytes())

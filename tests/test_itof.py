@@ -131,8 +131,15 @@ def test_needs_scene():
 
 @pytest.mark.parametrize(
     "key,value",
-    [("f_mod_mhz", 0.0), ("t_int_us", -1.0), ("averaging_s", 1e-6), ("spot_angle_deg", 90.0),
-     ("quantum_efficiency", 1.5), ("demod_contrast", 0.0), ("ned_cm_per_sqrt_hz", float("nan"))],
+    [
+        ("f_mod_mhz", 0.0),
+        ("t_int_us", -1.0),
+        ("averaging_s", 1e-6),
+        ("spot_angle_deg", 90.0),
+        ("quantum_efficiency", 1.5),
+        ("demod_contrast", 0.0),
+        ("ned_cm_per_sqrt_hz", float("nan")),
+    ],
 )
 def test_bad_config(key, value):
     with pytest.raises(ConfigError, match=key):
@@ -142,6 +149,8 @@ def test_bad_config(key, value):
 def test_extreme_fog_is_flagged_not_nan(sphere):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        s = ContinuousWave4().measure(sphere, _acq(beta_per_m=200.0, background_irradiance_w_m2=1e3), np.random.default_rng(0))
+        s = ContinuousWave4().measure(
+            sphere, _acq(beta_per_m=200.0, background_irradiance_w_m2=1e3), np.random.default_rng(0)
+        )
     assert not np.any(np.isnan(s.points_m)) and not np.any(np.isnan(s.sigma_m))
     assert np.all(np.isinf(s.sigma_m)) and caught

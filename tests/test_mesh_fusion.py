@@ -186,8 +186,15 @@ def test_nan_inside_mask_is_warned(scene):
 
 @pytest.mark.parametrize(
     "key,value",
-    [("d_pitch_mm", 0.0), ("min_angle_deg", 0.0), ("knn", 2), ("time_step", -1.0), ("diffuse", "z"),
-     ("blend_px", -1.0), ("scale_prior_rel", 0.0)],
+    [
+        ("d_pitch_mm", 0.0),
+        ("min_angle_deg", 0.0),
+        ("knn", 2),
+        ("time_step", -1.0),
+        ("diffuse", "z"),
+        ("blend_px", -1.0),
+        ("scale_prior_rel", 0.0),
+    ],
 )
 def test_bad_config(key, value):
     with pytest.raises(ConfigError, match=key):

@@ -78,8 +78,16 @@ def test_metrics3d_on_a_3d_run():
     cloud = ItofFusion().fuse(depth, itof, scene.camera)
     mesh = PowerCrust().reconstruct(cloud)
     m = Metrics3D().compute(Products(scene, acq, Image2D(scene.radiance), None, depth, itof, cloud, mesh))
-    for key in ("depth_rmse_sfs_mm", "depth_rmse_fused_mm", "improvement_pct", "skewness_mean",
-                "skewness_p95", "chamfer_mm", "hausdorff_mm", "skewness_sfs_mean"):
+    for key in (
+        "depth_rmse_sfs_mm",
+        "depth_rmse_fused_mm",
+        "improvement_pct",
+        "skewness_mean",
+        "skewness_p95",
+        "chamfer_mm",
+        "hausdorff_mm",
+        "skewness_sfs_mean",
+    ):
         assert np.isfinite(m[key]), key
     assert m["improvement_pct"] > 20  # outliers and noise removed
     assert m["chamfer_mm"] < 1.5 and m["hausdorff_mm"] >= m["chamfer_mm"]

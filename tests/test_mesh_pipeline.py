@@ -40,8 +40,15 @@ def test_3d_run(surface):
 
     out = run_pipeline(_cfg("itof=cw4", "fusion=itof", f"surface={surface}", "metrics=full"))
     m = out.metrics
-    for key in ("ssim", "depth_rmse_sfs_mm", "depth_rmse_fused_mm", "improvement_pct",
-                "skewness_mean", "chamfer_mm", "hausdorff_mm"):
+    for key in (
+        "ssim",
+        "depth_rmse_sfs_mm",
+        "depth_rmse_fused_mm",
+        "improvement_pct",
+        "skewness_mean",
+        "chamfer_mm",
+        "hausdorff_mm",
+    ):
         assert key in m and np.isfinite(m[key]), key
     assert {"sfs", "itof", "fusion", "surface", "metrics"} <= set(out.timings_ms)
     assert out.info["fusion"]["anchors_used"] == 4

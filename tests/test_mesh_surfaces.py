@@ -92,7 +92,9 @@ def test_poisson_on_a_cap():
     normals = (cap - CENTRE) / R
     mesh = ScreenedPoisson().reconstruct(PointCloud(cap, normals=normals))
     d = np.abs(np.linalg.norm(mesh.vertices_m - CENTRE, axis=1) - R)
-    assert len(mesh.faces) > 100 and np.median(d) < 0.2e-3 and np.percentile(d, 90) < 1.5e-3 and d.max() < 4e-3  # rim extrapolates
+    assert (
+        len(mesh.faces) > 100 and np.median(d) < 0.2e-3 and np.percentile(d, 90) < 1.5e-3 and d.max() < 4e-3
+    )  # rim extrapolates
     # without normals pymeshlab estimates them, oriented towards the camera
     mesh2 = ScreenedPoisson().reconstruct(PointCloud(cap))
     assert len(mesh2.faces) > 100
@@ -100,7 +102,9 @@ def test_poisson_on_a_cap():
         ScreenedPoisson(depth=2)
 
 
-@pytest.mark.parametrize("stage", ["nirspi_pipe.mesh.powercrust:PowerCrust", "nirspi_pipe.mesh.poisson:ScreenedPoisson"])
+@pytest.mark.parametrize(
+    "stage", ["nirspi_pipe.mesh.powercrust:PowerCrust", "nirspi_pipe.mesh.poisson:ScreenedPoisson"]
+)
 def test_surface_stages_load_pymeshlab_when_built_not_when_timed(stage: str) -> None:
     """The ~0.3 s import of pymeshlab happens when the stage is built (before the runner's timer),
     so the first mesh of a process (every sweep job) does not count it as surface time (Table 6)."""

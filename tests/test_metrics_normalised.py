@@ -71,6 +71,7 @@ def test_reference_keeps_fall_off_and_fog_and_noise_lowers_the_score():
 def test_fog_fills_only_the_chamber():
     """The fog attenuates min(range, extent) of each ray: an object beyond the chamber sees the
     same transmission as one at its far wall."""
+
     def peak_ratio(distance_mm: float) -> float:
         scene = Sphere(distance_mm=distance_mm).render(Camera(16))
         clear = Simulator(forward_model(detector=Photodiode())).reference_image(scene)

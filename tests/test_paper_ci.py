@@ -30,8 +30,12 @@ def test_paper_ci_reproduces_the_reference_tables(tmp_path):
     report = (sweep / "report.md").read_text()
     assert all(f"## {name}" in report for name in TABLES)
     assert not list(sweep.rglob("mesh.png")), "output.images=false must skip the mesh render"
-    check = subprocess.run([sys.executable, "-m", "nirspi_pipe.reproduce", "check", str(sweep)],
-                           capture_output=True, text=True, timeout=120)
+    check = subprocess.run(
+        [sys.executable, "-m", "nirspi_pipe.reproduce", "check", str(sweep)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert check.returncode == 0, check.stdout + check.stderr
     for name in TABLES:
         assert f"{name}: ok" in check.stdout

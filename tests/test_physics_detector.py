@@ -41,7 +41,15 @@ def test_photodiode_full_scale_from_c_eq_and_expected_noise():
     assert np.std(counts) * d.electrons_per_count == pytest.approx(n, rel=0.03)
 
 
-@pytest.mark.parametrize(("kwargs", "key"), [({"read_noise_e": -1.0}, "read_noise_e"), ({"adc_bits": 0}, "adc_bits"), ({"full_scale_v": -1.0}, "full_scale_v"), ({"budget": {"f_number": -2}}, "budget.f_number")])
+@pytest.mark.parametrize(
+    ("kwargs", "key"),
+    [
+        ({"read_noise_e": -1.0}, "read_noise_e"),
+        ({"adc_bits": 0}, "adc_bits"),
+        ({"full_scale_v": -1.0}, "full_scale_v"),
+        ({"budget": {"f_number": -2}}, "budget.f_number"),
+    ],
+)
 def test_impossible_detector_inputs_name_the_key(kwargs, key):
     with pytest.raises(ConfigError) as err:
         Photodiode(**kwargs)
@@ -49,7 +57,11 @@ def test_impossible_detector_inputs_name_the_key(kwargs, key):
 
 
 @settings(max_examples=50, deadline=None)
-@given(mean=st.one_of(st.just(0.0), st.floats(0.0, 1e30)), bits=st.sampled_from([None, 8, 16]), fs=st.sampled_from([None, 1.0, 5.0]))
+@given(
+    mean=st.one_of(st.just(0.0), st.floats(0.0, 1e30)),
+    bits=st.sampled_from([None, 8, 16]),
+    fs=st.sampled_from([None, 1.0, 5.0]),
+)
 def test_readings_stay_finite_and_in_range(mean, bits, fs):
     d = Photodiode(adc_bits=bits, full_scale_v=fs)
     counts, sat = d.read(np.full(8, mean), np.random.default_rng(0))

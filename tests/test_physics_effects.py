@@ -43,8 +43,15 @@ def _exposure(distance_mm: float = 200.0, reflectance: float = 0.5, n_dark: int 
     t_pos = (n_dark + 2.0 * np.arange(m)) * 1e-3
     rng = np.random.default_rng(3)
     return Exposure(
-        scene=scene, indices=np.arange(m), n=N, t_pos=t_pos, t_neg=t_pos + 1e-3, t_dark=np.arange(n_dark) * 1e-3,
-        budget=PhotonBudget(), rngs=tuple(rng.spawn(streams)), rng_main=rng,
+        scene=scene,
+        indices=np.arange(m),
+        n=N,
+        t_pos=t_pos,
+        t_neg=t_pos + 1e-3,
+        t_dark=np.arange(n_dark) * 1e-3,
+        budget=PhotonBudget(),
+        rngs=tuple(rng.spawn(streams)),
+        rng_main=rng,
     )
 
 
@@ -163,7 +170,13 @@ def test_forward_model_leaves_out_what_is_off_and_keeps_the_order():
         MeasuredFog(beta_per_m=1.0, fluctuation_rel=0.1), Background(klux=5.0, flicker_rel=0.1), Photodiode(), 0.01
     )
     assert [e.name for e in chain] == [
-        "budget", "fog", "fog_fluctuation", "backscatter", "background", "background_drift", "detector",
+        "budget",
+        "fog",
+        "fog_fluctuation",
+        "backscatter",
+        "background",
+        "background_drift",
+        "detector",
         "gaussian_noise",
     ]
     assert all(isinstance(e, Effect) for e in chain)

@@ -64,7 +64,14 @@ def test_impossible_light_inputs_name_the_key(kwargs, key):
     assert err.value.key == key
 
 
-@pytest.mark.parametrize(("kwargs", "key"), [({"f_number": 0.0}, "f_number"), ({"quantum_efficiency": 1.2}, "quantum_efficiency"), ({"led_count": 0}, "led_count")])
+@pytest.mark.parametrize(
+    ("kwargs", "key"),
+    [
+        ({"f_number": 0.0}, "f_number"),
+        ({"quantum_efficiency": 1.2}, "quantum_efficiency"),
+        ({"led_count": 0}, "led_count"),
+    ],
+)
 def test_impossible_budget_inputs_name_the_key(kwargs, key):
     with pytest.raises(ConfigError) as err:
         PhotonBudget(**kwargs)

@@ -67,7 +67,10 @@ def test_background_light_shortens_the_range():
     det = Photodiode()
     from nirspi_pipe.physics.light import Background
 
-    zs = [max_distance_m(0.5, det, photon_irradiance=Background(klux=k).photon_irradiance) for k in (0.0, 15.0, 50.0, 100.0)]
+    zs = [
+        max_distance_m(0.5, det, photon_irradiance=Background(klux=k).photon_irradiance)
+        for k in (0.0, 15.0, 50.0, 100.0)
+    ]
     assert all(a > b for a, b in zip(zs, zs[1:]))
 
 
@@ -91,8 +94,14 @@ def test_range_is_finite_and_bounded_for_extremes(refl, beta, klux, noise):
     from nirspi_pipe.physics.light import Background
 
     det = replace(Photodiode(), read_noise_e=noise)
-    z = max_distance_m(refl, det, beta_per_m=beta, photon_irradiance=Background(klux=klux).photon_irradiance,
-                       backscatter_gain=0.01, fog_extent_m=0.35)
+    z = max_distance_m(
+        refl,
+        det,
+        beta_per_m=beta,
+        photon_irradiance=Background(klux=klux).photon_irradiance,
+        backscatter_gain=0.01,
+        fog_extent_m=0.35,
+    )
     assert np.isfinite(z) and 1e-3 <= z <= 10.0
     if refl == 0.0:
         assert z == 1e-3

@@ -105,7 +105,8 @@ def test_derived_quantities_of_a_full_run():
 def test_physical_reconstruction_is_calibrated_relative_radiance():
     scene = Plane(reflectance=0.5).render(Camera(16))
     acq = Simulator(forward_model(detector=Photodiode(shot_noise=False, read_noise_e=0.0, adc_bits=None))).acquire(
-        scene, np.arange(256), 16, np.random.default_rng(0))
+        scene, np.arange(256), 16, np.random.default_rng(0)
+    )
     img = _reconstruct(acq)
     # a flat board: relative radiance with the 1/r² fall-off towards the corners (cos θ of the rays)
     assert img[7:9, 7:9].mean() == pytest.approx(scene.radiance[7:9, 7:9].mean(), rel=2e-3)
@@ -135,7 +136,11 @@ def test_static_background_cancels_and_drift_makes_the_order_matter(sphere16):
         assert np.abs(_reconstruct(acq) - sphere16.radiance).max() < 1e-9
     # a linear drift offsets every pair equally (only the DC pixel moves, whatever the order);
     # flicker and slow wander differ from pair to pair, so the order decides where errors land
-    drift = Simulator(forward_model(illumination=Background(klux=50.0, drift_rel_per_s=0.2, flicker_rel=0.02, flicker_hz=7.0, wander_rel=0.01)))
+    drift = Simulator(
+        forward_model(
+            illumination=Background(klux=50.0, drift_rel_per_s=0.2, flicker_rel=0.02, flicker_hz=7.0, wander_rel=0.01)
+        )
+    )
     a = _reconstruct(drift.acquire(sphere16, order, n, np.random.default_rng(0)))
     b = _reconstruct(drift.acquire(sphere16, order[::-1], n, np.random.default_rng(0)))
     err_a, err_b = np.abs(a - sphere16.radiance).max(), np.abs(b - sphere16.radiance).max()
@@ -212,11 +217,13 @@ def test_hard_cases_stay_finite_and_in_range(beta, distance_mm, klux, refl, fluc
     n = 4
     scene = Plane(distance_mm=distance_mm, reflectance=refl).render(Camera(n))
     det = Photodiode() if physical else IdealDetector()
-    sim = Simulator(forward_model(
-        fog=MeasuredFog(beta_per_m=beta, fluctuation_rel=fluct) if beta > 0 else None,
-        illumination=Background(klux=klux, drift_rel_per_s=drift),
-        detector=det,
-    ))
+    sim = Simulator(
+        forward_model(
+            fog=MeasuredFog(beta_per_m=beta, fluctuation_rel=fluct) if beta > 0 else None,
+            illumination=Background(klux=klux, drift_rel_per_s=drift),
+            detector=det,
+        )
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         acq = sim.acquire(scene, np.arange(n * n), n, np.random.default_rng(0))
@@ -256,5 +263,7 @@ def test_full_saturation_is_counted():
 def test_enabling_one_effect_does_not_change_another_effects_noise(sphere16):
     idx = np.arange(256)
     a = Simulator(forward_model(detector=Photodiode())).acquire(sphere16, idx, 16, np.random.default_rng(5))
-    b = Simulator(forward_model(detector=Photodiode(), illumination=Background(klux=1e-9))).acquire(sphere16, idx, 16, np.random.default_rng(5))
+    b = Simulator(forward_model(detector=Photodiode(), illumination=Background(klux=1e-9))).acquire(
+        sphere16, idx, 16, np.random.default_rng(5)
+    )
     assert np.array_equal(a.y_pos, b.y_pos)  # the detector's stream is its own

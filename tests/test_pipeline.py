@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import NOISE_FREE
 from hydra import compose, initialize_config_module
 
+from conftest import NOISE_FREE
 from nirspi_pipe.patterns.hadamard import fwht2
 from nirspi_pipe.pipeline import run_pipeline
 from nirspi_pipe.scene.objects import ImageTarget, Sphere

@@ -249,7 +249,10 @@ def test_throwaway_plugin_pip_installed_runs_through_nirspi_run(tmp_path: Path) 
         out = tmp_path / "run"
         run = subprocess.run(
             [exe, f"solver={name}", "camera.resolution=16", f"hydra.run.dir={out}"],
-            capture_output=True, text=True, env=env, timeout=300,
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
         )
         assert run.returncode == 0, run.stderr
         # the broken plugin is named in one warning line and the run goes on
@@ -262,9 +265,19 @@ def test_throwaway_plugin_pip_installed_runs_through_nirspi_run(tmp_path: Path) 
 
         sweep = tmp_path / "sweep"
         multi = subprocess.run(
-            [exe, "-m", f"solver={name},{name}_stored", "camera.resolution=16",
-             "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}"],
-            capture_output=True, text=True, env=env, timeout=300,
+            [
+                exe,
+                "-m",
+                f"solver={name},{name}_stored",
+                "camera.resolution=16",
+                "hydra/launcher=joblib",
+                "hydra.launcher.n_jobs=2",
+                f"hydra.sweep.dir={sweep}",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=300,
         )
         assert multi.returncode == 0, multi.stderr
         recs = [json.loads(p.read_text()) for p in sorted(sweep.glob("*/record.json"))]

@@ -35,5 +35,7 @@ def scene(request):  # type: ignore[no-untyped-def]
 def test_quarter_sampling_fista_tv_beats_basic_fwht(scene, order):
     base = _psnr(scene, Basic(RATIO), FWHTSolver())
     ours = _psnr(scene, order, FistaTVSolver())
-    print(f"{scene.name} {type(order).__name__}+fista_tv {ours:.2f} dB vs basic+fwht {base:.2f} dB: +{ours - base:.2f} dB")
+    print(
+        f"{scene.name} {type(order).__name__}+fista_tv {ours:.2f} dB vs basic+fwht {base:.2f} dB: +{ours - base:.2f} dB"
+    )
     assert ours > base + MARGIN_DB

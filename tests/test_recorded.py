@@ -78,8 +78,10 @@ def test_64x64_explicit_split_file_takes_the_fast_path(tmp_path: Path) -> None:
     assert out.metrics["ssim"] > 0.9999 and out.metrics["rmse"] < 1e-9
     # the requirement is < 1 s; the bound here is generous for a loaded 2-core CI machine,
     # the dense least-squares alternative takes minutes. The time is printed for the report.
-    print(f"\n64x64 explicit split file: load+recognise+solve {reconstruct_s:.3f} s "
-          f"(run_pipeline wall {wall:.3f} s incl. first imports; timings {out.timings_ms})")
+    print(
+        f"\n64x64 explicit split file: load+recognise+solve {reconstruct_s:.3f} s "
+        f"(run_pipeline wall {wall:.3f} s incl. first imports; timings {out.timings_ms})"
+    )
     assert reconstruct_s < 3.0
 
 
@@ -107,7 +109,9 @@ def test_signed_rows_and_spec_forms_agree(tmp_path: Path) -> None:
     k = sequency_order(n)[:100]
     signs = np.where(np.arange(100) % 3 == 0, -1.0, 1.0)
     signed = hadamard_rows(n, k) * signs[:, None]
-    a = recording_to_acquisition(load_recording(save_recording(tmp_path / "s.npz", measurements=signed @ img.ravel(), patterns=signed)))
+    a = recording_to_acquisition(
+        load_recording(save_recording(tmp_path / "s.npz", measurements=signed @ img.ravel(), patterns=signed))
+    )
     assert a.info["pattern_kind"] == "signed" and a.info["fast_path"]
     assert np.array_equal(a.indices, k) and np.allclose(a.coefficients(), coeffs[k])
     half = 0.5 * img.sum()
@@ -116,7 +120,9 @@ def test_signed_rows_and_spec_forms_agree(tmp_path: Path) -> None:
         ("interleaved", np.column_stack([half + coeffs[k] / 2, half - coeffs[k] / 2]).ravel()),
         ("stacked", np.concatenate([half + coeffs[k] / 2, half - coeffs[k] / 2])),
     ]:
-        f = save_recording(tmp_path / f"{split}.npz", measurements=y, basis="hadamard", resolution=n, split=split, indices=k)
+        f = save_recording(
+            tmp_path / f"{split}.npz", measurements=y, basis="hadamard", resolution=n, split=split, indices=k
+        )
         acq = recording_to_acquisition(load_recording(f))
         assert np.array_equal(acq.indices, k) and np.allclose(acq.coefficients(), coeffs[k]), split
 
@@ -126,7 +132,15 @@ def test_spec_with_a_scan_order_name(tmp_path: Path) -> None:
     img = sphere(n)
     c = fwht2(img).ravel()
     path = tmp_path / "o.npz"
-    np.savez(path, measurements=c[: n * n // 2], basis="hadamard", resolution=n, split="differential", order="basic", ratio=0.5)
+    np.savez(
+        path,
+        measurements=c[: n * n // 2],
+        basis="hadamard",
+        resolution=n,
+        split="differential",
+        order="basic",
+        ratio=0.5,
+    )
     out = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=8"))
     assert np.array_equal(out.products.acquisition.indices, np.arange(n * n // 2))
     np.savez(path, measurements=c, basis="hadamard", resolution=n, split="differential", order="nope")
@@ -138,11 +152,26 @@ def test_scan_ratio_truncates_in_file_order(tmp_path: Path) -> None:
     n = 16
     img = sphere(n)
     k = sequency_order(n)
-    path = save_recording(tmp_path / "f.npz", measurements=fwht2(img).ravel()[k], basis="hadamard", resolution=n, split="differential", indices=k)
+    path = save_recording(
+        tmp_path / "f.npz",
+        measurements=fwht2(img).ravel()[k],
+        basis="hadamard",
+        resolution=n,
+        split="differential",
+        indices=k,
+    )
     out = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=16", "scan.ratio=0.25"))
     acq = out.products.acquisition
     assert np.array_equal(acq.indices, k[:64]) and acq.info["patterns_used"] == 64
-    full = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=16", "scan.ratio=0.25", "source.use_scan_ratio=false"))
+    full = run_pipeline(
+        config(
+            "source=recorded",
+            f"source.path={path}",
+            "camera.resolution=16",
+            "scan.ratio=0.25",
+            "source.use_scan_ratio=false",
+        )
+    )
     assert full.products.acquisition.info["patterns_used"] == 256
 
 
@@ -154,13 +183,17 @@ def test_general_patterns_stay_explicit(tmp_path: Path) -> None:
     rng = np.random.default_rng(5)
     s = np.where(rng.random((40, n * n)) < 0.5, 1.0, -1.0)
     pats = split_interleaved(s, np.float64)
-    rec = load_recording(save_recording(tmp_path / "r.npz", measurements=pats @ img.ravel() + 2.0, patterns=pats, dark=np.full(5, 2.0)))
+    rec = load_recording(
+        save_recording(tmp_path / "r.npz", measurements=pats @ img.ravel() + 2.0, patterns=pats, dark=np.full(5, 2.0))
+    )
     acq = recording_to_acquisition(rec)
     assert acq.info["pattern_kind"] == "split" and not acq.info["fast_path"]
     assert acq.patterns.shape == (40, n * n)
     assert np.allclose(acq.coefficients(), acq.patterns @ img.ravel())
     gray = rng.random((50, n * n))
-    rec = load_recording(save_recording(tmp_path / "g.npz", measurements=gray @ img.ravel() + 2.0, patterns=gray, dark=np.full(5, 2.0)))
+    rec = load_recording(
+        save_recording(tmp_path / "g.npz", measurements=gray @ img.ravel() + 2.0, patterns=gray, dark=np.full(5, 2.0))
+    )
     acq = recording_to_acquisition(rec)
     assert acq.info["pattern_kind"] == "general" and acq.derived["offset_subtracted"] == 2.0
     assert np.allclose(acq.coefficients(), gray @ img.ravel())
@@ -181,7 +214,15 @@ def test_match_hadamard_rejects_near_misses() -> None:
 def test_resolution_mismatch_warns_and_uses_the_file(tmp_path: Path) -> None:
     n = 16
     img = sphere(n)
-    path = save_recording(tmp_path / "f.npz", measurements=fwht2(img).ravel(), basis="hadamard", resolution=n, split="differential", indices=np.arange(n * n), image=img)
+    path = save_recording(
+        tmp_path / "f.npz",
+        measurements=fwht2(img).ravel(),
+        basis="hadamard",
+        resolution=n,
+        split="differential",
+        indices=np.arange(n * n),
+        image=img,
+    )
     out = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=64"))
     assert out.products.image.data.shape == (16, 16) and out.metrics["rmse"] < 1e-12
     assert any("camera.resolution=16" in w for w in out.warnings)
@@ -219,19 +260,42 @@ BAD = {
     "missing-measurements": (_with(measurements=None), "measurements"),
     "missing-patterns": (_with(patterns=None), "patterns"),
     "spec-missing-split": (
-        {"measurements": np.ones(16), "basis": np.array("hadamard"), "resolution": np.array(4), "indices": np.arange(16)},
+        {
+            "measurements": np.ones(16),
+            "basis": np.array("hadamard"),
+            "resolution": np.array(4),
+            "indices": np.arange(16),
+        },
         "split",
     ),
     "spec-bad-split": (
-        {"measurements": np.ones(16), "basis": np.array("hadamard"), "resolution": np.array(4), "split": np.array("sideways"), "indices": np.arange(16)},
+        {
+            "measurements": np.ones(16),
+            "basis": np.array("hadamard"),
+            "resolution": np.array(4),
+            "split": np.array("sideways"),
+            "indices": np.arange(16),
+        },
         "split",
     ),
     "spec-count": (
-        {"measurements": np.ones(10), "basis": np.array("hadamard"), "resolution": np.array(4), "split": np.array("interleaved"), "indices": np.arange(16)},
+        {
+            "measurements": np.ones(10),
+            "basis": np.array("hadamard"),
+            "resolution": np.array(4),
+            "split": np.array("interleaved"),
+            "indices": np.arange(16),
+        },
         "measurements",
     ),
     "indices-range": (
-        {"measurements": np.ones(3), "basis": np.array("hadamard"), "resolution": np.array(4), "split": np.array("differential"), "indices": np.array([0, 5, 16])},
+        {
+            "measurements": np.ones(3),
+            "basis": np.array("hadamard"),
+            "resolution": np.array(4),
+            "split": np.array("differential"),
+            "indices": np.array([0, 5, 16]),
+        },
         "indices",
     ),
     "image-shape": (_with(image=np.zeros((5, 5))), "image"),
@@ -284,14 +348,26 @@ def test_cli_on_a_file_from_another_tool(tmp_path: Path) -> None:
     exe = str(Path(sys.executable).with_name("nirspi-run"))
     env = {**os.environ, "MPLBACKEND": "Agg"}
     out = tmp_path / "run"
-    proc = subprocess.run([exe, "source=recorded", f"source.path={path}", "camera.resolution=16", f"hydra.run.dir={out}"], capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [exe, "source=recorded", f"source.path={path}", "camera.resolution=16", f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     rec = json.loads((out / "record.json").read_text())
     assert rec["meta"]["status"] == "ok" and rec["info"]["source"]["fast_path"]
     with np.load(out / "arrays.npz") as arrs:
         assert np.abs(arrs["reconstruction"] - img).max() < 1e-9
     np.savez(path, measurements=np.arange(512), patterns=pats)
-    bad = subprocess.run([exe, "source=recorded", f"source.path={path}", "camera.resolution=16", f"hydra.run.dir={tmp_path / 'bad'}"], capture_output=True, text=True, env=env, timeout=300)
+    bad = subprocess.run(
+        [exe, "source=recorded", f"source.path={path}", "camera.resolution=16", f"hydra.run.dir={tmp_path / 'bad'}"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert bad.returncode == 1
     lines = [ln for ln in bad.stderr.splitlines() if ln.startswith("nirspi-run: error")]
     assert len(lines) == 1 and "key 'measurements'" in lines[0] and "dtype int64" in lines[0]

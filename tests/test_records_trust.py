@@ -24,7 +24,6 @@ from nirspi_pipe.records import (
     InputHasher,
     JobLock,
     OutputError,
-    atomic_write,
     code_identity,
     input_files,
     job_key_of,
@@ -162,8 +161,11 @@ def test_job_lock_excludes_and_is_never_stale(tmp_path: Path) -> None:
 def test_input_files_change_the_job_key(tmp_path: Path) -> None:
     rec = tmp_path / "rec.npz"
     rec.write_bytes(b"first recording")
-    config = {"source": {"path": str(rec), "nested": [{"weights": "rec.npz"}]}, "scene": {"path": "skimage:camera"},
-              "hydra": {"x": str(rec)}}
+    config = {
+        "source": {"path": str(rec), "nested": [{"weights": "rec.npz"}]},
+        "scene": {"path": "skimage:camera"},
+        "hydra": {"x": str(rec)},
+    }
     found = input_files(config, base=tmp_path)
     assert set(found) == {"source.path", "source.nested[0].weights"}  # any key; hydra node left out
     hasher = InputHasher()
@@ -205,17 +207,21 @@ def test_provenance_never_runs_git_in_the_callers_directory(tmp_path: Path) -> N
     hook = tmp_path / "hook.sh"
     hook.write_text(f"#!/bin/sh\ntouch {marker}\n")
     hook.chmod(0o755)
-    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@t"}
+    env = {
+        **os.environ,
+        "GIT_AUTHOR_NAME": "t",
+        "GIT_AUTHOR_EMAIL": "t@t",
+        "GIT_COMMITTER_NAME": "t",
+        "GIT_COMMITTER_EMAIL": "t@t",
+    }
     for cmd in (["init", "-q"], ["config", "core.fsmonitor", str(hook)], ["commit", "-q", "--allow-empty", "-m", "x"]):
         subprocess.run(["git", *cmd], cwd=other, check=True, env=env, capture_output=True)
-    other_sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=other, capture_output=True, text=True,
-                               env=env).stdout.strip()
+    other_sha = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=other, capture_output=True, text=True, env=env
+    ).stdout.strip()
     marker.unlink(missing_ok=True)
-    code = ("import json; from nirspi_pipe.records import code_identity; "
-            "print(json.dumps(code_identity()))")
-    out = subprocess.run([sys.executable, "-c", code], cwd=other, capture_output=True, text=True, timeout=120,
-                         env=env)
+    code = "import json; from nirspi_pipe.records import code_identity; print(json.dumps(code_identity()))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=other, capture_output=True, text=True, timeout=120, env=env)
     assert out.returncode == 0, out.stderr
     ident = json.loads(out.stdout)
     assert ident["git_sha"] != other_sha
@@ -225,8 +231,11 @@ def test_provenance_never_runs_git_in_the_callers_directory(tmp_path: Path) -> N
     own = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True)
     tracked = records._checkout_of(pkg) is not None
     assert ident["git_sha"] == (own.stdout.strip() if tracked else None)
-    assert ident["code"] == (f"git:{ident['git_sha'][:12]}" + ("+dirty" if ident["git_dirty"] else "")
-                             if tracked else f"src:{ident['source_hash']}")
+    assert ident["code"] == (
+        f"git:{ident['git_sha'][:12]}" + ("+dirty" if ident["git_dirty"] else "")
+        if tracked
+        else f"src:{ident['source_hash']}"
+    )
 
 
 def test_git_runs_only_with_the_package_root(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -305,15 +314,18 @@ def test_run_sweep_job_survives_its_child(tmp_path: Path, how: str) -> None:
             assert expected in meta["error"]
 
 
-@pytest.mark.parametrize("text, needle", [
-    ("{", "not readable JSON"),
-    ("[]", "expected a JSON object"),
-    ("{}", "expected a 'jobs' list"),
-    ('{"jobs": [{"key": "../../etc"}]}', "jobs[0] needs a 'key'"),
-    ('{"jobs": [1]}', "jobs[0]"),
-    ('{"jobs": [], "started": "yesterday"}', "'started' must be a number"),
-    ("[" * 100000, "not readable JSON"),
-])
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("{", "not readable JSON"),
+        ("[]", "expected a JSON object"),
+        ("{}", "expected a 'jobs' list"),
+        ('{"jobs": [{"key": "../../etc"}]}', "jobs[0] needs a 'key'"),
+        ('{"jobs": [1]}', "jobs[0]"),
+        ('{"jobs": [], "started": "yesterday"}', "'started' must be a number"),
+        ("[" * 100000, "not readable JSON"),
+    ],
+)
 def test_malformed_sweep_file_is_named(tmp_path: Path, text: str, needle: str) -> None:
     (tmp_path / "sweep.json").write_text(text)
     with pytest.raises(SweepFileError) as info:

@@ -43,6 +43,7 @@ def test_all_nan_columns_compare_equal() -> None:
 
 # -- the check catches a real change (issue 12) --------------------------------------------------
 
+
 def _fake_sweep(tmp_path: Path) -> tuple[Path, Path]:
     """A sweep whose tables are the committed references, and a copy of the reference folder."""
     ref = tmp_path / "ref"

@@ -196,8 +196,12 @@ def test_every_new_config_option_composes_and_instantiates(sphere_files):
 
     from nirspi_pipe.pipeline import build, run_pipeline
 
-    groups = {"fog": ["none", "chamber", "measured"], "illumination": ["none", "klux"], "detector": ["ideal", "ingaas"],
-              "scene": ["torus", "cube", "u_shape", "plane", "mesh"]}
+    groups = {
+        "fog": ["none", "chamber", "measured"],
+        "illumination": ["none", "klux"],
+        "detector": ["ideal", "ingaas"],
+        "scene": ["torus", "cube", "u_shape", "plane", "mesh"],
+    }
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         for group, options in groups.items():
             for opt in options:

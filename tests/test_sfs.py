@@ -170,8 +170,12 @@ def hard_images(draw):
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(img=hard_images(), scheme=st.sampled_from(["godunov", "lax_friedrichs"]),
-       albedo=st.sampled_from(["auto", 0.5, 1.0]), persp=st.booleans())
+@given(
+    img=hard_images(),
+    scheme=st.sampled_from(["godunov", "lax_friedrichs"]),
+    albedo=st.sampled_from(["auto", 0.5, 1.0]),
+    persp=st.booleans(),
+)
 def test_hard_inputs_stay_finite(img, scheme, albedo, persp):
     if persp and min(img.shape) < 3:
         with pytest.raises(NirspiError, match="at least 3x3"):

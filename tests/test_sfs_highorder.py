@@ -196,8 +196,7 @@ def hard_slopes(draw):
 @given(data=hard_slopes(), slope=st.sampled_from(["cos2", "node"]))
 def test_hard_inputs_stay_finite(data, slope):
     f, fixed = data
-    res = solve_numpy(SweepProblem(f, fixed, np.where(fixed, 0.0, BIG)), "second_order", 1e-4, 200,
-                      slope_average=slope)
+    res = solve_numpy(SweepProblem(f, fixed, np.where(fixed, 0.0, BIG)), "second_order", 1e-4, 200, slope_average=slope)
     assert np.isfinite(res.z).all() and res.converged
     assert np.all(res.z >= 0.0) and np.all(res.z <= BIG) and np.all(res.z[fixed] == 0.0)
     if not fixed.any():
@@ -209,15 +208,21 @@ def test_hard_inputs_stay_finite(data, slope):
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(img=st.sampled_from(["constant", "zeros", "salt", "saturated"]), n=st.sampled_from([2, 8, 16]),
-       albedo=st.sampled_from(["auto", 0.5]))
+@given(
+    img=st.sampled_from(["constant", "zeros", "salt", "saturated"]),
+    n=st.sampled_from([2, 8, 16]),
+    albedo=st.sampled_from(["auto", 0.5]),
+)
 def test_stage_hard_images_finite(img, n, albedo):
     c = np.arange(n) + 0.5 - n / 2
     r2 = (c[None, :] ** 2 + c[:, None] ** 2) / max(1.0, (0.4 * n) ** 2)
     base = np.sqrt(np.clip(1 - r2, 0, 1))
-    data = {"constant": np.full((n, n), 0.6), "zeros": np.zeros((n, n)),
-            "salt": np.where(np.random.default_rng(n).random((n, n)) < 0.1, 1.0, base),
-            "saturated": np.minimum(3 * base, 1.5)}[img]
+    data = {
+        "constant": np.full((n, n), 0.6),
+        "zeros": np.zeros((n, n)),
+        "salt": np.where(np.random.default_rng(n).random((n, n)) < 0.1, 1.0, base),
+        "saturated": np.minimum(3 * base, 1.5),
+    }[img]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         d = LaxFriedrichsSFS(scheme="second_order", albedo=albedo).solve(Image2D(data), CAM)
@@ -296,8 +301,10 @@ def test_kernel_source_as_c_agrees_with_numpy(tmp_path, slope):
     src = tmp_path / f"k2{cos2}.c"
     src.write_text(_SHIM + ocl.kernel2_source() + _DRIVER)
     so = tmp_path / f"k2{cos2}.so"
-    subprocess.run(["cc", "-O2", "-ffp-contract=off", "-shared", "-fPIC", "-w", f"-DCOS2={cos2}", "-o", str(so),
-                    str(src), "-lm"], check=True)
+    subprocess.run(
+        ["cc", "-O2", "-ffp-contract=off", "-shared", "-fPIC", "-w", f"-DCOS2={cos2}", "-o", str(so), str(src), "-lm"],
+        check=True,
+    )
     lib = ctypes.CDLL(str(so))
     p = ctypes.c_void_p
     lib.edges2_all.restype = lib.fsm2.restype = None
@@ -316,7 +323,21 @@ def test_kernel_source_as_c_agrees_with_numpy(tmp_path, slope):
         upd = np.ascontiguousarray(~problem.fixed, np.uint8)
         dirty = np.ones(rows * cols, np.uint8)
         out, red = np.zeros(3), np.zeros(1)
-        lib.fsm2(z.ctypes.data, rhs.ctypes.data, eh.ctypes.data, ev.ctypes.data, upd.ctypes.data,
-                 dirty.ctypes.data, rows, cols, 100, 1e-4, out.ctypes.data, red.ctypes.data)
-        _agree(solve_numpy(problem, "second_order", 1e-4, 400, slope_average=slope),
-               SweepResult(z, int(out[0]), float(out[1]), bool(out[2])))
+        lib.fsm2(
+            z.ctypes.data,
+            rhs.ctypes.data,
+            eh.ctypes.data,
+            ev.ctypes.data,
+            upd.ctypes.data,
+            dirty.ctypes.data,
+            rows,
+            cols,
+            100,
+            1e-4,
+            out.ctypes.data,
+            red.ctypes.data,
+        )
+        _agree(
+            solve_numpy(problem, "second_order", 1e-4, 400, slope_average=slope),
+            SweepResult(z, int(out[0]), float(out[1]), bool(out[2])),
+        )

@@ -90,8 +90,19 @@ def _solve_c(lib, problem: SweepProblem, scheme: str, tol=1e-4, max_sweeps=2000)
     fn = lib.fsm
     fn.restype = None
     fn.argtypes = [p] * 6 + [ctypes.c_int, ctypes.c_int] + [ctypes.c_double] * 3 + [ctypes.c_int, ctypes.c_double, p, p]
-    fn(z.ctypes.data, *(a.ctypes.data for a in arrays), rows, cols, sx, sy, 2.0 / problem.focal_px,
-       max(1, -(-max_sweeps // 4)), tol, out.ctypes.data, red.ctypes.data)
+    fn(
+        z.ctypes.data,
+        *(a.ctypes.data for a in arrays),
+        rows,
+        cols,
+        sx,
+        sy,
+        2.0 / problem.focal_px,
+        max(1, -(-max_sweeps // 4)),
+        tol,
+        out.ctypes.data,
+        red.ctypes.data,
+    )
     return SweepResult(z, int(out[0]), float(out[1]), bool(out[2]))
 
 
@@ -103,8 +114,20 @@ def test_kernel_source_as_c_agrees_with_numpy(tmp_path):
         src.write_text(_SHIM + ocl._KERNEL % {"big": BIG})
         so = tmp_path / f"k{tag}.so"
         subprocess.run(
-            ["cc", "-O2", "-ffp-contract=off", "-shared", "-fPIC", "-w", f"-DMODEL={problem.model}",
-             f"-DSCHEME={int(scheme == 'godunov')}", "-o", str(so), str(src), "-lm"],
+            [
+                "cc",
+                "-O2",
+                "-ffp-contract=off",
+                "-shared",
+                "-fPIC",
+                "-w",
+                f"-DMODEL={problem.model}",
+                f"-DSCHEME={int(scheme == 'godunov')}",
+                "-o",
+                str(so),
+                str(src),
+                "-lm",
+            ],
             check=True,
         )
         _agree(solve_numpy(problem, scheme), _solve_c(ctypes.CDLL(str(so)), problem, scheme))

@@ -35,8 +35,9 @@ def _cfg(*overrides: str):
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         # noise-free and 64², whatever the default run is (conf/config.yaml); the compose API takes
         # preset=off where nirspi-run also takes preset=null
-        return compose("config", overrides=["fog=none", "illumination=none", "detector=ideal",
-                                            "preset=off", *overrides])
+        return compose(
+            "config", overrides=["fog=none", "illumination=none", "detector=ideal", "preset=off", *overrides]
+        )
 
 
 # -- the shape set end to end ---------------------------------------------------------------------
@@ -46,11 +47,18 @@ def test_shape_set_end_to_end(kind):
     the remeshed power crust has mean equiangle skewness <= 0.30, the anchors are found."""
     from nirspi_pipe.pipeline import run_pipeline
 
-    out = run_pipeline(_cfg(f"scene={kind}", "sfs=second_order", "itof=cw4",
-                            "fusion=itof", "surface=power_crust", "metrics=full"))
+    out = run_pipeline(
+        _cfg(f"scene={kind}", "sfs=second_order", "itof=cw4", "fusion=itof", "surface=power_crust", "metrics=full")
+    )
     m = out.metrics
-    for key in ("depth_rmse_sfs_mm", "depth_rmse_fused_mm", "improvement_pct", "chamfer_mm", "hausdorff_mm",
-                "skewness_mean"):
+    for key in (
+        "depth_rmse_sfs_mm",
+        "depth_rmse_fused_mm",
+        "improvement_pct",
+        "chamfer_mm",
+        "hausdorff_mm",
+        "skewness_mean",
+    ):
         assert np.isfinite(m[key]), key
     assert m["improvement_pct"] >= -2.0
     assert m["skewness_mean"] <= 0.30
@@ -96,8 +104,13 @@ def test_fixed_spots_miss_a_thin_plate_and_auto_does_not():
 
 
 def test_spot_config_errors():
-    for key, value in [("spots", "laser"), ("n_spots", 0), ("n_spots", 5), ("aim_threshold", 1.5),
-                       ("aim_directions", ((0.0, 0.0, -1.0),))]:
+    for key, value in [
+        ("spots", "laser"),
+        ("n_spots", 0),
+        ("n_spots", 5),
+        ("aim_threshold", 1.5),
+        ("aim_directions", ((0.0, 0.0, -1.0),)),
+    ]:
         with pytest.raises(ConfigError, match=key):
             ContinuousWave4(**{key: value})
 
@@ -140,7 +153,9 @@ def test_no_anchor_error_names_every_reason(sphere):
     far = ItofSample(points_m=np.array([[0.03, 0.03, 0.2], [1.0, 1.0, np.nan]]), sigma_m=np.array([0.01, np.inf]))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        with pytest.raises(NirspiError, match=r"spot 0: falls at pixel .* outside the SFS depth mask.*spot 1: no valid"):
+        with pytest.raises(
+            NirspiError, match=r"spot 0: falls at pixel .* outside the SFS depth mask.*spot 1: no valid"
+        ):
             ItofFusion().fuse(depth, far, CAM)
 
 
@@ -148,8 +163,14 @@ def test_failed_record_keeps_its_warnings(tmp_path):
     from nirspi_pipe.cli import execute_job
 
     # one spot aimed off the object: fusion has no anchor and the job fails
-    cfg = _cfg("itof=cw4", "itof.aim_directions=[[0.15,0.15,0.98]]", "sfs=second_order", "fusion=itof",
-               "output.images=false", "output.arrays=false")
+    cfg = _cfg(
+        "itof=cw4",
+        "itof.aim_directions=[[0.15,0.15,0.98]]",
+        "sfs=second_order",
+        "fusion=itof",
+        "output.images=false",
+        "output.arrays=false",
+    )
     record = execute_job(cfg, tmp_path, {}, [])
     assert record["meta"]["status"] == "failed"
     assert "no valid iToF anchor" in record["meta"]["error"]
@@ -236,7 +257,8 @@ def test_vase_singular_regions_get_consistent_depths():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             d = LaxFriedrichsSFS(scheme="second_order", singular=choice, source_tol=0.01, albedo=1.0).solve(
-                Image2D(img), CAM)
+                Image2D(img), CAM
+            )
         e = d.depth_m[d.mask] + h[d.mask]
         errs[choice] = float(np.mean(np.abs(e - np.median(e))))
         if choice == "maximal":

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+
 from conftest import run_cli, script
 
 GRID = ["seed=0,1,2,3,4,5", "camera.resolution=16", "output.images=false"]
@@ -45,7 +46,9 @@ def _slurm_unavailable() -> str | None:
 
 
 def _our_jobs(name: str) -> list[str]:
-    res = subprocess.run(["squeue", "-h", "-n", name, "-o", "%i"], check=False, capture_output=True, text=True, timeout=20)
+    res = subprocess.run(
+        ["squeue", "-h", "-n", name, "-o", "%i"], check=False, capture_output=True, text=True, timeout=20
+    )
     return res.stdout.split()
 
 
@@ -70,14 +73,28 @@ def test_slurm_sweep_cancelled_half_way_resumes_to_the_local_metrics(tmp_path: P
     if reason:
         pytest.skip(reason)
     name = f"nirspi-test-{uuid.uuid4().hex[:8]}"  # scancel only this test's jobs
-    slurm = [*GRID, "hydra/launcher=slurm", f"hydra.launcher.name={name}", "hydra.launcher.timeout_min=10",
-             "hydra.launcher.cpus_per_task=1", "hydra.launcher.mem_gb=1", "hydra.launcher.array_parallelism=1",
-             "hydra.sweep.dir=slurm"]
+    slurm = [
+        *GRID,
+        "hydra/launcher=slurm",
+        f"hydra.launcher.name={name}",
+        "hydra.launcher.timeout_min=10",
+        "hydra.launcher.cpus_per_task=1",
+        "hydra.launcher.mem_gb=1",
+        "hydra.launcher.array_parallelism=1",
+        "hydra.sweep.dir=slurm",
+    ]
     sweep = tmp_path / "slurm"
     env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "NIRSPI_TRACEBACK")}
     env["MPLBACKEND"] = "Agg"
-    proc = subprocess.Popen([script("nirspi-run"), "-m", *slurm], cwd=tmp_path, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True)
+    proc = subprocess.Popen(
+        [script("nirspi-run"), "-m", *slurm],
+        cwd=tmp_path,
+        env=env,
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     try:
         deadline = time.monotonic() + 300
         while _ok_records(sweep) < 2 and proc.poll() is None and time.monotonic() < deadline:

@@ -68,7 +68,14 @@ def test_stream_honours_the_scan_order_and_ratio() -> None:
 
 @pytest.mark.parametrize(
     "fault,field",
-    [("truncate", "frames"), ("nan", "y_pos"), ("bad-header", "header"), ("seq", "seq"), ("no-end", "end"), ("stall", "frames")],
+    [
+        ("truncate", "frames"),
+        ("nan", "y_pos"),
+        ("bad-header", "header"),
+        ("seq", "seq"),
+        ("no-end", "end"),
+        ("stall", "frames"),
+    ],
 )
 def test_protocol_errors_name_the_field_and_record_no_result(tmp_path: Path, fault: str, field: str) -> None:
     n = 8
@@ -108,16 +115,27 @@ def test_emulator_console_script_and_nirspi_run(tmp_path: Path) -> None:
     env = {**os.environ, "MPLBACKEND": "Agg"}
     with subprocess.Popen(
         [str(bindir / "nirspi-device-emulator"), "--resolution", "16", "--background", "3", "--lifetime-s", "60"],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=env,
     ) as emu:
         try:
             hello = json.loads(emu.stdout.readline())
             assert hello["host"] == "127.0.0.1" and hello["n"] == 16
             out = tmp_path / "run"
             run = subprocess.run(
-                [str(bindir / "nirspi-run"), "source=stream", f"source.port={hello['port']}", "camera.resolution=16",
-                 f"hydra.run.dir={out}"],
-                capture_output=True, text=True, env=env, timeout=300,
+                [
+                    str(bindir / "nirspi-run"),
+                    "source=stream",
+                    f"source.port={hello['port']}",
+                    "camera.resolution=16",
+                    f"hydra.run.dir={out}",
+                ],
+                capture_output=True,
+                text=True,
+                env=env,
+                timeout=300,
             )
             assert run.returncode == 0, run.stderr
             assert emu.wait(timeout=30) == 0  # served its one connection and stopped by itself
@@ -174,13 +192,36 @@ def test_convert_column_major_mat_file_through_the_cli(tmp_path: Path) -> None:
     savemat(src, {"P": cols, "yp": pos, "yn": neg, "gt": img})
     out = tmp_path / "rec.npz"
     exe = Path(sys.executable).with_name("nirspi-convert")
-    proc = subprocess.run([str(exe), str(src), "-o", str(out), "--patterns", "P", "--pos", "yp", "--neg", "yn",
-                           "--image", "gt", "--flatten", "F"], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [
+            str(exe),
+            str(src),
+            "-o",
+            str(out),
+            "--patterns",
+            "P",
+            "--pos",
+            "yp",
+            "--neg",
+            "yn",
+            "--image",
+            "gt",
+            "--flatten",
+            "F",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     out_run = run_pipeline(config("source=recorded", f"source.path={out}", "camera.resolution=8"))
     assert out_run.metrics["rmse"] < 1e-9
-    bad = subprocess.run([str(exe), str(src), "-o", str(out), "--patterns", "P", "--pos", "nope", "--neg", "yn"],
-                         capture_output=True, text=True, timeout=120)
+    bad = subprocess.run(
+        [str(exe), str(src), "-o", str(out), "--patterns", "P", "--pos", "nope", "--neg", "yn"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert bad.returncode == 2 and "key 'nope'" in bad.stderr
 
 

@@ -45,8 +45,12 @@ def frame():
                 sim = Simulator(forward_model(fog=fog_model, detector=det))
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    acq = sim.acquire(Plane(distance_mm=dist, reflectance=refl).render(cam), np.arange(256), 16,
-                                      np.random.default_rng(seed))
+                    acq = sim.acquire(
+                        Plane(distance_mm=dist, reflectance=refl).render(cam),
+                        np.arange(256),
+                        16,
+                        np.random.default_rng(seed),
+                    )
                 seed += 1
                 row = {"status": "ok", "fog": fog_name, "scene.reflectance": refl, "scene.distance_mm": float(dist)}
                 row.update({f"derived.{k}": v for k, v in acq.derived.items()})
@@ -79,8 +83,14 @@ def test_table2_builder_names_missing_columns(tmp_path):
 def test_table2_experiment_through_the_cli(tmp_path):
     exe = Path(sys.executable).with_name("nirspi-run")
     sweep = tmp_path / "t2"
-    cmd = [str(exe), "-m", "+experiment=table2", f"hydra.sweep.dir={sweep}",
-           "scene.reflectance=0.5", "scene.distance_mm=250,300,400"]
+    cmd = [
+        str(exe),
+        "-m",
+        "+experiment=table2",
+        f"hydra.sweep.dir={sweep}",
+        "scene.reflectance=0.5",
+        "scene.distance_mm=250,300,400",
+    ]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     table = pd.read_csv(sweep / "tables" / "table2.csv", index_col="row")

@@ -21,20 +21,41 @@ def _frame(fog: str, klux=(5.0, 15.0), seeds=(0, 1), failed: int = 0) -> pd.Data
     rows = []
     for scan, k, scene, seed in itertools.product(SCANS, klux, SCENE, seeds):
         base = OFFSET[scan] + SCENE[scene] + 0.5 * seed
-        rows.append({
-            "status": "ok", "error": None, "scan": scan, "fog": fog, "scene": scene, "seed": seed,
-            "illumination.klux": k, "experiment": "table3",
-            "metrics.improvement_pct": 10.0 + base + 0.1 * k,
-            "metrics.depth_rmse_sfs_mm": 20.0, "metrics.depth_rmse_fused_mm": 18.0,
-            "metrics.skewness_sfs_mean": 0.7 + 0.01 * base, "metrics.skewness_mean": 0.5 + 0.001 * base,
-            "metrics.ssim": 0.5 - 0.001 * k + 0.01 * OFFSET[scan] + 0.01 * seed,
-            "metrics.psnr": 15.0 - 0.01 * k + 0.1 * OFFSET[scan] + 0.2 * seed,
-            "timings_ms.sfs": 100.0 + seed, "timings_ms.fusion": 10.0, "timings_ms.surface": 30.0 + OFFSET[scan],
-            "info.sfs.backend": "numpy",
-        })
+        rows.append(
+            {
+                "status": "ok",
+                "error": None,
+                "scan": scan,
+                "fog": fog,
+                "scene": scene,
+                "seed": seed,
+                "illumination.klux": k,
+                "experiment": "table3",
+                "metrics.improvement_pct": 10.0 + base + 0.1 * k,
+                "metrics.depth_rmse_sfs_mm": 20.0,
+                "metrics.depth_rmse_fused_mm": 18.0,
+                "metrics.skewness_sfs_mean": 0.7 + 0.01 * base,
+                "metrics.skewness_mean": 0.5 + 0.001 * base,
+                "metrics.ssim": 0.5 - 0.001 * k + 0.01 * OFFSET[scan] + 0.01 * seed,
+                "metrics.psnr": 15.0 - 0.01 * k + 0.1 * OFFSET[scan] + 0.2 * seed,
+                "timings_ms.sfs": 100.0 + seed,
+                "timings_ms.fusion": 10.0,
+                "timings_ms.surface": 30.0 + OFFSET[scan],
+                "info.sfs.backend": "numpy",
+            }
+        )
     for i in range(failed):
-        rows.append({"status": "failed", "error": "NirspiError: fusion: no valid iToF anchor", "scan": SCANS[i % 4],
-                     "fog": fog, "scene": "torus", "seed": 0, "illumination.klux": klux[0]})
+        rows.append(
+            {
+                "status": "failed",
+                "error": "NirspiError: fusion: no valid iToF anchor",
+                "scan": SCANS[i % 4],
+                "fog": fog,
+                "scene": "torus",
+                "seed": 0,
+                "illumination.klux": klux[0],
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -98,7 +119,11 @@ def test_table6_times_and_table7_summary(tmp_path):
         assert r.sfs_backend == "numpy"
     assert set(paper_reference("table6")["time_total_ms"]) == set(t6["paper_time_total_ms"])
     # every timing column of the CSV is excluded from reproduction checks; scan and n are not
-    assert [c for c in pd.read_csv(tmp_path / "table6.csv").columns if not is_timing_column(c)] == ["scan", "n", "sfs_backend"]
+    assert [c for c in pd.read_csv(tmp_path / "table6.csv").columns if not is_timing_column(c)] == [
+        "scan",
+        "n",
+        "sfs_backend",
+    ]
 
     t7 = build_table("table7", frame, tmp_path)
     for r in t7.itertuples():

@@ -75,7 +75,9 @@ def _deconv_loops(x: np.ndarray, w: np.ndarray, b: np.ndarray, s: int, pad: int,
     return out
 
 
-def _tiny_net(rng: np.random.Generator, scale: int, d: int = 3, s: int = 2, m: int = 1, residual: bool = False) -> FsrcnnWeights:
+def _tiny_net(
+    rng: np.random.Generator, scale: int, d: int = 3, s: int = 2, m: int = 1, residual: bool = False
+) -> FsrcnnWeights:
     shapes = [(d, 1, 5), (s, d, 1)] + [(s, s, 3)] * m + [(d, s, 1)]
     layers = tuple(
         ConvLayer(
@@ -85,8 +87,14 @@ def _tiny_net(rng: np.random.Generator, scale: int, d: int = 3, s: int = 2, m: i
         )
         for o, i, k in shapes
     )
-    return FsrcnnWeights(scale, layers, rng.normal(0, 0.2, (d, 1, 9, 9)).astype(np.float32),
-                         np.array([0.1], np.float32), residual=residual, border=4 + m)
+    return FsrcnnWeights(
+        scale,
+        layers,
+        rng.normal(0, 0.2, (d, 1, 9, 9)).astype(np.float32),
+        np.array([0.1], np.float32),
+        residual=residual,
+        border=4 + m,
+    )
 
 
 def _forward_loops(lr: np.ndarray, net: FsrcnnWeights) -> np.ndarray:
@@ -133,6 +141,7 @@ def test_forward_matches_loop_reference_on_tiny_network(scale: int, residual: bo
 @pytest.mark.parametrize("scale", SCALES)
 def test_forward_matches_torch(scale: int) -> None:
     import torch  # marker torch: deselected by default; run with `pytest -m torch` after `pip install '.[train]'`
+
     from nirspi_pipe.upscale.train import _build_net, _to_weights
 
     torch.manual_seed(scale)
@@ -171,8 +180,10 @@ def test_packaged_weights_load_and_are_small(scale: int) -> None:
 
 
 def test_packaged_weights_load_in_a_fresh_interpreter(tmp_path: Path) -> None:
-    code = ("from nirspi_pipe.upscale.fsrcnn import load_weights, packaged_weights_path;"
-            "print(packaged_weights_path(4)); print(load_weights(4).n_params)")
+    code = (
+        "from nirspi_pipe.upscale.fsrcnn import load_weights, packaged_weights_path;"
+        "print(packaged_weights_path(4)); print(load_weights(4).n_params)"
+    )
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, check=True)
     assert int(out.stdout.split()[-1]) > 0
 
@@ -212,8 +223,9 @@ def test_constant_images_stay_close_to_constant(scale: int, value: float) -> Non
 
 @settings(max_examples=25, deadline=None)
 @given(
-    arrays(np.float64, st.tuples(st.integers(1, 10), st.integers(1, 10)),
-           elements=st.floats(-1e3, 1e3, allow_nan=False)),
+    arrays(
+        np.float64, st.tuples(st.integers(1, 10), st.integers(1, 10)), elements=st.floats(-1e3, 1e3, allow_nan=False)
+    ),
     st.sampled_from(SCALES),
 )
 def test_any_finite_input_gives_finite_clipped_output(data: np.ndarray, scale: int) -> None:
@@ -301,8 +313,14 @@ def test_upscale_metrics_on_exact_reconstruction_match_bicubic_of_the_truth() ->
 def test_cli_bad_scale_is_one_line(tmp_path: Path) -> None:
     exe = Path(sys.executable).parent / "nirspi-run"
     env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "NIRSPI_TRACEBACK")}
-    res = subprocess.run([str(exe), "upscale=fsrcnn", "upscale.scale=5"], cwd=tmp_path,
-                         capture_output=True, text=True, env=env, timeout=120)
+    res = subprocess.run(
+        [str(exe), "upscale=fsrcnn", "upscale.scale=5"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and "upscale.scale=5" in lines[0]

@@ -88,7 +88,9 @@ def test_unknown_weights_name_is_one_clear_error(tmp_path: Path, monkeypatch: py
         load_weights(2, DEVICE_WEIGHTS)  # a shipped ×4 file asked for ×2
 
 
-def test_a_file_in_the_working_directory_wins_over_a_shipped_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_file_in_the_working_directory_wins_over_a_shipped_name(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.chdir(tmp_path)
     (tmp_path / DEVICE_WEIGHTS).write_bytes(resolve_weights(3).read_bytes())  # a ×3 file under the ×4 name
     assert resolve_weights(4, DEVICE_WEIGHTS) == Path(DEVICE_WEIGHTS)
@@ -104,9 +106,35 @@ def test_train_command_whole_image_mode_smoke(tmp_path: Path) -> None:
     reproduces the trained network and the held-out scores are at the requested noise levels."""
     from nirspi_pipe.upscale.train import main
 
-    args = ["--scales", "4", "--n-lr", "8", "--iters", "3", "--variants", "1", "--shapes", "2", "--spheres", "1",
-            "--batch", "4", "--noise-max", "0.06", "--noise-min", "0.01", "--heldout-noise", "0", "0.03",
-            "--threads", "1", "--name", "w_x{scale}.npz", "--out", str(tmp_path)]
+    args = [
+        "--scales",
+        "4",
+        "--n-lr",
+        "8",
+        "--iters",
+        "3",
+        "--variants",
+        "1",
+        "--shapes",
+        "2",
+        "--spheres",
+        "1",
+        "--batch",
+        "4",
+        "--noise-max",
+        "0.06",
+        "--noise-min",
+        "0.01",
+        "--heldout-noise",
+        "0",
+        "0.03",
+        "--threads",
+        "1",
+        "--name",
+        "w_x{scale}.npz",
+        "--out",
+        str(tmp_path),
+    ]
     assert main(args) == 0
     net = load_weights(4, tmp_path / "w_x4.npz")
     meta = net.meta or {}
@@ -121,7 +149,9 @@ def test_equivalent_noise_rel_recovers_the_noise_of_spi_lowres() -> None:
 
     hr = sphere_hr(32, 200.0, 50.0, 0.8)
     for nr in (0.01, 0.03):
-        est = [equivalent_noise_rel(spi_lowres(hr, 4, nr, np.random.default_rng(s)), block_mean(hr, 4)) for s in range(20)]
+        est = [
+            equivalent_noise_rel(spi_lowres(hr, 4, nr, np.random.default_rng(s)), block_mean(hr, 4)) for s in range(20)
+        ]
         assert np.mean(est) == pytest.approx(nr, rel=0.15)  # a 64-pixel std: ~9 % per image
     assert equivalent_noise_rel(block_mean(hr, 4), block_mean(hr, 4)) < 1e-12
 

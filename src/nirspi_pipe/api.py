@@ -96,8 +96,12 @@ class RunResult:
             "timings_ms": dict(self.timings_ms),
             "derived": dict(self.derived),
             "info": {k: dict(v) for k, v in self.info.items()},
-            "meta": {"seed": self.seed, "status": "ok", "warnings": list(self.warnings),
-                     "overrides": list(self.overrides)},
+            "meta": {
+                "seed": self.seed,
+                "status": "ok",
+                "warnings": list(self.warnings),
+                "overrides": list(self.overrides),
+            },
         }
 
     def summary(self) -> str:

@@ -45,7 +45,11 @@ def _summary(record: dict[str, Any], out_dir: Path) -> str:
 
 
 def execute_job(
-    cfg: Any, out_dir: Path, choices: dict[str, str], overrides: list[str], job_num: int | None = None,
+    cfg: Any,
+    out_dir: Path,
+    choices: dict[str, str],
+    overrides: list[str],
+    job_num: int | None = None,
     attempt: int | None = None,
     on_output: Any = None,
 ) -> dict[str, Any]:
@@ -59,7 +63,13 @@ def execute_job(
     from nirspi_pipe.finite import drop_nonfinite
     from nirspi_pipe.pipeline import run_pipeline
     from nirspi_pipe.records import (
-        InputHasher, OutputError, atomic_write, config_hash, job_key_of, provenance, write_record,
+        InputHasher,
+        OutputError,
+        atomic_write,
+        config_hash,
+        job_key_of,
+        provenance,
+        write_record,
     )
 
     config: Any = OmegaConf.to_container(cfg, resolve=True)
@@ -118,8 +128,9 @@ def execute_job(
             record["meta"].update(status="failed", error=str(exc), error_type="OutputError")
         except OSError as exc:  # a writer that does not go through atomic_write (mesh.ply)
             where = f" {exc.filename}" if exc.filename else f" into {out_dir}"
-            record["meta"].update(status="failed", error=f"cannot write{where}: {exc.strerror or exc}",
-                                  error_type="OutputError")
+            record["meta"].update(
+                status="failed", error=f"cannot write{where}: {exc.strerror or exc}", error_type="OutputError"
+            )
         if on_output is not None:
             on_output(output)
     write_record(out_dir, record)
@@ -193,9 +204,16 @@ def _hydra_task(cfg: Any) -> None:
 
         sweep_file = Path(str(hc.sweep.dir)) / SWEEP_FILE
         ours = "nirspi" in str(hc.sweeper.get("_target_", ""))  # keyed folders (basic: numbered)
-        record = run_sweep_job(execute_job, cfg, out_dir, choices, overrides, job_num=job_num,
-                               sweep_file=sweep_file if sweep_file.is_file() else None,
-                               resume=ours and bool(hc.sweeper.get("resume", False)))
+        record = run_sweep_job(
+            execute_job,
+            cfg,
+            out_dir,
+            choices,
+            overrides,
+            job_num=job_num,
+            sweep_file=sweep_file if sweep_file.is_file() else None,
+            resume=ours and bool(hc.sweeper.get("resume", False)),
+        )
     else:
         try:
             record = execute_job(cfg, out_dir, choices, overrides, job_num=job_num)
@@ -238,9 +256,7 @@ def run(argv: list[str] | None = None) -> None:
         raise SystemExit(_EXIT_CONFIG)
     register_hydra_plugins()
     register_resolvers()  # ${nirspi_help:...} in the --help template
-    main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(
-        _hydra_task
-    )
+    main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(_hydra_task)
     sys.argv = [sys.argv[0], *args]
     main()
 
@@ -253,8 +269,7 @@ def _activate_plugins() -> None:
     logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # printed here instead
     for fail in activate().failures:
         print(
-            f"nirspi-run: warning: plugin {fail.name!r} ({fail.value}) failed to load and was "
-            f"skipped: {fail.error}",
+            f"nirspi-run: warning: plugin {fail.name!r} ({fail.value}) failed to load and was skipped: {fail.error}",
             file=sys.stderr,
         )
 
@@ -276,7 +291,10 @@ def collect(argv: list[str] | None = None) -> None:
     parser.add_argument("sweep_dir", type=Path, help="a multirun folder (hydra.sweep.dir)")
     parser.add_argument("--quiet", action="store_true", help="do not print the table")
     parser.add_argument(
-        "--tables", nargs="*", default=None, metavar="NAME",
+        "--tables",
+        nargs="*",
+        default=None,
+        metavar="NAME",
         help="paper tables to rebuild (default: those the sweep's experiments list)",
     )
     ns = parser.parse_args(argv)
@@ -298,4 +316,3 @@ def collect(argv: list[str] | None = None) -> None:
             print(frame.head(20).to_string(index=False))
     counts = frame["status"].value_counts().to_dict() if len(frame) else {}
     print(f"nirspi-collect: {len(frame)} records {counts} -> {ns.sweep_dir / 'results.parquet'}")
-

@@ -40,9 +40,21 @@ from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import OmegaConf
 
 __all__ = [
-    "CONFIG_MODULE", "CONFIG_NAME", "SCHEMA_GROUP", "group_options", "config_groups", "all_groups", "scan_indices",
-    "render_scene", "locate", "schema_defaults", "schema_node", "register_schemas", "schema_reference",
-    "SchemaSource", "SchemaSearchPath",
+    "CONFIG_MODULE",
+    "CONFIG_NAME",
+    "SCHEMA_GROUP",
+    "group_options",
+    "config_groups",
+    "all_groups",
+    "scan_indices",
+    "render_scene",
+    "locate",
+    "schema_defaults",
+    "schema_node",
+    "register_schemas",
+    "schema_reference",
+    "SchemaSource",
+    "SchemaSearchPath",
 ]
 
 log = logging.getLogger("nirspi_pipe.configs")
@@ -270,7 +282,7 @@ class SchemaSource(ConfigSource):
     def _name(self, config_path: str) -> str | None:
         path = config_path.strip("/")
         path = path[: -len(".yaml")] if path.endswith(".yaml") else path
-        return path[len(SCHEMA_GROUP) + 1:] if path.startswith(f"{SCHEMA_GROUP}/") else None
+        return path[len(SCHEMA_GROUP) + 1 :] if path.startswith(f"{SCHEMA_GROUP}/") else None
 
     def load_config(self, config_path: str) -> ConfigResult:
         name = self._name(config_path)
@@ -301,12 +313,12 @@ class SchemaSource(ConfigSource):
         path = config_path.strip("/")
         if path != SCHEMA_GROUP and not path.startswith(SCHEMA_GROUP + "/"):
             return []  # not at the top level: the schemas are not config groups of their own
-        prefix = path[len(SCHEMA_GROUP) + 1:]
+        prefix = path[len(SCHEMA_GROUP) + 1 :]
         prefix = f"{prefix}/" if prefix else ""
         out: set[str] = set()
         for key in _SCHEMAS:
             if key.startswith(prefix):
-                head, _, rest = key[len(prefix):].partition("/")
+                head, _, rest = key[len(prefix) :].partition("/")
                 if rest and results_filter in (None, ObjectType.GROUP):
                     out.add(head)
                 elif not rest and results_filter in (None, ObjectType.CONFIG):
@@ -370,7 +382,7 @@ def group_options(group: str) -> list[str]:
 def config_groups(parent: str = "") -> list[str]:
     """Config groups directly under ``parent`` (top level by default), Hydra's own excluded."""
     prefix = f"{parent}/" if parent else ""
-    return sorted(g[len(prefix):] for g in _catalogue() if g.startswith(prefix) and "/" not in g[len(prefix):])
+    return sorted(g[len(prefix) :] for g in _catalogue() if g.startswith(prefix) and "/" not in g[len(prefix) :])
 
 
 def all_groups() -> frozenset[str]:

@@ -19,9 +19,7 @@ class ConfigError(NirspiError, ValueError):
     unless ``absolute`` says the key is already a full path (``fog.number_density_per_cm3``).
     """
 
-    def __init__(
-        self, key: str, value: Any, allowed: str, unknown_key: bool = False, absolute: bool = False
-    ) -> None:
+    def __init__(self, key: str, value: Any, allowed: str, unknown_key: bool = False, absolute: bool = False) -> None:
         self.key, self.value, self.allowed, self.unknown_key = key, value, allowed, unknown_key
         self.absolute = absolute  # key is already the full config path: never prefix it
         if unknown_key:

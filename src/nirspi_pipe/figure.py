@@ -33,12 +33,21 @@ def _extent_mm(products: Products, n: int) -> tuple[list[float], str]:
     return [-half, half, -half, half], f"x (mm, on the plane at {truth.distance_m * 1e3:.0f} mm)"
 
 
-def _show(fig: Any, ax: Any, img: np.ndarray, title: str, unit: str, extent: list[float], xlabel: str,
-          cmap: str = "gray", vmin: float | None = None, vmax: float | None = None) -> None:
+def _show(
+    fig: Any,
+    ax: Any,
+    img: np.ndarray,
+    title: str,
+    unit: str,
+    extent: list[float],
+    xlabel: str,
+    cmap: str = "gray",
+    vmin: float | None = None,
+    vmax: float | None = None,
+) -> None:
     data = np.ma.masked_invalid(np.asarray(img, dtype=np.float64))
     # images are stored row 0 = top of the view; origin="upper" keeps that on screen
-    handle = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, extent=extent, origin="upper",
-                       interpolation="nearest")
+    handle = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, extent=extent, origin="upper", interpolation="nearest")
     ax.set_title(title, fontsize=9)
     ax.set_xlabel(xlabel, fontsize=8)
     ax.set_ylabel("y (pixel)" if xlabel == "pixel" else "y (mm)", fontsize=8)
@@ -61,8 +70,12 @@ def _title(record: Mapping[str, Any]) -> str:
     m = record.get("metrics", {}) or {}
     head = f"scene={ch.get('scene')}  scan={ch.get('scan')}  solver={ch.get('solver')}  {res}×{res}"
     scores = []
-    for key, fmt in (("ssim", "SSIM {:.3f}"), ("psnr", "PSNR {:.2f} dB"), ("depth_rmse_fused_mm", "fused depth RMSE {:.3g} mm"),
-                     ("improvement_pct", "Eq. 17 improvement {:+.1f} %")):
+    for key, fmt in (
+        ("ssim", "SSIM {:.3f}"),
+        ("psnr", "PSNR {:.2f} dB"),
+        ("depth_rmse_fused_mm", "fused depth RMSE {:.3g} mm"),
+        ("improvement_pct", "Eq. 17 improvement {:+.1f} %"),
+    ):
         if key in m and math.isfinite(float(m[key])):
             scores.append(fmt.format(float(m[key])))
     effects = [" ".join(line.split()) for line in effects_lines(record)]
@@ -82,8 +95,9 @@ def _metric_depth(products: Products) -> np.ndarray | None:
     return np.where(np.asarray(depth.mask, dtype=bool) & np.isfinite(z), z, np.nan)
 
 
-def write_summary_figure(folder: Path, products: Products, record: Mapping[str, Any],
-                         mesh_png: Path | None = None) -> Path:
+def write_summary_figure(
+    folder: Path, products: Products, record: Mapping[str, Any], mesh_png: Path | None = None
+) -> Path:
     """Write ``summary.png`` into ``folder`` (see the module docstring); returns its path.
 
     ``mesh_png``: an already rendered mesh view to place in the 3D row (``mesh.png``)."""
@@ -118,15 +132,34 @@ def write_summary_figure(folder: Path, products: Products, record: Mapping[str, 
         err = recon - truth.radiance
         lim = _symmetric(err)
         rms = float(np.sqrt(np.mean(err[np.isfinite(err)] ** 2)))
-        _show(fig, r0[2], err, f"error: reconstruction − truth (RMSE {rms:.3g})", "radiance difference",
-              extent, xlabel, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        _show(
+            fig,
+            r0[2],
+            err,
+            f"error: reconstruction − truth (RMSE {rms:.3g})",
+            "radiance difference",
+            extent,
+            xlabel,
+            cmap="RdBu_r",
+            vmin=-lim,
+            vmax=lim,
+        )
     else:
         r0[2].axis("off")
     if three_d:
         up = products.upscaled
         if up is not None:
-            _show(fig, r0[3], up.data, f"upscaled {up.data.shape[0]}×{up.data.shape[1]}", unit, extent, xlabel,
-                  vmin=0.0, vmax=1.0)
+            _show(
+                fig,
+                r0[3],
+                up.data,
+                f"upscaled {up.data.shape[0]}×{up.data.shape[1]}",
+                unit,
+                extent,
+                xlabel,
+                vmin=0.0,
+                vmax=1.0,
+            )
         else:
             r0[3].axis("off")
             r0[3].text(0.5, 0.5, "no upscaling\n(upscale=null)", ha="center", va="center", fontsize=9)
@@ -157,8 +190,18 @@ def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlab
     _show(fig, row[0], zt, "true depth", "depth (mm)", extent, xlabel, cmap="viridis", vmin=lo, vmax=hi)
     zs = _metric_depth(products)
     if zs is not None:
-        _show(fig, row[1], zs * 1e3, "SFS depth, metric (Alg. A2)", "depth (mm)", extent, xlabel,
-              cmap="viridis", vmin=lo, vmax=hi)
+        _show(
+            fig,
+            row[1],
+            zs * 1e3,
+            "SFS depth, metric (Alg. A2)",
+            "depth (mm)",
+            extent,
+            xlabel,
+            cmap="viridis",
+            vmin=lo,
+            vmax=hi,
+        )
     else:
         row[1].axis("off")
         row[1].text(0.5, 0.5, "SFS depth is relative\n(no fusion to scale it)", ha="center", va="center")
@@ -167,13 +210,33 @@ def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlab
         err = (zf - truth.depth_m) * 1e3
         err = np.where(truth.mask, err, np.nan)
         lim = _symmetric(err)
-        _show(fig, row[2], err, "fused depth − true depth (Alg. A3)", "depth error (mm)", extent, xlabel,
-              cmap="RdBu_r", vmin=-lim, vmax=lim)
+        _show(
+            fig,
+            row[2],
+            err,
+            "fused depth − true depth (Alg. A3)",
+            "depth error (mm)",
+            extent,
+            xlabel,
+            cmap="RdBu_r",
+            vmin=-lim,
+            vmax=lim,
+        )
     elif zs is not None:
         err = (_to_grid(zs, truth.camera.resolution) - truth.depth_m) * 1e3
         lim = _symmetric(err)
-        _show(fig, row[2], np.where(truth.mask, err, np.nan), "SFS depth − true depth", "depth error (mm)",
-              extent, xlabel, cmap="RdBu_r", vmin=-lim, vmax=lim)
+        _show(
+            fig,
+            row[2],
+            np.where(truth.mask, err, np.nan),
+            "SFS depth − true depth",
+            "depth error (mm)",
+            extent,
+            xlabel,
+            cmap="RdBu_r",
+            vmin=-lim,
+            vmax=lim,
+        )
     else:
         row[2].axis("off")
     _depth_histogram(row[3], products)
@@ -202,8 +265,14 @@ def _depth_histogram(ax: Any, products: Products) -> None:
     lim = max(float(np.percentile(np.abs(e), 99)) for _, e in data) or 1.0
     for label, e in data:
         rms = float(np.sqrt(np.mean(e**2)))
-        ax.hist(np.clip(e, -lim, lim), bins=40, range=(-lim, lim), histtype="step", linewidth=1.5,
-                label=f"{label}: RMSE {rms:.3g} mm")
+        ax.hist(
+            np.clip(e, -lim, lim),
+            bins=40,
+            range=(-lim, lim),
+            histtype="step",
+            linewidth=1.5,
+            label=f"{label}: RMSE {rms:.3g} mm",
+        )
     ax.set_title("depth error on the object's pixels", fontsize=9)
     ax.set_xlabel("depth − true depth (mm)", fontsize=8)
     ax.set_ylabel("pixels", fontsize=8)

@@ -73,12 +73,17 @@ def attempts_with_this_code(folder: Path) -> int:
 
 def _bump_attempts(folder: Path) -> int:
     n = attempts_with_this_code(folder) + 1
-    atomic_write(Path(folder) / ATTEMPTS_NAME, json.dumps({
-        "attempts": n,
-        "source_hash": code_identity()["source_hash"],
-        "last": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "pid": os.getpid(),
-    }))
+    atomic_write(
+        Path(folder) / ATTEMPTS_NAME,
+        json.dumps(
+            {
+                "attempts": n,
+                "source_hash": code_identity()["source_hash"],
+                "last": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "pid": os.getpid(),
+            }
+        ),
+    )
     return n
 
 
@@ -98,8 +103,7 @@ def crash_message(status: int) -> tuple[str, dict[str, Any]]:
         hint = hints.get(sig, "")
         return f"job process killed by {name} ({sig}){hint}", {"signal": sig, "exit_code": -sig}
     code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else status
-    return (f"job process exited with code {code} before writing its record",
-            {"exit_code": code, "signal": None})
+    return (f"job process exited with code {code} before writing its record", {"exit_code": code, "signal": None})
 
 
 def _done_ok(folder: Path, sweep_file: Path | None, resume: bool) -> dict[str, Any] | None:
@@ -183,8 +187,16 @@ def _own_record(out_dir: Path, attempt: int) -> dict[str, Any] | None:
     return rec if rec.get("meta", {}).get("attempt") == attempt else None
 
 
-def _record_crash(out_dir: Path, status: int, rec: dict[str, Any] | None, cfg: Any, choices: dict[str, str],
-                  overrides: list[str], job_num: int | None, attempt: int) -> dict[str, Any]:
+def _record_crash(
+    out_dir: Path,
+    status: int,
+    rec: dict[str, Any] | None,
+    cfg: Any,
+    choices: dict[str, str],
+    overrides: list[str],
+    job_num: int | None,
+    attempt: int,
+) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     message, fields = crash_message(status)
@@ -198,10 +210,26 @@ def _record_crash(out_dir: Path, status: int, rec: dict[str, Any] | None, cfg: A
         config = {}
     inputs = InputHasher().hashes(config)
     record = {
-        "config": config, "choices": choices, "metrics": {}, "timings_ms": {}, "derived": {}, "info": {},
-        "meta": {"config_hash": config_hash(config), "job_key": job_key_of(config, inputs), "inputs": inputs,
-                 **provenance(), "status": "failed", "error": message, "error_type": "JobCrash", **fields,
-                 "attempt": attempt, "warnings": [], "overrides": overrides, "job_num": job_num},
+        "config": config,
+        "choices": choices,
+        "metrics": {},
+        "timings_ms": {},
+        "derived": {},
+        "info": {},
+        "meta": {
+            "config_hash": config_hash(config),
+            "job_key": job_key_of(config, inputs),
+            "inputs": inputs,
+            **provenance(),
+            "status": "failed",
+            "error": message,
+            "error_type": "JobCrash",
+            **fields,
+            "attempt": attempt,
+            "warnings": [],
+            "overrides": overrides,
+            "job_num": job_num,
+        },
     }
     try:
         write_record(out_dir, record)

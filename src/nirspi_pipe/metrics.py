@@ -121,8 +121,9 @@ class ImageMetrics:
         reference = products.acquisition.reference
         return self.score(truth.radiance, est, reference)
 
-    def score(self, truth: np.ndarray, estimate: np.ndarray, reference: np.ndarray | None = None,
-              prefix: str = "") -> dict[str, float]:
+    def score(
+        self, truth: np.ndarray, estimate: np.ndarray, reference: np.ndarray | None = None, prefix: str = ""
+    ) -> dict[str, float]:
         """The scores of ``estimate`` against ``truth`` (raw) and ``reference`` (normalised; the
         truth when None), keys prefixed by ``prefix``."""
         est = np.asarray(estimate, dtype=np.float64)

@@ -69,7 +69,7 @@ def _unwrap(exc: BaseException) -> tuple[BaseException, str | None]:
     while exc.__cause__ is not None and type(exc).__name__ == "InstantiationException":
         for line in str(exc).splitlines():
             if line.startswith("full_key: "):
-                full_key = line[len("full_key: "):].strip()
+                full_key = line[len("full_key: ") :].strip()
         exc = exc.__cause__
     return exc, full_key
 
@@ -88,7 +88,7 @@ def _list_keys(node: Any, key: str, full_key: str | None) -> str | None:
             sub = sub._get_node(part)  # noqa: SLF001 - the raw child, unresolved
             continue
         head = part.rstrip("0123456789")
-        index = part[len(head):]
+        index = part[len(head) :]
         child = sub._get_node(head) if isinstance(sub, DictConfig) and head in sub else None  # noqa: SLF001
         if index and isinstance(child, ListConfig) and int(index) < len(child):
             out += [head, index]
@@ -103,8 +103,8 @@ def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     user types, and whether it is absolute (an effect group inside ``source.effects``)."""
     if not full_key:
         return key, False
-    if full_key.startswith(_EFFECT_PARENT) and full_key[len(_EFFECT_PARENT):].split(".")[0] in EFFECT_GROUPS:
-        return full_key[len(_EFFECT_PARENT):], True
+    if full_key.startswith(_EFFECT_PARENT) and full_key[len(_EFFECT_PARENT) :].split(".")[0] in EFFECT_GROUPS:
+        return full_key[len(_EFFECT_PARENT) :], True
     return (full_key, False) if full_key.startswith(key + ".") else (key, False)
 
 
@@ -126,7 +126,9 @@ def build(node: DictConfig, key: str) -> Any:
         where, absolute = _user_key(_list_keys(node, key, full_key), key)
         if isinstance(inner, ConfigError):
             err = inner.under(where)
-            raise (ConfigError(err.key, err.value, err.allowed, err.unknown_key, absolute=True) if absolute else err) from None
+            raise (
+                ConfigError(err.key, err.value, err.allowed, err.unknown_key, absolute=True) if absolute else err
+            ) from None
         if isinstance(inner, TypeError) and "unexpected keyword argument" in str(inner):
             bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
             raise ConfigError(f"{where}.{bad}", None, _accepted_keys(node), unknown_key=True) from None
@@ -220,7 +222,9 @@ def check_types(node: Any, key: str) -> None:
                 continue
             if params is None:
                 raw = OmegaConf.to_container(sub, resolve=True)
-                params = {str(k): v for k, v in raw.items() if not str(k).startswith("_")} if isinstance(raw, dict) else {}
+                params = (
+                    {str(k): v for k, v in raw.items() if not str(k).startswith("_")} if isinstance(raw, dict) else {}
+                )
             where, _ = _user_key(f"{path}.{name}", key)
             raise ConfigError(where, value, _allowed_for(fn, params, name, kinds), absolute=True)
 

@@ -148,12 +148,12 @@ def _as_paths(value: Any, where: str) -> tuple[str, ...]:
 def _folder(path: str) -> Traversable:
     """The config folder ``pkg://package.sub`` or ``file://dir`` (a plain path is a file path)."""
     if path.startswith("pkg://"):
-        module = path[len("pkg://"):].strip("/").replace("/", ".")
+        module = path[len("pkg://") :].strip("/").replace("/", ".")
         try:
             return resources.files(module)
         except ModuleNotFoundError as exc:
             raise FileNotFoundError(f"config folder {path} does not exist ({exc})") from None
-    return Path(path[len("file://"):] if path.startswith("file://") else path)
+    return Path(path[len("file://") :] if path.startswith("file://") else path)
 
 
 def _folder_options(path: str) -> dict[str, list[str]]:

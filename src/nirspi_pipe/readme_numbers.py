@@ -57,8 +57,9 @@ def machine_stamp() -> dict[str, str]:
     """Platform, CPU, cores, load average (1/5/15 min), UTC time, git commit."""
     sha = "unknown"
     try:
-        sha = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=_REPO, capture_output=True,
-                             text=True, timeout=5, check=True).stdout.strip()
+        sha = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=_REPO, capture_output=True, text=True, timeout=5, check=True
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         pass
     return {
@@ -92,8 +93,15 @@ def _default_run(tmp: Path) -> tuple[str, float]:
     env = dict(os.environ, MPLBACKEND="Agg")
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     t0 = time.perf_counter()
-    res = subprocess.run([_exe("nirspi-run"), "hydra.run.dir=default"], cwd=tmp, capture_output=True,
-                         text=True, timeout=600, env=env, check=True)
+    res = subprocess.run(
+        [_exe("nirspi-run"), "hydra.run.dir=default"],
+        cwd=tmp,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+        check=True,
+    )
     text = res.stdout.strip().replace(str(tmp / "default"), "outputs/<date>/<time>")
     return text, time.perf_counter() - t0
 
@@ -103,15 +111,18 @@ def _sweep_table(tmp: Path) -> tuple[str, float]:
 
     from nirspi_pipe.api import load_results
 
-    wall = timed([_exe("nirspi-run"), "-m", "illumination.klux=5,15,50", "seed=0,1,2",
-                  "hydra.sweep.dir=sweeps/klux"], tmp)
+    wall = timed(
+        [_exe("nirspi-run"), "-m", "illumination.klux=5,15,50", "seed=0,1,2", "hydra.sweep.dir=sweeps/klux"], tmp
+    )
     df = load_results(tmp / "sweeps" / "klux")
     ok = df[df["status"] == "ok"]
     g = ok.groupby("illumination.klux")[["metrics.psnr", "metrics.ssim"]].agg(["mean", "std"])
     rows = ["| kLux | PSNR (dB), mean ± std | SSIM, mean ± std |", "|---:|---:|---:|"]
     for klux, r in g.iterrows():
-        rows.append(f"| {float(klux):g} | {r[('metrics.psnr', 'mean')]:.2f} ± {r[('metrics.psnr', 'std')]:.2f} "
-                    f"| {r[('metrics.ssim', 'mean')]:.3f} ± {r[('metrics.ssim', 'std')]:.3f} |")
+        rows.append(
+            f"| {float(klux):g} | {r[('metrics.psnr', 'mean')]:.2f} ± {r[('metrics.psnr', 'std')]:.2f} "
+            f"| {r[('metrics.ssim', 'mean')]:.3f} ± {r[('metrics.ssim', 'std')]:.3f} |"
+        )
     rows.append(f"\n{len(ok)} of {len(df)} jobs ok; {pd.Timestamp.now(tz='UTC'):%H:%M} UTC.")
     return "\n".join(rows), wall
 
@@ -195,11 +206,18 @@ def main(argv: list[str] | None = None) -> None:
     for label, _args, wall in sweeps:
         out.append(f"| `nirspi-run {_args}` ({label}) | {wall:.1f} s | {wall / ref_s:.1f} |")
     for name, text in mesh_ms.items():
-        out.append(f"\nTable 6's 3D mesh stage (fusion + power crust) in `+experiment={name}`, jobs two at a time "
-                   f"on this machine: {text}.")
+        out.append(
+            f"\nTable 6's 3D mesh stage (fusion + power crust) in `+experiment={name}`, jobs two at a time "
+            f"on this machine: {text}."
+        )
     if install is not None:
-        out += ["", (f"`pip install .` into a fresh venv: {install[0]:.0f} s, {install[1]:.0f} MB on disk "
-                     "(pip's wheel cache as configured on this machine).")]
+        out += [
+            "",
+            (
+                f"`pip install .` into a fresh venv: {install[0]:.0f} s, {install[1]:.0f} MB on disk "
+                "(pip's wheel cache as configured on this machine)."
+            ),
+        ]
     ns.out.parent.mkdir(parents=True, exist_ok=True)
     ns.out.write_text("\n".join(out) + "\n")
     print("\n".join(out))

@@ -263,8 +263,17 @@ def job_key_of(config: Mapping[str, Any], inputs: Mapping[str, str]) -> str:
 # ---------------------------------------------------------------------------------------------
 # Provenance: which code ran.
 
-_GIT_ENV_DROP = ("GIT_DIR", "GIT_WORK_TREE", "GIT_INDEX_FILE", "GIT_OBJECT_DIRECTORY", "GIT_COMMON_DIR",
-                 "GIT_CONFIG", "GIT_CONFIG_PARAMETERS", "GIT_CONFIG_COUNT", "GIT_NAMESPACE")
+_GIT_ENV_DROP = (
+    "GIT_DIR",
+    "GIT_WORK_TREE",
+    "GIT_INDEX_FILE",
+    "GIT_OBJECT_DIRECTORY",
+    "GIT_COMMON_DIR",
+    "GIT_CONFIG",
+    "GIT_CONFIG_PARAMETERS",
+    "GIT_CONFIG_COUNT",
+    "GIT_NAMESPACE",
+)
 _SOURCE_SUFFIXES = (".py", ".yaml", ".yml", ".cl", ".npz", ".json", ".csv", ".md")
 
 
@@ -278,11 +287,21 @@ def _git(root: Path, args: list[str]) -> str | None:
     the caller's ``GIT_*`` variables dropped, never searching above ``root``. None on failure."""
     env = {k: v for k, v in os.environ.items() if k not in _GIT_ENV_DROP}
     env.update(GIT_OPTIONAL_LOCKS="0", GIT_TERMINAL_PROMPT="0", GIT_CEILING_DIRECTORIES=str(root.parent))
-    cmd = ["git", "-C", str(root), "-c", "core.fsmonitor=false", "-c", "core.untrackedCache=false",
-           "--no-optional-locks", *args]
+    cmd = [
+        "git",
+        "-C",
+        str(root),
+        "-c",
+        "core.fsmonitor=false",
+        "-c",
+        "core.untrackedCache=false",
+        "--no-optional-locks",
+        *args,
+    ]
     try:
-        out = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=10,
-                             check=True, stdin=subprocess.DEVNULL)
+        out = subprocess.run(
+            cmd, cwd=root, env=env, capture_output=True, text=True, timeout=10, check=True, stdin=subprocess.DEVNULL
+        )
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip()
@@ -325,8 +344,11 @@ def source_hash() -> str:
     h = hashlib.sha256()
     for name, root in sorted(roots.items()):
         files = sorted(
-            p for p in root.rglob("*")
-            if p.is_file() and p.suffix in _SOURCE_SUFFIXES and "__pycache__" not in p.parts
+            p
+            for p in root.rglob("*")
+            if p.is_file()
+            and p.suffix in _SOURCE_SUFFIXES
+            and "__pycache__" not in p.parts
             and (name != "nirspi_pipe" or not any(r in p.parents for r in nested))
         )
         for p in files:
@@ -356,6 +378,7 @@ def code_identity() -> dict[str, Any]:
     src = source_hash()
     code = f"git:{sha[:12]}{'+dirty' if dirty else ''}" if sha else f"src:{src}"
     return {"version": __version__, "git_sha": sha, "git_dirty": dirty, "source_hash": src, "code": code}
+
 
 def _query_opencl() -> tuple[str, ...]:
     try:
@@ -426,13 +449,14 @@ def write_record(folder: Path, record: Mapping[str, Any]) -> Path:
     return atomic_write(Path(folder) / RECORD_NAME, text)
 
 
-
 def read_record(path: Path) -> dict[str, Any]:
     """Read one ``record.json`` (``Infinity``/``NaN`` allowed, as written)."""
     return json.loads(Path(path).read_text())
 
 
-def write_arrays(folder: Path, arrays: Mapping[str, np.ndarray | None], images: Mapping[str, np.ndarray | None]) -> None:
+def write_arrays(
+    folder: Path, arrays: Mapping[str, np.ndarray | None], images: Mapping[str, np.ndarray | None]
+) -> None:
     """Write ``arrays.npz`` (skipping None entries) and 8-bit grayscale PNGs of ``images``, each
     atomically (:func:`atomic_write`); :class:`OutputError` when a file cannot be written."""
     present = {k: np.asarray(v) for k, v in arrays.items() if v is not None}

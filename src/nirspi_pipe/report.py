@@ -26,8 +26,10 @@ def write_report(sweep: Path, tables: list[str], frame: pd.DataFrame) -> Path:
         code = frame["code"].dropna().unique().tolist() if "code" in frame else []
         if not code and "git_sha" in frame:  # records written before the code label existed
             code = [f"git:{s[:12]}" for s in frame["git_sha"].dropna().unique()]
-        lines.append(f"{len(frame)} jobs ({', '.join(f'{v} {k}' for k, v in status.items())}); "
-                     f"code {', '.join(sorted(code)) or 'unknown'}.")
+        lines.append(
+            f"{len(frame)} jobs ({', '.join(f'{v} {k}' for k, v in status.items())}); "
+            f"code {', '.join(sorted(code)) or 'unknown'}."
+        )
         if "timings_ms.total" in frame:
             lines.append(f"Pipeline time summed over jobs: {frame['timings_ms.total'].sum() / 1e3:.1f} s.")
     for name in tables:

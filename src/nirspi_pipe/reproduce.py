@@ -112,13 +112,20 @@ def update(sweep: Path, ref_dir: Path) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m nirspi_pipe.reproduce {check,update} SWEEP [--reference DIR]``."""
-    parser = argparse.ArgumentParser(prog="python -m nirspi_pipe.reproduce", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m nirspi_pipe.reproduce",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     parser.add_argument("action", choices=["check", "update"])
     parser.add_argument("sweep", type=Path)
-    parser.add_argument("--reference", type=Path, default=None,
-                        help="reference folder (default: the installed experiments/reference/ci; "
-                             "for update, pass the repository's experiments/reference/ci)")
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="reference folder (default: the installed experiments/reference/ci; "
+        "for update, pass the repository's experiments/reference/ci)",
+    )
     ns = parser.parse_args(argv)
     if ns.action == "update":
         target = ns.reference or Path("experiments/reference/ci")

@@ -34,6 +34,7 @@ _SKIP_PREFIXES = ("hydra.", "hydra/")
 
 def find_records(sweep_dir: Path) -> list[Path]:
     """All ``record.json`` files below ``sweep_dir``, in job order (numeric folders first)."""
+
     def key(p: Path) -> tuple:
         rel = p.parent.relative_to(sweep_dir).parts
         return tuple((0, int(s), "") if s.isdigit() else (1, 0, s) for s in rel)

@@ -64,7 +64,9 @@ def read_budget(budget: int | None = None) -> int:
         try:
             mb = float(env)
         except ValueError:
-            raise UnsafeInputError(f"NIRSPI_READ_BUDGET_MB={env!r} is not allowed; allowed: a number of MiB > 0") from None
+            raise UnsafeInputError(
+                f"NIRSPI_READ_BUDGET_MB={env!r} is not allowed; allowed: a number of MiB > 0"
+            ) from None
         if not (math.isfinite(mb) and mb > 0):
             raise UnsafeInputError(f"NIRSPI_READ_BUDGET_MB={env!r} is not allowed; allowed: a number of MiB > 0")
         return int(mb * (1 << 20))
@@ -167,8 +169,10 @@ def _npy_header(fh: Any, key: str, where: str) -> tuple[tuple[int, ...], bool, n
     if not isinstance(d, dict) or set(d) != {"descr", "fortran_order", "shape"}:
         raise UnsafeInputError(f"{where}: key '{key}': .npy header must have descr, fortran_order and shape")
     shape = d["shape"]
-    if not isinstance(shape, tuple) or len(shape) > 32 or not all(
-        isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape
+    if (
+        not isinstance(shape, tuple)
+        or len(shape) > 32
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
     ):
         raise UnsafeInputError(f"{where}: key '{key}': shape {short_repr(shape)} is not a tuple of integers >= 0")
     if not isinstance(d["fortran_order"], bool):
@@ -230,14 +234,24 @@ def read_npz(
             raise UnsafeInputError(f"{where}: a single .npy array, not an NPZ archive of named arrays")
         try:
             zf = zipfile.ZipFile(fh)
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError, NotImplementedError) as exc:  # e.g. 'zip file version 6.4'
-            raise UnsafeInputError(f"{where}: not a readable NPZ file ({type(exc).__name__}: {sanitize_text(exc, 120)})") from None
+        except (
+            zipfile.BadZipFile,
+            OSError,
+            ValueError,
+            EOFError,
+            NotImplementedError,
+        ) as exc:  # e.g. 'zip file version 6.4'
+            raise UnsafeInputError(
+                f"{where}: not a readable NPZ file ({type(exc).__name__}: {sanitize_text(exc, 120)})"
+            ) from None
         with zf:
             infos = zf.infolist()
             if len(infos) > 4096:
                 raise UnsafeInputError(f"{where}: {len(infos)} members (an NPZ of at most 4096 arrays is read)")
             for info in infos:  # declared sizes first: nothing is decompressed yet
-                check_budget(info.file_size, f"key '{sanitize_text(info.filename.removesuffix('.npy'), 60)}'", where, limit)
+                check_budget(
+                    info.file_size, f"key '{sanitize_text(info.filename.removesuffix('.npy'), 60)}'", where, limit
+                )
             total = sum(max(0, i.file_size) for i in infos)
             if total > limit:
                 big = max(infos, key=lambda i: i.file_size).filename.removesuffix(".npy")
@@ -257,7 +271,10 @@ def read_npz(
                     )
                 if info.flag_bits & 0x1:
                     raise UnsafeInputError(f"{where}: key '{skey}': encrypted members are not read")
-                if info.compress_type == zipfile.ZIP_DEFLATED and info.file_size > MAX_DEFLATE_RATIO * max(info.compress_size, 1) + 1024:
+                if (
+                    info.compress_type == zipfile.ZIP_DEFLATED
+                    and info.file_size > MAX_DEFLATE_RATIO * max(info.compress_size, 1) + 1024
+                ):
                     raise UnsafeInputError(
                         f"{where}: key '{skey}': declares {info.file_size} bytes from {info.compress_size} compressed "
                         f"(more than deflate's {MAX_DEFLATE_RATIO}:1; corrupt or a zip bomb)"

@@ -75,9 +75,7 @@ class Source(Protocol):
 
     needs_scene: bool
 
-    def acquire(
-        self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator
-    ) -> Acquisition: ...
+    def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition: ...
 
 
 @runtime_checkable
@@ -120,9 +118,7 @@ class Itof(Protocol):
     extinction and background light the source used are the typed ``acquisition.medium``
     (:class:`~nirspi_pipe.types.Medium`; clear and dark when the source does not know)."""
 
-    def measure(
-        self, scene: Scene | None, acquisition: Acquisition, rng: np.random.Generator
-    ) -> ItofSample: ...
+    def measure(self, scene: Scene | None, acquisition: Acquisition, rng: np.random.Generator) -> ItofSample: ...
 
 
 @runtime_checkable

@@ -33,10 +33,17 @@ METRIC_HELP: dict[str, tuple[str, str]] = {
 }
 
 _LABELS = {
-    "ssim": "SSIM", "psnr": "PSNR", "rmse": "RMSE", "upscale_psnr": "upscaled PSNR",
-    "upscale_gain_db": "gain over bicubic", "depth_rmse_sfs_mm": "depth RMSE, SFS",
-    "depth_rmse_fused_mm": "depth RMSE, fused", "improvement_pct": "improvement",
-    "skewness_mean": "skewness", "chamfer_mm": "chamfer", "hausdorff_mm": "Hausdorff",
+    "ssim": "SSIM",
+    "psnr": "PSNR",
+    "rmse": "RMSE",
+    "upscale_psnr": "upscaled PSNR",
+    "upscale_gain_db": "gain over bicubic",
+    "depth_rmse_sfs_mm": "depth RMSE, SFS",
+    "depth_rmse_fused_mm": "depth RMSE, fused",
+    "improvement_pct": "improvement",
+    "skewness_mean": "skewness",
+    "chamfer_mm": "chamfer",
+    "hausdorff_mm": "Hausdorff",
 }
 
 

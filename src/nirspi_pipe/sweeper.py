@@ -112,8 +112,9 @@ def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
     try:
         info = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise SweepFileError(f"{path} is not readable JSON ({type(exc).__name__}: "
-                             f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise SweepFileError(
+            f"{path} is not readable JSON ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
+        ) from None
     problem = None
     if not isinstance(info, dict):
         problem = f"expected a JSON object, got {type(info).__name__}"
@@ -129,8 +130,10 @@ def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
             if name in info and not isinstance(info[name], (int, float)):
                 problem = f"'{name}' must be a number"
     if problem:
-        raise SweepFileError(f"{path} is malformed: {problem} (it is written by `nirspi-run -m`; "
-                             "delete it to collect every record.json below the folder)")
+        raise SweepFileError(
+            f"{path} is malformed: {problem} (it is written by `nirspi-run -m`; "
+            "delete it to collect every record.json below the folder)"
+        )
     return info
 
 
@@ -158,8 +161,9 @@ def expand_grid(overrides: Sequence[Any]) -> list[list[str]]:
         key = ov.get_key_element()
         if ov.is_sweep_override():
             if not ov.is_discrete_sweep():
-                raise ValueError(f"{key}: the nirspi sweeper takes lists, range() and choice(); "
-                                 f"not interval() ({ov.input_line})")
+                raise ValueError(
+                    f"{key}: the nirspi sweeper takes lists, range() and choice(); not interval() ({ov.input_line})"
+                )
             lists.append([f"{key}={val}" for val in ov.sweep_string_iterator()])
         else:
             lists.append([f"{key}={ov.get_value_element_as_str()}"])
@@ -225,8 +229,14 @@ class NirspiSweeperBase(Sweeper):
     docstring). It uses Hydra's public API only: the sweeper plugin interface, the override parser
     and the config loader handed over in ``hydra_context``."""
 
-    def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None,
-                 resume: bool = True, experiments: list[str] | None = None, max_attempts: int = 3) -> None:
+    def __init__(
+        self,
+        max_batch_size: int | None = None,
+        params: dict[str, str] | None = None,
+        resume: bool = True,
+        experiments: list[str] | None = None,
+        max_attempts: int = 3,
+    ) -> None:
         self.max_batch_size = max_batch_size
         self.params = dict(params or {})
         self.resume = resume
@@ -405,8 +415,12 @@ class NirspiSweeperBase(Sweeper):
                 elif not skipped and attempts_with_this_code(sweep_dir / key) >= self.max_attempts:
                     job.update(launched=False, gave_up=True)  # its failed record stays
                     if status is None:  # killed each time before it could write one
-                        _record_uncomposable(sweep_dir / key, overrides, f"gave up after {self.max_attempts} "
-                                             "attempts that wrote no record (killed each time?)", "JobCrash")
+                        _record_uncomposable(
+                            sweep_dir / key,
+                            overrides,
+                            f"gave up after {self.max_attempts} attempts that wrote no record (killed each time?)",
+                            "JobCrash",
+                        )
                 elif not skipped:
                     to_launch.append((key, overrides))
             seen.add(job["key"])
@@ -432,8 +446,11 @@ class NirspiSweeperBase(Sweeper):
             + (f", {n_skip} skipped (already complete)" if n_skip else "")
             + (f", {n_dup} identical to another job (run once)" if n_dup else "")
             + (f", {n_bad} do not compose (failed)" if n_bad else "")
-            + (f", {n_gave_up} failed {self.max_attempts} times and are not retried "
-               "(hydra.sweeper.max_attempts)" if n_gave_up else "")
+            + (
+                f", {n_gave_up} failed {self.max_attempts} times and are not retried (hydra.sweeper.max_attempts)"
+                if n_gave_up
+                else ""
+            )
             + f" [keyed in {keying_s:.1f} s]",
             flush=True,
         )
@@ -450,7 +467,8 @@ class NirspiSweeperBase(Sweeper):
                 # the launcher failed (e.g. a joblib worker killed from outside): launch again the
                 # jobs that wrote no record in this sweep and may still be attempted
                 pending = [
-                    (key, ov) for key, ov in pending
+                    (key, ov)
+                    for key, ov in pending
                     if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)
                     and attempts_with_this_code(sweep_dir / key) < self.max_attempts
                 ]
@@ -470,8 +488,11 @@ class NirspiSweeperBase(Sweeper):
                 returns.append(self.launcher.launch(batch, initial_job_idx=start))
             except Exception as exc:  # noqa: BLE001 - the records say which jobs finished
                 first = str(exc).strip().splitlines()
-                print(f"nirspi-run: warning: the launcher failed: {type(exc).__name__}: "
-                      f"{first[0] if first else ''}", file=sys.stderr, flush=True)
+                print(
+                    f"nirspi-run: warning: the launcher failed: {type(exc).__name__}: {first[0] if first else ''}",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 return True
         return False
 
@@ -496,8 +517,14 @@ def quiet_sacct_without_accounting() -> bool:
     if sacct is None:
         return False
     try:
-        probe = subprocess.run([sacct, "-n", "-X", "-j", "1", "-o", "JobID"], check=False, capture_output=True,
-                               text=True, timeout=20, stdin=subprocess.DEVNULL)
+        probe = subprocess.run(
+            [sacct, "-n", "-X", "-j", "1", "-o", "JobID"],
+            check=False,
+            capture_output=True,
+            text=True,
+            timeout=20,
+            stdin=subprocess.DEVNULL,
+        )
     except (OSError, subprocess.SubprocessError):
         return False
     if "accounting storage is disabled" not in (probe.stderr or "").lower():
@@ -508,8 +535,9 @@ def quiet_sacct_without_accounting() -> bool:
     shim.chmod(0o755)
     os.environ["PATH"] = f"{shim_dir}{os.pathsep}{os.environ.get('PATH', '')}"
     logging.getLogger("submitit").addFilter(_DropSacctNoise())
-    print("nirspi-run: this SLURM cluster keeps no accounting (sacct): job states come from the "
-          "result files", flush=True)
+    print(
+        "nirspi-run: this SLURM cluster keeps no accounting (sacct): job states come from the result files", flush=True
+    )
     return True
 
 
@@ -525,11 +553,25 @@ def _record_uncomposable(folder: Path, overrides: list[str], message: str, error
     from nirspi_pipe.records import provenance
 
     record = {
-        "config": {}, "choices": {}, "metrics": {}, "timings_ms": {}, "derived": {}, "info": {},
-        "meta": {"config_hash": None, "job_key": folder.name, **provenance(), "status": "failed",
-                 "error": message, "error_type": error_type, "warnings": [], "overrides": overrides},
+        "config": {},
+        "choices": {},
+        "metrics": {},
+        "timings_ms": {},
+        "derived": {},
+        "info": {},
+        "meta": {
+            "config_hash": None,
+            "job_key": folder.name,
+            **provenance(),
+            "status": "failed",
+            "error": message,
+            "error_type": error_type,
+            "warnings": [],
+            "overrides": overrides,
+        },
     }
     write_record(folder, record)
+
 
 class ProgressWatcher(threading.Thread):
     """Prints :func:`progress_line` whenever another job of the sweep finishes.

@@ -79,8 +79,10 @@ class Camera:
         u = pos / self.focal_px
         xs = np.broadcast_to(u[None, :], (n * s, n * s))  # columns → x
         ys = np.broadcast_to(-u[:, None], (n * s, n * s))  # rows → −y
+
         def blocks(a: np.ndarray) -> np.ndarray:
             return a.reshape(n, s, n, s).transpose(0, 2, 1, 3).reshape(n, n, s * s)
+
         return blocks(xs), blocks(ys)
 
     def rays(self, supersample: int = 1) -> np.ndarray:

@@ -18,8 +18,19 @@ _NULLS = ("null", "None")
 
 #: Hydra flags followed by a value.
 _FLAGS_WITH_VALUE = {
-    "-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir",
-    "-c", "--cfg", "-p", "--package", "--experimental-rerun", "-sc", "--shell-completion",
+    "-cn",
+    "--config-name",
+    "-cp",
+    "--config-path",
+    "-cd",
+    "--config-dir",
+    "-c",
+    "--cfg",
+    "-p",
+    "--package",
+    "--experimental-rerun",
+    "-sc",
+    "--shell-completion",
 }
 
 
@@ -117,8 +128,11 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     values = [
         ov
         for ov in parsed
-        if not ov.is_add() and not ov.is_delete() and not ov.is_force_add()
-        and not ov.key_or_group.startswith("hydra") and not _group_exists(ov.key_or_group)
+        if not ov.is_add()
+        and not ov.is_delete()
+        and not ov.is_force_add()
+        and not ov.key_or_group.startswith("hydra")
+        and not _group_exists(ov.key_or_group)
     ]
     keys = [ov.key_or_group for ov in values]
     if not keys:
@@ -135,7 +149,7 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
 
             known_top = sorted({str(k) for k in cfg.keys()} | {g.split("/")[0] for g in all_groups()})
             near = difflib.get_close_matches(top, known_top, n=1)
-            hint = f"did you mean {near[0]}{key[len(top):]}? " if near else ""
+            hint = f"did you mean {near[0]}{key[len(top) :]}? " if near else ""
             return f"{key}: {top} is not a key or group; {hint}allowed: {', '.join(known_top)}"
         parent, _, leaf = key.rpartition(".")
         node = OmegaConf.select(cfg, parent) if parent else cfg

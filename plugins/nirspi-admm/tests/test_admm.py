@@ -2,25 +2,24 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
-
 from nirspi_admm import ADMMTVSolver, admm_tv
 from nirspi_admm.solver import _grad, _grad_adjoint
-from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.metrics import rmse, ssim
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.metrics import psnr, rmse, ssim
 from nirspi_pipe.patterns.hadamard import fwht2, sylvester
 from nirspi_pipe.patterns.synthetic import split_hadamard
-from nirspi_pipe.metrics import psnr
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.solvers.fwht import FWHTSolver
-from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Acquisition, Camera
 
@@ -50,7 +49,9 @@ def test_full_sampling_without_tv_is_exact() -> None:
 def test_beats_zero_filled_fwht_at_25_percent_on_the_sphere(noise: float) -> None:
     n = 64
     scene = Sphere().render(Camera(n))
-    acq = Simulator(forward_model(noise_rel=noise)).acquire(scene, low_sequency_indices(n, 0.25), n, np.random.default_rng(0))
+    acq = Simulator(forward_model(noise_rel=noise)).acquire(
+        scene, low_sequency_indices(n, 0.25), n, np.random.default_rng(0)
+    )
     zero_filled = FWHTSolver().solve(acq).data
     admm = ADMMTVSolver(tv_weight=0.03).solve(acq)
     truth = scene.radiance
@@ -78,12 +79,14 @@ def test_explicit_patterns_match_the_hadamard_path(kind: str) -> None:
     idx = low_sequency_indices(n, 0.5)
     h = np.kron(sylvester(n), sylvester(n)).astype(float)[idx]
     x = scene.radiance.ravel()
-    fast = ADMMTVSolver(tv_weight=0.02, tol=1e-7, max_iter=2000).solve(
-        Acquisition(n=n, indices=idx, y_pos=h @ x)).data
+    fast = ADMMTVSolver(tv_weight=0.02, tol=1e-7, max_iter=2000).solve(Acquisition(n=n, indices=idx, y_pos=h @ x)).data
     p = h if kind == "signed" else (1.0 + h) / 2.0
     # 0/1 halves alone lose nothing only when the offset is known: keep the pairs (split) there
-    acq = Acquisition(n=n, indices=np.arange(len(idx)), y_pos=p @ x, patterns=p) if kind == "signed" else (
-        Acquisition(n=n, indices=np.arange(len(idx)), y_pos=p @ x, y_neg=(1.0 - p) @ x, patterns=2 * p - 1))
+    acq = (
+        Acquisition(n=n, indices=np.arange(len(idx)), y_pos=p @ x, patterns=p)
+        if kind == "signed"
+        else (Acquisition(n=n, indices=np.arange(len(idx)), y_pos=p @ x, y_neg=(1.0 - p) @ x, patterns=2 * p - 1))
+    )
     explicit = ADMMTVSolver(tv_weight=0.02, tol=1e-7, max_iter=2000).solve(acq).data
     assert np.max(np.abs(explicit - fast)) < 1e-3
 
@@ -117,7 +120,10 @@ def test_runs_through_nirspi_run(tmp_path: Path) -> None:
     out = tmp_path / "run"
     proc = subprocess.run(
         [str(exe), "solver=admm_tv", "scan.ratio=0.25", "camera.resolution=32", f"hydra.run.dir={out}"],
-        capture_output=True, text=True, timeout=300, env={**os.environ, "MPLBACKEND": "Agg"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "MPLBACKEND": "Agg"},
     )
     assert proc.returncode == 0, proc.stderr
     record = json.loads((out / "record.json").read_text())

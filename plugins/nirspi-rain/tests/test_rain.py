@@ -63,13 +63,17 @@ def test_the_installed_plugin_adds_the_effect_through_the_config():
     # the effect chain of this test is pinned, whatever the default run enables (no light, ideal detector)
     overrides = ["camera.resolution=8", "fog=measured", "illumination=none", "detector=ideal", "output.images=false"]
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        wet_cfg = compose("config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=100", *overrides])
+        wet_cfg = compose(
+            "config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=100", *overrides]
+        )
         dry_cfg = compose("config", overrides=overrides)
     wet, dry = run_pipeline(wet_cfg), run_pipeline(dry_cfg)
     assert wet.products.acquisition.info["effects"] == "fog,rain,backscatter"
     assert wet.derived["rain_rate_mm_per_h"] == 100.0
     assert wet.derived["signal_photons_per_pattern"] < dry.derived["signal_photons_per_pattern"]
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
-        bad = compose("config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=-5", *overrides])
+        bad = compose(
+            "config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=-5", *overrides]
+        )
     with pytest.raises(ConfigError, match=r"rate_mm_per_h=-5"):
         run_pipeline(bad)

@@ -33,13 +33,23 @@ def configurations() -> dict[str, Simulator]:
     _ = fog_tv.extinction_per_m
     return {
         "bare (reference)": Simulator(),
-        "available, off": Simulator(forward_model(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector())),
+        "available, off": Simulator(
+            forward_model(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector())
+        ),
         "+ detector (budget, noise, ADC)": Simulator(forward_model(detector=Photodiode())),
         "+ fog": Simulator(forward_model(fog=fog)),
         "+ background 15 kLux": Simulator(forward_model(illumination=Background(klux=15.0))),
-        "+ background drift/flicker": Simulator(forward_model(illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05))),
+        "+ background drift/flicker": Simulator(
+            forward_model(illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05))
+        ),
         "+ fog fluctuation": Simulator(forward_model(fog=fog_tv)),
-        "all": Simulator(forward_model(fog=fog_tv, illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05), detector=Photodiode())),
+        "all": Simulator(
+            forward_model(
+                fog=fog_tv,
+                illumination=Background(klux=15.0, drift_rel_per_s=0.1, flicker_rel=0.05),
+                detector=Photodiode(),
+            )
+        ),
     }
 
 

@@ -44,6 +44,8 @@ def main(argv: list[str]) -> int:
         img = x.reshape(n, n)
         t_prox = median_time_s(lambda: denoise_tv_chambolle(img, weight=0.02, eps=0.0, max_num_iter=solver.tv_iter), 7)
         per_it = dt / its
-        print(f"{n:>4}^2 {its / dt:>8.1f} {per_it * 1e3:>8.2f} {t_pair * 1e3:>14.3f} {t_prox * 1e3:>8.2f} "
-              f"{per_it / t_pair:>14.1f}")
+        print(
+            f"{n:>4}^2 {its / dt:>8.1f} {per_it * 1e3:>8.2f} {t_pair * 1e3:>14.3f} {t_prox * 1e3:>8.2f} "
+            f"{per_it / t_pair:>14.1f}"
+        )
     return 0

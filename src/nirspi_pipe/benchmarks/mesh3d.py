@@ -56,13 +56,21 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--resolution", type=int, default=64)
     parser.add_argument("--repeat", type=int, default=15)
     parser.add_argument("--surface", choices=["power_crust", "poisson"], default="power_crust")
-    parser.add_argument("--sfs", default=None,
-                        help="an sfs config option (second_order, godunov, lax_friedrichs, …) or the "
-                             "import path of an sfs class (default: a stand-in from the truth)")
-    parser.add_argument("--sfs-backend", default=None, choices=["auto", "numpy", "opencl"],
-                        help="sfs.backend for a config option")
-    parser.add_argument("--remesh-iterations", type=int, default=None,
-                        help="surface.remesh_iterations (default: the surface's own; 0 shows remeshing's price)")
+    parser.add_argument(
+        "--sfs",
+        default=None,
+        help="an sfs config option (second_order, godunov, lax_friedrichs, …) or the "
+        "import path of an sfs class (default: a stand-in from the truth)",
+    )
+    parser.add_argument(
+        "--sfs-backend", default=None, choices=["auto", "numpy", "opencl"], help="sfs.backend for a config option"
+    )
+    parser.add_argument(
+        "--remesh-iterations",
+        type=int,
+        default=None,
+        help="surface.remesh_iterations (default: the surface's own; 0 shows remeshing's price)",
+    )
     ns = parser.parse_args(argv)
 
     cam = Camera(ns.resolution)
@@ -104,16 +112,22 @@ def main(argv: list[str]) -> int:
     ref_ms = median_time_s(lambda: solver.solve(acq), ns.repeat) * 1e3
     med = {k: float(np.median(v)) for k, v in stage_ms.items()}
     sfs_name = (f"{ns.sfs}/{ns.sfs_backend or 'default'}") if ns.sfs else "stand-in (truth degraded)"
-    print(f"3D path at {ns.resolution}^2, surface={ns.surface} (remesh_iterations={surface.remesh_iterations}), sfs={sfs_name}, {ns.repeat} repetitions (median ms), "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(
+        f"3D path at {ns.resolution}^2, surface={ns.surface} (remesh_iterations={surface.remesh_iterations}), sfs={sfs_name}, {ns.repeat} repetitions (median ms), "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}, load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
     for k, v in med.items():
         print(f"  {k:>8} {v:8.2f}")
     print(f"  reference: 2D reconstruction (fwht) {ref_ms:.3f} ms; 3D total / 2D = {med['total'] / ref_ms:.0f}")
     paper = (146.54, 167.53)
-    print(f"  paper (Jetson Nano, Table 6): {paper[0]}-{paper[1]} ms; ours / paper = "
-          f"{med['total'] / paper[1]:.2f}-{med['total'] / paper[0]:.2f}")
+    print(
+        f"  paper (Jetson Nano, Table 6): {paper[0]}-{paper[1]} ms; ours / paper = "
+        f"{med['total'] / paper[1]:.2f}-{med['total'] / paper[0]:.2f}"
+    )
     print(f"  target < 50 ms: {'met' if med['total'] < 50 else 'missed'}")
-    print(f"  last run: depth RMSE SFS {scores.get('depth_rmse_sfs_mm', float('nan')):.2f} mm -> fused "
-          f"{scores.get('depth_rmse_fused_mm', float('nan')):.2f} mm, skewness {scores.get('skewness_mean', float('nan')):.2f}, "
-          f"chamfer {scores.get('chamfer_mm', float('nan')):.2f} mm")
+    print(
+        f"  last run: depth RMSE SFS {scores.get('depth_rmse_sfs_mm', float('nan')):.2f} mm -> fused "
+        f"{scores.get('depth_rmse_fused_mm', float('nan')):.2f} mm, skewness {scores.get('skewness_mean', float('nan')):.2f}, "
+        f"chamfer {scores.get('chamfer_mm', float('nan')):.2f} mm"
+    )
     return 0

@@ -95,8 +95,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--opencl", action="store_true", help="also time the OpenCL back end")
     ns = parser.parse_args(argv)
-    print(f"{'size':>6} {'atoms':>6} {'numpy ms':>9} {'ref ms':>9} {'np/ref':>7} {'quiet est s':>11} "
-          f"{'opencl ms':>10} {'cl/np':>6} {'max diff':>9}")
+    print(
+        f"{'size':>6} {'atoms':>6} {'numpy ms':>9} {'ref ms':>9} {'np/ref':>7} {'quiet est s':>11} "
+        f"{'opencl ms':>10} {'cl/np':>6} {'max diff':>9}"
+    )
     for n in ns.sizes:
         scene = ImageTarget().render(Camera(resolution=n))
         acq = Simulator().acquire(scene, Zigzag(ns.ratio).select(n), n, np.random.default_rng(0))
@@ -113,6 +115,8 @@ def main(argv: list[str]) -> int:
             diff = max(diff, float(np.max(np.abs(a.data - b.data))))
             cl_ms, cl_ratio = f"{t_cl * 1e3:.1f}", f"{t_cl / t_np:.2f}"
         quiet = f"{t_np / t_ref * REFERENCE_QUIET_128_S:.2f}" if n == 128 else "-"
-        print(f"{n:>4}^2 {a.info['iterations']:>6} {t_np * 1e3:>9.1f} {t_ref * 1e3:>9.1f} "
-              f"{t_np / t_ref:>7.3f} {quiet:>11} {cl_ms:>10} {cl_ratio:>6} {diff:>9.1e}")
+        print(
+            f"{n:>4}^2 {a.info['iterations']:>6} {t_np * 1e3:>9.1f} {t_ref * 1e3:>9.1f} "
+            f"{t_np / t_ref:>7.3f} {quiet:>11} {cl_ms:>10} {cl_ratio:>6} {diff:>9.1e}"
+        )
     return 0

@@ -59,8 +59,13 @@ def main(argv: list[str]) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         sweep = Path(ns.dir or Path(tmp) / "sweep")
         exe = Path(sys.executable).with_name("nirspi-run")
-        cmd = [str(exe), "-m", f"+experiment={ns.experiment}", f"hydra.sweep.dir={sweep}",
-               f"hydra.launcher.n_jobs={ns.workers}"]
+        cmd = [
+            str(exe),
+            "-m",
+            f"+experiment={ns.experiment}",
+            f"hydra.sweep.dir={sweep}",
+            f"hydra.launcher.n_jobs={ns.workers}",
+        ]
         t0 = time.time()
         proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
         wall = time.time() - t0
@@ -71,12 +76,17 @@ def main(argv: list[str]) -> int:
         keying = (sweep / "sweep.json").stat().st_mtime - float(info["started"])
         frame = pd.read_parquet(sweep / "results.parquet")
     ref = 0.5 * (ref_before + reference_s())
-    stages = {c.split(".", 1)[1]: float(frame[c].fillna(0).sum()) / 1e3 for c in frame.columns
-              if c.startswith("timings_ms.") and c != "timings_ms.total"}  # total = their sum
+    stages = {
+        c.split(".", 1)[1]: float(frame[c].fillna(0).sum()) / 1e3
+        for c in frame.columns
+        if c.startswith("timings_ms.") and c != "timings_ms.total"
+    }  # total = their sum
     total_stage = sum(stages.values())
     other = max(ns.workers * (wall - keying) - total_stage, 0.0)
-    print(f"+experiment={ns.experiment}: {len(frame)} jobs run ({info['total']} in the grids), "
-          f"{ns.workers} workers; reference workload {ref:.3f} s")
+    print(
+        f"+experiment={ns.experiment}: {len(frame)} jobs run ({info['total']} in the grids), "
+        f"{ns.workers} workers; reference workload {ref:.3f} s"
+    )
     print(f"{'part':<22} {'seconds':>9} {'share of wall':>13} {'x reference':>11}")
     print(f"{'wall time':<22} {wall:>9.2f} {1.0:>13.2f} {wall / ref:>11.1f}")
     print(f"{'keying (sweeper)':<22} {keying:>9.2f} {keying / wall:>13.2f} {keying / ref:>11.1f}")
@@ -87,6 +97,8 @@ def main(argv: list[str]) -> int:
     cpu1 = os.times()
     cpu = (cpu1.children_user + cpu1.children_system) - (cpu0.children_user + cpu0.children_system)
     print(f"{'CPU of the sweep':<22} {cpu:>9.2f} {cpu / ns.workers / wall:>13.2f} {cpu / ref:>11.1f}")
-    print("(stage and other seconds are summed over the workers; their share divides by the workers; a CPU share"
-          " well below 1 means the machine was shared)")
+    print(
+        "(stage and other seconds are summed over the workers; their share divides by the workers; a CPU share"
+        " well below 1 means the machine was shared)"
+    )
     return 0

@@ -56,8 +56,12 @@ def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="nirspi-bench recorded", description=__doc__)
     parser.add_argument("--n", type=int, default=64, help="resolution (power of two)")
     parser.add_argument("--repeat", type=int, default=5, help="fast-path repetitions (median)")
-    parser.add_argument("--dense-n", type=int, default=32,
-                        help="resolution of the dense reference (64 takes minutes; its time scales ~N³)")
+    parser.add_argument(
+        "--dense-n",
+        type=int,
+        default=32,
+        help="resolution of the dense reference (64 takes minutes; its time scales ~N³)",
+    )
     ns = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "split.npz"
@@ -69,8 +73,10 @@ def main(argv: list[str]) -> int:
             times.append(time.perf_counter() - t0)
         t_fast = float(np.median(times))
         err = float(np.abs(rec - img).max())
-        print(f"fast path {ns.n}x{ns.n}: {2 * ns.n ** 2} explicit patterns, median {t_fast:.3f} s "
-              f"(min {min(times):.3f}), max error {err:.2e}, fast_path={info.get('fast_path')}")
+        print(
+            f"fast path {ns.n}x{ns.n}: {2 * ns.n**2} explicit patterns, median {t_fast:.3f} s "
+            f"(min {min(times):.3f}), max error {err:.2e}, fast_path={info.get('fast_path')}"
+        )
         dpath = Path(tmp) / "dense.npz"
         dimg = split_hadamard_file(dpath, ns.dense_n)
         t0 = time.perf_counter()
@@ -79,9 +85,11 @@ def main(argv: list[str]) -> int:
         t0 = time.perf_counter()
         dense = dense_lstsq(dpath)
         t_dense = time.perf_counter() - t0
-        print(f"at {ns.dense_n}x{ns.dense_n}: dense lstsq {t_dense:.3f} s, fast path {t_fast_d:.4f} s, "
-              f"ratio dense/fast {t_dense / t_fast_d:.0f}; max errors {np.abs(dense - dimg).max():.1e} / "
-              f"{np.abs(d_fast - dimg).max():.1e}")
+        print(
+            f"at {ns.dense_n}x{ns.dense_n}: dense lstsq {t_dense:.3f} s, fast path {t_fast_d:.4f} s, "
+            f"ratio dense/fast {t_dense / t_fast_d:.0f}; max errors {np.abs(dense - dimg).max():.1e} / "
+            f"{np.abs(d_fast - dimg).max():.1e}"
+        )
     ok = t_fast < 1.0 and err < 1e-9
     print("target (< 1 s, exact):", "met" if ok else "NOT met")
     return 0 if ok else 1

@@ -58,8 +58,9 @@ def _rmse(z: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
 
 
 def main(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="nirspi-bench sfs", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="nirspi-bench sfs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--schemes", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
@@ -68,8 +69,10 @@ def main(argv: list[str]) -> int:
     try:
         import skfmm
     except ImportError:
-        print("nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
-              "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm)")
+        print(
+            "nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
+            "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm)"
+        )
         return 2
     solvers = {"numpy": solve_numpy}
     if "opencl" in ns.backends:
@@ -79,8 +82,9 @@ def main(argv: list[str]) -> int:
         if all(opencl_available(scheme) for scheme in needed):
             solvers["opencl"] = solve_opencl
     ok_cl = "opencl" in solvers
-    header = (f"{'size':>6} {'solver':<26} {'ms':>9} {'sweeps':>6} {'rmse px':>8} {'t/fmm2':>7} {'t/fmm1':>7}"
-              f" {'e/fmm2':>7}")
+    header = (
+        f"{'size':>6} {'solver':<26} {'ms':>9} {'sweeps':>6} {'rmse px':>8} {'t/fmm2':>7} {'t/fmm1':>7} {'e/fmm2':>7}"
+    )
     print(header)
     best: dict[str, float] = {}
     for n in ns.sizes:
@@ -100,8 +104,10 @@ def main(argv: list[str]) -> int:
             for label in ns.schemes:
                 scheme, slope = SOLVERS[label]
                 solve = solvers[backend]
+
                 def run():
                     return solve(problem, scheme, 1e-4, 8000, slope_average=slope)
+
                 res = run()
                 t = median_time_s(run, 1 if scheme == "lax_friedrichs" else ns.repeat)
                 err = _rmse(res.z, z_true, mask)
@@ -111,8 +117,10 @@ def main(argv: list[str]) -> int:
                     key = f"{name} vs scikit-fmm order {order}"
                     meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
                     best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
-                print(f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
-                      f" {err / refs[2][1]:>7.3f}{'' if res.converged else '  (not converged)'}")
+                print(
+                    f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
+                    f" {err / refs[2][1]:>7.3f}{'' if res.converged else '  (not converged)'}"
+                )
     print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
     for key, v in best.items():
         print(f"  {key}: {'meets the target at every size' if v == 0.0 else 'misses the target'}")

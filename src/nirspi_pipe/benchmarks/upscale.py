@@ -33,24 +33,33 @@ def main(argv: list[str]) -> int:
     ns = parser.parse_args(argv)
 
     rows = []
-    print(f"{'scale':>5} {'noise_rel':>9} {'n':>3} {'PSNR bicubic':>12} {'PSNR fsrcnn':>11} {'gain dB':>8} "
-          f"{'SSIM bicubic':>12} {'SSIM fsrcnn':>11}")
+    print(
+        f"{'scale':>5} {'noise_rel':>9} {'n':>3} {'PSNR bicubic':>12} {'PSNR fsrcnn':>11} {'gain dB':>8} "
+        f"{'SSIM bicubic':>12} {'SSIM fsrcnn':>11}"
+    )
     for scale in ns.scales:
         weights = load_weights(scale)
         per = score_heldout(weights, tuple(ns.noise))
         rows += per
         for r in summarise(per):
-            print(f"{f'x{scale}':>5} {r['noise_rel']:>9.0e} {r['images']:>3} {r['psnr_bicubic']:>12.2f} "
-                  f"{r['psnr_fsrcnn']:>11.2f} {r['gain_db']:>+8.2f} {r['ssim_bicubic']:>12.4f} {r['ssim_fsrcnn']:>11.4f}")
+            print(
+                f"{f'x{scale}':>5} {r['noise_rel']:>9.0e} {r['images']:>3} {r['psnr_bicubic']:>12.2f} "
+                f"{r['psnr_fsrcnn']:>11.2f} {r['gain_db']:>+8.2f} {r['ssim_bicubic']:>12.4f} {r['ssim_fsrcnn']:>11.4f}"
+            )
     if ns.per_image:
         print()
         print(f"{'scale':>5} {'noise_rel':>9} {'image':>12} {'PSNR bic':>9} {'PSNR fsr':>9} {'gain':>7}")
         for r in rows:
-            print(f"{'x' + str(r['scale']):>5} {r['noise_rel']:>9.0e} {r['image']:>12} {r['psnr_bicubic']:>9.2f} "
-                  f"{r['psnr_fsrcnn']:>9.2f} {r['gain_db']:>+7.2f}")
+            print(
+                f"{'x' + str(r['scale']):>5} {r['noise_rel']:>9.0e} {r['image']:>12} {r['psnr_bicubic']:>9.2f} "
+                f"{r['psnr_fsrcnn']:>9.2f} {r['gain_db']:>+7.2f}"
+            )
     losers = sorted({(r["scale"], r["noise_rel"]) for r in summarise(rows) if r["gain_db"] <= 0})
-    print("fsrcnn beats bicubic in mean PSNR at every scale and noise level" if not losers
-          else f"fsrcnn does NOT beat bicubic at (scale, noise_rel) {losers}")
+    print(
+        "fsrcnn beats bicubic in mean PSNR at every scale and noise level"
+        if not losers
+        else f"fsrcnn does NOT beat bicubic at (scale, noise_rel) {losers}"
+    )
 
     print()
     print(f"{'scale':>5} {'size':>9} {'fsrcnn ms':>10} {'bicubic ms':>11} {'ratio':>7}")

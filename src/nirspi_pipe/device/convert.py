@@ -83,7 +83,16 @@ def convert(
     """
     if flatten not in ("C", "F"):
         raise ValueError("flatten must be 'C' (row-major) or 'F' (column-major)")
-    given = [k for k, v in (("pos", pos), ("interleaved", interleaved), ("differential", differential), ("measurements", measurements)) if v is not None]
+    given = [
+        k
+        for k, v in (
+            ("pos", pos),
+            ("interleaved", interleaved),
+            ("differential", differential),
+            ("measurements", measurements),
+        )
+        if v is not None
+    ]
     if len(given) != 1 or (pos is None) != (neg is None):
         raise RecordingError("measurements", "give exactly one of pos+neg, interleaved, differential, measurements")
     rows = _rows(patterns, flatten)
@@ -122,7 +131,11 @@ def convert(
     if split == "differential":
         out.update(measurements=y, patterns=signed)
     else:
-        halves = np.concatenate([(1 + signed) / 2, (1 - signed) / 2]) if split == "stacked" else np.stack([(1 + signed) / 2, (1 - signed) / 2], axis=1).reshape(2 * m, -1)
+        halves = (
+            np.concatenate([(1 + signed) / 2, (1 - signed) / 2])
+            if split == "stacked"
+            else np.stack([(1 + signed) / 2, (1 - signed) / 2], axis=1).reshape(2 * m, -1)
+        )
         out.update(measurements=y, patterns=halves)
     return out
 
@@ -155,7 +168,10 @@ def main(argv: list[str] | None = None) -> None:
     ns = p.parse_args(argv)
     try:
         src = load_any(ns.input)
-        keys = {k: getattr(ns, k) for k in ("patterns", "pos", "neg", "interleaved", "differential", "measurements", "image", "timestamps")}
+        keys = {
+            k: getattr(ns, k)
+            for k in ("patterns", "pos", "neg", "interleaved", "differential", "measurements", "image", "timestamps")
+        }
         missing = [v for v in keys.values() if v is not None and v not in src]
         if missing:
             raise RecordingError(missing[0], f"not in {ns.input}; it has: {', '.join(sorted(src))}")

@@ -176,8 +176,13 @@ class Emulator:
         if self.differential:
             frames["y_pos"], frames["y_neg"] = y_pos - y_neg, np.nan
         header: dict[str, Any] = {
-            "protocol": PROTOCOL, "n": self.n, "count": count, "frame_bytes": FRAME_DTYPE.itemsize,
-            "gain": self.gain, "units": "relative", "device": self.device,
+            "protocol": PROTOCOL,
+            "n": self.n,
+            "count": count,
+            "frame_bytes": FRAME_DTYPE.itemsize,
+            "gain": self.gain,
+            "units": "relative",
+            "device": self.device,
         }
         if self.fault == "bad-header":
             fh.write(b'{"protocol": "nirspi-stream/1", "n": \n')
@@ -212,8 +217,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: a free one; printed)")
     p.add_argument("--scene", default="sphere", help="a nirspi-pipe scene option (default sphere)")
     p.add_argument("--resolution", type=int, default=64, help="pixels per side (power of two)")
-    p.add_argument("--scene-override", action="append", default=[], metavar="KEY=VALUE",
-                   help="extra Hydra override for the scene, e.g. scene.distance_mm=300")
+    p.add_argument(
+        "--scene-override",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra Hydra override for the scene, e.g. scene.distance_mm=300",
+    )
     p.add_argument("--gain", type=float, default=1.0)
     p.add_argument("--background", type=float, default=0.0, help="constant reading added to both halves")
     p.add_argument("--noise-rel", type=float, default=0.0)
@@ -230,10 +240,20 @@ def main(argv: list[str] | None = None) -> None:
 
         radiance = render_scene(ns.scene, ns.resolution, ns.scene_override)
     except Exception as exc:  # noqa: BLE001 - one line for the user
-        print(f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}", file=sys.stderr)
+        print(
+            f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+            file=sys.stderr,
+        )
         raise SystemExit(2) from None
-    emu = Emulator(radiance, gain=ns.gain, background=ns.background, noise_rel=ns.noise_rel,
-                   seed=ns.seed, differential=ns.differential, fault=ns.fault)
+    emu = Emulator(
+        radiance,
+        gain=ns.gain,
+        background=ns.background,
+        noise_rel=ns.noise_rel,
+        seed=ns.seed,
+        differential=ns.differential,
+        fault=ns.fault,
+    )
     port = emu.bind(ns.port)
     print(json.dumps({"host": LOOPBACK, "port": port, "n": emu.n, "scene": ns.scene}), flush=True)
     served = emu.serve(ns.connections, ns.lifetime_s)

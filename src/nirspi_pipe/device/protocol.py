@@ -50,9 +50,7 @@ __all__ = [
 ]
 
 PROTOCOL = "nirspi-stream/1"
-FRAME_DTYPE = np.dtype(
-    [("seq", "<u4"), ("index", "<i8"), ("t_s", "<f8"), ("y_pos", "<f8"), ("y_neg", "<f8")]
-)
+FRAME_DTYPE = np.dtype([("seq", "<u4"), ("index", "<i8"), ("t_s", "<f8"), ("y_pos", "<f8"), ("y_neg", "<f8")])
 assert FRAME_DTYPE.itemsize == 36
 END_MARKER = b"NEND"
 MAX_LINE = 64 * 1024
@@ -88,7 +86,7 @@ class Channel:
     def _arm(self) -> None:
         left = self.deadline - time.monotonic()
         if left <= 0:
-            raise socket.timeout("deadline passed")
+            raise TimeoutError("deadline passed")
         self.sock.settimeout(left)
 
     def _recv(self, size: int) -> bytes:

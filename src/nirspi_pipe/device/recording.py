@@ -55,7 +55,18 @@ FORMAT_VERSION = 1
 SPLITS = ("differential", "interleaved", "stacked")
 _STRING_KEYS = ("basis", "split", "order", "units", "device")
 _SPEC_KEYS = ("basis", "resolution", "split", "indices", "order", "ratio")
-_OPTIONAL = ("timestamps", "dark", "background", "itof_raw", "image", "gain", "fov_deg", "units", "device", "format_version")
+_OPTIONAL = (
+    "timestamps",
+    "dark",
+    "background",
+    "itof_raw",
+    "image",
+    "gain",
+    "fov_deg",
+    "units",
+    "device",
+    "format_version",
+)
 KNOWN_KEYS = frozenset(("measurements", "patterns", *_SPEC_KEYS, *_OPTIONAL))
 
 
@@ -136,7 +147,11 @@ def _float_array(a: np.ndarray, key: str, where: str, ndim: int | None, kinds: s
     bad = ~np.isfinite(out)
     if bad.any():
         first = np.unravel_index(int(np.argmax(bad)), out.shape)
-        raise _fail(key, f"{int(bad.sum())} non-finite value(s) (NaN or Inf), first at index {tuple(int(i) for i in first)}", where)
+        raise _fail(
+            key,
+            f"{int(bad.sum())} non-finite value(s) (NaN or Inf), first at index {tuple(int(i) for i in first)}",
+            where,
+        )
     return out
 
 
@@ -144,15 +159,23 @@ def _check_magnitudes(y: np.ndarray, gain: float, n: int, optional: dict[str, An
     """Readings (and offsets, and the truth image) so large that the reconstruction or its
     metrics would overflow float64 are refused (:func:`~nirspi_pipe.safeio.max_safe_reading`)."""
     limit = max_safe_reading(y.size, n * n)
-    for key, arr, scale in (("measurements", y, gain), ("dark", optional.get("dark"), gain),
-                            ("background", optional.get("background"), gain), ("image", optional.get("image"), 1.0)):
+    for key, arr, scale in (
+        ("measurements", y, gain),
+        ("dark", optional.get("dark"), gain),
+        ("background", optional.get("background"), gain),
+        ("image", optional.get("image"), 1.0),
+    ):
         if arr is None or arr.size == 0:
             continue
         peak = float(np.max(np.abs(arr)))
         if peak / scale > limit or not np.isfinite(peak / scale):
             per = "|value| / gain" if scale != 1.0 or key != "image" else "|value|"
-            raise _fail(key, f"{per} reaches {peak / scale:.3g}; the reconstruction would overflow float64 "
-                        f"(at most {limit:.3g} for {y.size} readings of {n}x{n})", where)
+            raise _fail(
+                key,
+                f"{per} reaches {peak / scale:.3g}; the reconstruction would overflow float64 "
+                f"(at most {limit:.3g} for {y.size} readings of {n}x{n})",
+                where,
+            )
 
 
 def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_from_order: Any = None) -> Recording:
@@ -176,7 +199,11 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     has_patterns = "patterns" in arrays
     spec_given = [k for k in _SPEC_KEYS if k in arrays]
     if has_patterns and spec_given:
-        raise _fail("patterns", f"give either 'patterns' or a pattern spec, not both (also found {', '.join(spec_given)})", where)
+        raise _fail(
+            "patterns",
+            f"give either 'patterns' or a pattern spec, not both (also found {', '.join(spec_given)})",
+            where,
+        )
     patterns = indices = None
     split: str | None = None
     if has_patterns:
@@ -198,7 +225,11 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     else:
         missing = [k for k in ("basis", "resolution", "split") if k not in arrays]
         if missing and not spec_given:
-            raise _fail("patterns", "missing: give 'patterns' (M, N) or a pattern spec (basis, resolution, split, indices or order)", where)
+            raise _fail(
+                "patterns",
+                "missing: give 'patterns' (M, N) or a pattern spec (basis, resolution, split, indices or order)",
+                where,
+            )
         if missing:
             raise _fail(missing[0], "missing from the pattern spec (basis, resolution, split, indices or order)", where)
         basis = _string(arrays, "basis", where)
@@ -392,11 +423,15 @@ def match_hadamard(patterns: np.ndarray) -> HadamardMatch:
         k = _hadamard_indices(plus[pos], n)
         if k is not None:
             return HadamardMatch("split", True, indices=k, pos_rows=pos, neg_rows=neg, low=low, high=high)
-        return HadamardMatch("split", pos_rows=pos, neg_rows=neg, canonical=np.where(plus[pos], 1.0, -1.0), low=low, high=high)
+        return HadamardMatch(
+            "split", pos_rows=pos, neg_rows=neg, canonical=np.where(plus[pos], 1.0, -1.0), low=low, high=high
+        )
     if np.all(counts == 1) and low == -high:
         signs = np.where(first, 1.0, -1.0)
         k = _hadamard_indices(plus, n)
         if k is not None:
             return HadamardMatch("signed", True, indices=k, pos_rows=rows, signs=signs, low=low, high=high)
-        return HadamardMatch("signed", pos_rows=rows, signs=signs, canonical=np.where(plus, 1.0, -1.0), low=low, high=high)
+        return HadamardMatch(
+            "signed", pos_rows=rows, signs=signs, canonical=np.where(plus, 1.0, -1.0), low=low, high=high
+        )
     return HadamardMatch("binary", low=low, high=high)

@@ -90,9 +90,7 @@ def laser_directions(spot_angle_deg: float, azimuth_deg: float) -> np.ndarray:
     """
     th = np.deg2rad(spot_angle_deg)
     psi = np.deg2rad(azimuth_deg + 90.0 * np.arange(4))
-    return np.stack(
-        [np.sin(th) * np.cos(psi), np.sin(th) * np.sin(psi), np.full(4, np.cos(th))], axis=-1
-    )
+    return np.stack([np.sin(th) * np.cos(psi), np.sin(th) * np.sin(psi), np.full(4, np.cos(th))], axis=-1)
 
 
 def aim_spots(image: np.ndarray, camera: Camera, n_spots: int, threshold: float) -> tuple[np.ndarray, list[str]]:
@@ -167,8 +165,10 @@ def _sample_at(scene: Scene, d: np.ndarray) -> tuple[bool, float, float, float]:
         if np.all(np.isfinite(block)) and np.all(scene.mask[r0 : r0 + 2, c0 : c0 + 2]):
             fr, fc = row - r0, col - c0
             z = float(
-                block[0, 0] * (1 - fr) * (1 - fc) + block[0, 1] * (1 - fr) * fc
-                + block[1, 0] * fr * (1 - fc) + block[1, 1] * fr * fc
+                block[0, 0] * (1 - fr) * (1 - fc)
+                + block[0, 1] * (1 - fr) * fc
+                + block[1, 0] * fr * (1 - fc)
+                + block[1, 1] * fr * fc
             )
     cos_inc = float(np.clip(-scene.normals[ri, ci] @ d, 0.0, 1.0))
     return True, z / float(d[2]), float(scene.reflectance[ri, ci]), cos_inc
@@ -255,8 +255,16 @@ class ContinuousWave4:
             raise ConfigError("aim_threshold", self.aim_threshold, "a fraction in (0, 1)")
         if self.aim_directions is not None:
             d = np.asarray(self.aim_directions, dtype=np.float64) if np.size(self.aim_directions) else np.zeros(0)
-            if d.ndim != 2 or d.shape[1] != 3 or not 1 <= len(d) <= 4 or not np.all(np.isfinite(d)) or (d[:, 2] <= 0).any():
-                raise ConfigError("aim_directions", self.aim_directions, "1 to 4 directions [x, y, z] with z > 0, or null")
+            if (
+                d.ndim != 2
+                or d.shape[1] != 3
+                or not 1 <= len(d) <= 4
+                or not np.all(np.isfinite(d))
+                or (d[:, 2] <= 0).any()
+            ):
+                raise ConfigError(
+                    "aim_directions", self.aim_directions, "1 to 4 directions [x, y, z] with z > 0, or null"
+                )
         if not 0.0 <= self.spot_angle_deg < 80.0:
             raise ConfigError("spot_angle_deg", self.spot_angle_deg, "degrees in [0, 80)")
         if not np.isfinite(self.azimuth_deg):
@@ -325,7 +333,12 @@ class ContinuousWave4:
         a_rx = np.pi * (0.5 * self.aperture_mm * 1e-3) ** 2
         if np.isfinite(range_m) and range_m > 0:
             p_sig = (
-                self.laser_power_mw * 1e-3 * reflectance * cos_inc * a_rx / (np.pi * range_m**2)
+                self.laser_power_mw
+                * 1e-3
+                * reflectance
+                * cos_inc
+                * a_rx
+                / (np.pi * range_m**2)
                 * np.exp(-2.0 * beta_per_m * range_m)
             )
         else:

@@ -122,9 +122,7 @@ def project_px(points_m: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.nda
     return row, col
 
 
-def region_weights(
-    angles_deg: np.ndarray, anchor_angles_deg: np.ndarray, blend_deg: float
-) -> np.ndarray:
+def region_weights(angles_deg: np.ndarray, anchor_angles_deg: np.ndarray, blend_deg: float) -> np.ndarray:
     """Blending weights ``(…, k)`` of the angular regions centred on ``anchor_angles_deg``.
 
     A pixel at polar angle ``ψ`` (degrees, about the principal point) belongs to the region of
@@ -225,9 +223,7 @@ def grid_triangles(valid: np.ndarray) -> np.ndarray:
     return np.concatenate([t1, t2]).reshape(-1, 3)
 
 
-def semi_even_points(
-    tri: np.ndarray, ref: np.ndarray, d_pitch_m: float, min_angle_deg: float = 1.0
-) -> np.ndarray:
+def semi_even_points(tri: np.ndarray, ref: np.ndarray, d_pitch_m: float, min_angle_deg: float = 1.0) -> np.ndarray:
     """Alg. A4: semi-even points at pitch ``d`` on each triangle (Eqs. 13–15), metres.
 
     Args:
@@ -271,11 +267,7 @@ def semi_even_points(
     keep = (y == 0) | (d2[t_idx] * y < safe2[t_idx] * (1.0 - s))  # Eq. (15) bounds
     keep &= ok[t_idx] | ((x == 0) & (y == 0))
     t_idx, x, y = t_idx[keep], x[keep], y[keep]
-    return (
-        v0[t_idx]
-        + u1[t_idx] * (d1 * x)[:, None]
-        + u2[t_idx] * (d2[t_idx] * y)[:, None]
-    )
+    return v0[t_idx] + u1[t_idx] * (d1 * x)[:, None] + u2[t_idx] * (d2[t_idx] * y)[:, None]
 
 
 def voxel_merge(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -497,8 +489,12 @@ class ItofFusion:
                 if 0 <= r0 < n - 1 and 0 <= c0 < n - 1 and valid[r0 : r0 + 2, c0 : c0 + 2].all():
                     fr, fc = row - r0, col - c0
                     b = zr_map[r0 : r0 + 2, c0 : c0 + 2]
-                    zr[k] = (b[0, 0] * (1 - fr) * (1 - fc) + b[0, 1] * (1 - fr) * fc
-                             + b[1, 0] * fr * (1 - fc) + b[1, 1] * fr * fc)
+                    zr[k] = (
+                        b[0, 0] * (1 - fr) * (1 - fc)
+                        + b[0, 1] * (1 - fr) * fc
+                        + b[1, 0] * fr * (1 - fc)
+                        + b[1, 1] * fr * fc
+                    )
                     used[k] = True
                     continue
                 d2 = (rr - row) ** 2 + (cc - col) ** 2 if len(rr) else np.zeros(0)
@@ -507,14 +503,14 @@ class ItofFusion:
                     zr[k], used[k] = zr_map[rr[j], cc[j]], True
                     continue
                 near = f"{np.sqrt(d2[j]):.1f} px" if j >= 0 else "no valid pixel"
-                reasons[k] = (f"falls at pixel ({row:.1f}, {col:.1f}), outside the SFS depth mask (nearest valid "
-                              f"pixel {near} > anchor_radius_px={self.anchor_radius_px:g})")
+                reasons[k] = (
+                    f"falls at pixel ({row:.1f}, {col:.1f}), outside the SFS depth mask (nearest valid "
+                    f"pixel {near} > anchor_radius_px={self.anchor_radius_px:g})"
+                )
             warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=3)
         return used, zr, pts[:, 2], sig, reasons
 
-    def metric_depth(
-        self, depth: DepthMap, itof: ItofSample, camera: Camera
-    ) -> tuple[np.ndarray, np.ndarray, dict]:
+    def metric_depth(self, depth: DepthMap, itof: ItofSample, camera: Camera) -> tuple[np.ndarray, np.ndarray, dict]:
         """Alg. A3: the metric z-depth map ``(n, n)`` (metres, valid where the returned mask is
         True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used, …}``.
 
@@ -679,5 +675,9 @@ class ItofFusion:
             "time_step": step,
         }
         return PointCloud(
-            points_m=cloud, normals=normals, depth_scale=float(fit["scale"]), depth_offset_m=float(fit["offset_m"]), info=info
+            points_m=cloud,
+            normals=normals,
+            depth_scale=float(fit["scale"]),
+            depth_offset_m=float(fit["offset_m"]),
+            info=info,
         )

@@ -169,8 +169,9 @@ def geometric_metric_depth(relative: np.ndarray, mask: np.ndarray, distance_m: f
     return np.where(ok, distance_m + distance_m / focal_px * (d - med), np.nan)
 
 
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, spacing_m: float, rng: np.random.Generator,
-                   max_samples: int = 200_000) -> np.ndarray:
+def sample_surface(
+    vertices: np.ndarray, faces: np.ndarray, spacing_m: float, rng: np.random.Generator, max_samples: int = 200_000
+) -> np.ndarray:
     """Points on a triangle mesh (metres): the vertices used by its faces plus area-uniform random
     points, about one per ``spacing_m²`` of area (at most ``max_samples``)."""
     f = np.asarray(faces, dtype=np.int64)
@@ -321,8 +322,11 @@ class Metrics3D:
                 sfs_cam = cam if z_sfs.shape[0] == cam.resolution else cam.resampled(z_sfs.shape[0])
                 verts = back_project(np.where(sfs_valid, z_sfs, 0.0), sfs_cam).reshape(-1, 3)
                 out.update(
-                    {k: v for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
-                     if k in ("skewness_sfs_mean", "skewness_sfs_p95")}
+                    {
+                        k: v
+                        for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
+                        if k in ("skewness_sfs_mean", "skewness_sfs_p95")
+                    }
                 )
                 out.update(skewness_candidates(verts, faces, "cand_sfs"))
         if z_sfs is not None and cloud is not None:
@@ -334,8 +338,12 @@ class Metrics3D:
                 fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
                 before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline
                 after = rmse(z_fused[both], truth.depth_m[both])
-                out.update(depth_rmse_sfs_mm=before * 1e3, depth_rmse_sfs_fit_mm=fit * 1e3,
-                           depth_rmse_fused_mm=after * 1e3, depth_pixels=float(both.sum()))
+                out.update(
+                    depth_rmse_sfs_mm=before * 1e3,
+                    depth_rmse_sfs_fit_mm=fit * 1e3,
+                    depth_rmse_fused_mm=after * 1e3,
+                    depth_pixels=float(both.sum()),
+                )
                 # skewness candidates: |statistical skewness| of the depth errors (docs/paper.md)
                 for key, z in (("cand_sfs_error_stat", z_sfs), ("cand_mesh_error_stat", z_fused)):
                     val = abs(sample_skewness(z[both] - truth.depth_m[both]))
@@ -350,8 +358,13 @@ class Metrics3D:
                 warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=2)
         if mesh is not None and len(mesh.faces):
             out.update(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
-            out.update({k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items()
-                        if np.isfinite(v)})
+            out.update(
+                {
+                    k: v
+                    for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items()
+                    if np.isfinite(v)
+                }
+            )
             if tmask.any():
                 pitch = truth.distance_m / cam.focal_px
                 spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
@@ -362,7 +375,8 @@ class Metrics3D:
                 # centroids are enough (and deterministic)
                 truth_pts = (
                     np.concatenate([t_verts[np.unique(t_faces)], t_verts[t_faces].mean(axis=1)])
-                    if len(t_faces) else t_verts[tmask.ravel()]
+                    if len(t_faces)
+                    else t_verts[tmask.ravel()]
                 )
                 mesh_pts = sample_surface(mesh.vertices_m, mesh.faces, spacing, rng)
                 chamfer, hausdorff = surface_distances(mesh_pts, truth_pts)

@@ -62,8 +62,14 @@ def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, i
         for col, (title, m, colour) in enumerate(panels):
             plotter.subplot(0, col)
             if len(m.faces):
-                plotter.add_mesh(_polydata(m.vertices_m, m.faces), color=colour, show_edges=True,
-                                 edge_color="dimgray", line_width=0.5, smooth_shading=False)
+                plotter.add_mesh(
+                    _polydata(m.vertices_m, m.faces),
+                    color=colour,
+                    show_edges=True,
+                    edge_color="dimgray",
+                    line_width=0.5,
+                    smooth_shading=False,
+                )
             plotter.add_text(title, font_size=10)
             # the device looks along +z with +y up: view from near the device, a little off axis
             centre = np.asarray(m.vertices_m).mean(axis=0) * 1e3 if len(m.vertices_m) else np.array([0, 0, 200.0])

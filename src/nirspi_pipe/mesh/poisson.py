@@ -76,7 +76,9 @@ class ScreenedPoisson:
             raise NirspiError(f"poisson: needs at least 4 finite points, got {len(pts)}")
         ms = pymeshlab.MeshSet()
         if cloud.normals is not None and np.all(np.isfinite(cloud.normals)):
-            ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts * 1e3, v_normals_matrix=np.asarray(cloud.normals, dtype=np.float64)))
+            ms.add_mesh(
+                pymeshlab.Mesh(vertex_matrix=pts * 1e3, v_normals_matrix=np.asarray(cloud.normals, dtype=np.float64))
+            )
         else:
             ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pts * 1e3))
             ms.compute_normal_for_point_clouds(k=int(self.normal_knn), viewpos=np.zeros(3))
@@ -96,8 +98,9 @@ class ScreenedPoisson:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
         if len(faces) == 0:
             warnings.warn("poisson: empty surface", stacklevel=2)
-        verts, faces, rinfo = remesh_to_cloud(verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor,
-                                              self.max_hole_edges)
+        verts, faces, rinfo = remesh_to_cloud(
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges
+        )
         info.update(rinfo)
         info["faces"] = int(len(faces))
         return Mesh(vertices_m=verts, faces=faces, info=info)

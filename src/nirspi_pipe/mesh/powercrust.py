@@ -384,8 +384,9 @@ class PowerCrust:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
             if len(faces) == 0:
                 warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
-        verts, faces, rinfo = remesh_to_cloud(verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor,
-                                              self.max_hole_edges)
+        verts, faces, rinfo = remesh_to_cloud(
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges
+        )
         info.update(rinfo)
         info["faces"] = int(len(faces))
         return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)

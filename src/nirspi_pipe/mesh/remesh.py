@@ -52,15 +52,20 @@ def sample_spacing(points_m: np.ndarray) -> float:
 
 
 def remesh_to_cloud(
-    vertices_m: np.ndarray, faces: np.ndarray, points_m: np.ndarray, iterations: int, edge_factor: float,
+    vertices_m: np.ndarray,
+    faces: np.ndarray,
+    points_m: np.ndarray,
+    iterations: int,
+    edge_factor: float,
     max_hole_edges: int,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """:func:`clean_and_remesh` at the cloud's own :func:`sample_spacing`, as the surface stages
     call it on their reconstruction of ``points_m``; an empty mesh is returned unchanged."""
     if len(faces) == 0:
         return vertices_m, faces, {}
-    return clean_and_remesh(vertices_m, faces, sample_spacing(points_m), int(iterations), float(edge_factor),
-                            int(max_hole_edges))
+    return clean_and_remesh(
+        vertices_m, faces, sample_spacing(points_m), int(iterations), float(edge_factor), int(max_hole_edges)
+    )
 
 
 def clean_and_remesh(

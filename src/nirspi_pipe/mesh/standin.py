@@ -38,5 +38,4 @@ def degraded_depth(
     rel = rel + rng.normal(0.0, noise_px, rel.shape)
     out = rng.random(rel.shape) < outlier_fraction
     rel = rel + np.where(out, rng.choice([-1.0, 1.0], rel.shape) * outlier_px, 0.0)
-    return DepthMap(depth_m=np.where(mask, rel, np.nan), mask=mask, metric=False,
-                    info={"standin": True})
+    return DepthMap(depth_m=np.where(mask, rel, np.nan), mask=mask, metric=False, info={"standin": True})

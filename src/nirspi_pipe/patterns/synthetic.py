@@ -31,5 +31,10 @@ def split_hadamard(x: np.ndarray, alpha: float | None = None, seed: int = 0) -> 
     if alpha is None:
         return Acquisition(n=n, indices=idx, y_pos=pos, y_neg=neg)
     rng = np.random.default_rng(seed)
-    return Acquisition(n=n, indices=idx, y_pos=rng.poisson(alpha * pos).astype(float),
-                       y_neg=rng.poisson(alpha * neg).astype(float), gain=float(alpha))
+    return Acquisition(
+        n=n,
+        indices=idx,
+        y_pos=rng.poisson(alpha * pos).astype(float),
+        y_neg=rng.poisson(alpha * neg).astype(float),
+        gain=float(alpha),
+    )

@@ -96,8 +96,14 @@ class PhotonBudget:
         """``τ A_pix FF T_int QE / (4 f#²)``: image-plane collection (m² s, per unit scene
         irradiance × reflectance) shared by the active and background terms of Eq. (10)."""
         return (
-            self.lens_transmittance * self.a_pix_um2 * 1e-12 * self.fill_factor * self.t_int_us * 1e-6
-            * self.quantum_efficiency / (4.0 * self.f_number**2)
+            self.lens_transmittance
+            * self.a_pix_um2
+            * 1e-12
+            * self.fill_factor
+            * self.t_int_us
+            * 1e-6
+            * self.quantum_efficiency
+            / (4.0 * self.f_number**2)
         )
 
     def white_electrons(self, range_m: float | np.ndarray) -> np.ndarray:

@@ -51,7 +51,9 @@ def sample_electrons(mean_e: np.ndarray, rng: np.random.Generator, shot: bool, r
     return out
 
 
-def digitize(electrons: np.ndarray, full_scale_e: float | None, bits: int | None) -> tuple[np.ndarray, np.ndarray, float]:
+def digitize(
+    electrons: np.ndarray, full_scale_e: float | None, bits: int | None
+) -> tuple[np.ndarray, np.ndarray, float]:
     """Clip at ``[0, full_scale_e]`` and quantise to ``bits``.
 
     Returns ``(counts, saturated, electrons_per_count)``: counts are floats in DN; ``saturated``
@@ -65,7 +67,7 @@ def digitize(electrons: np.ndarray, full_scale_e: float | None, bits: int | None
     e = np.minimum(e, full_scale_e)
     if bits is None:
         return e, saturated, 1.0
-    levels = 2**int(bits)
+    levels = 2 ** int(bits)
     step = full_scale_e / levels
     counts = np.minimum(np.floor(e / step), levels - 1)
     return counts, saturated, step
@@ -165,6 +167,8 @@ class Photodiode:
 
     def read(self, mean_e: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Readings in DN of photo-charges ``mean_e`` (e⁻), and the saturated flags."""
-        e = sample_electrons(np.asarray(mean_e, dtype=np.float64) + self.dark_electrons, rng, self.shot_noise, self.read_noise_e)
+        e = sample_electrons(
+            np.asarray(mean_e, dtype=np.float64) + self.dark_electrons, rng, self.shot_noise, self.read_noise_e
+        )
         counts, saturated, _ = digitize(e + self.offset_e, self.full_scale_e, self.adc_bits)
         return counts, saturated

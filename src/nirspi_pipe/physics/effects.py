@@ -294,7 +294,9 @@ class Signal:
         elif self.depth_scale_pos is None or self.depth_scale_neg is None:
             pos, neg = split_measure(self.image_e * np.exp(-self.optical_depth), idx)
         else:
-            pos, neg = modulated_split(self.image_e, self.optical_depth, self.depth_scale_pos, self.depth_scale_neg, idx)
+            pos, neg = modulated_split(
+                self.image_e, self.optical_depth, self.depth_scale_pos, self.depth_scale_neg, idx
+            )
         return replace(self, pos_e=pos, neg_e=neg)
 
     @property
@@ -360,7 +362,9 @@ class Illumination:
         r = exposure.range_m
         finite = np.isfinite(r)
         n2 = exposure.n * exposure.n
-        img = exposure.scene.radiance * np.where(finite, self.budget.white_electrons(np.where(finite, r, 1.0)), 0.0) / n2
+        img = (
+            exposure.scene.radiance * np.where(finite, self.budget.white_electrons(np.where(finite, r, 1.0)), 0.0) / n2
+        )
         return replace(signal, image_e=img)
 
 
@@ -549,7 +553,11 @@ class BackgroundLight:
         bg_e = float(exposure.budget.ambient_electrons(bg.photon_irradiance, refl))
         s = signal.measured(exposure)
         return replace(
-            s, background_e=bg_e, bg_pos=bg_e, bg_neg=bg_e, bg_dark=bg_e,
+            s,
+            background_e=bg_e,
+            bg_pos=bg_e,
+            bg_neg=bg_e,
+            bg_dark=bg_e,
             conditions={**s.conditions, "photon_irradiance": float(bg.photon_irradiance)},
         ).with_derived(klux=float(bg.klux), background_irradiance_w_m2=float(bg.irradiance_w_m2))
 
@@ -576,13 +584,18 @@ class BackgroundDrift:
             raise ValueError("background_drift must follow the background effect in the chain")
         m = exposure.m
         fac = background_factor(
-            np.concatenate([exposure.t_pos, exposure.t_neg, exposure.t_dark]), exposure.rng(1), self.drift_rel_per_s,
-            self.flicker_rel, self.flicker_hz, self.wander_rel, self.wander_time_s,
+            np.concatenate([exposure.t_pos, exposure.t_neg, exposure.t_dark]),
+            exposure.rng(1),
+            self.drift_rel_per_s,
+            self.flicker_rel,
+            self.flicker_hz,
+            self.wander_rel,
+            self.wander_time_s,
         )
         bg_e = signal.background_e
-        return replace(signal, bg_pos=bg_e * fac[:m], bg_neg=bg_e * fac[m : 2 * m], bg_dark=bg_e * fac[2 * m :]).with_derived(
-            background_factor_std=float(np.std(fac))
-        )
+        return replace(
+            signal, bg_pos=bg_e * fac[:m], bg_neg=bg_e * fac[m : 2 * m], bg_dark=bg_e * fac[2 * m :]
+        ).with_derived(background_factor_std=float(np.std(fac)))
 
 
 @dataclass(frozen=True)
@@ -633,7 +646,11 @@ class DetectorReadout:
             )
         derived.update(self._range(exposure, s))
         return replace(
-            s, y_pos=y_pos, y_neg=y_neg, gain=exposure.ref_e / epc, saturated=saturated,
+            s,
+            y_pos=y_pos,
+            y_neg=y_neg,
+            gain=exposure.ref_e / epc,
+            saturated=saturated,
             noise_e=float(derived["noise_photons_per_pattern"]),
         ).with_derived(**derived)
 
@@ -738,8 +755,11 @@ def forward_model(
         if illumination.time_varying:
             chain.append(
                 BackgroundDrift(
-                    illumination.drift_rel_per_s, float(illumination.flicker_rel or 0.0), illumination.flicker_hz,
-                    illumination.wander_rel, illumination.wander_time_s,
+                    illumination.drift_rel_per_s,
+                    float(illumination.flicker_rel or 0.0),
+                    illumination.flicker_hz,
+                    illumination.wander_rel,
+                    illumination.wander_time_s,
                 )
             )
     chain += placed["readings"]

@@ -223,7 +223,9 @@ class MieFog:
         if self.droplet_diameter_um is None:
             droplet_diameter_m(self.piezo_frequency_hz)  # validates the frequency
         elif not np.isfinite(self.droplet_diameter_um) or not 0 < self.droplet_diameter_um <= 1e4:
-            raise ConfigError("droplet_diameter_um", self.droplet_diameter_um, "a diameter in µm in (0, 10000], or null")
+            raise ConfigError(
+                "droplet_diameter_um", self.droplet_diameter_um, "a diameter in µm in (0, 10000], or null"
+            )
         if not np.isfinite(self.number_density_per_cm3) or self.number_density_per_cm3 < 0:
             raise ConfigError("number_density_per_cm3", self.number_density_per_cm3, "a density >= 0 per cm³")
         if not np.isfinite(self.wavelength_nm) or not 200 <= self.wavelength_nm <= 20000:
@@ -234,7 +236,9 @@ class MieFog:
             raise ConfigError("index_imag", self.index_imag, "an imaginary index k in [0, 10]")
         _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
         if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
-            raise ConfigError("trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]")
+            raise ConfigError(
+                "trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]"
+            )
 
     @property
     def diameter_m(self) -> float:
@@ -304,7 +308,9 @@ class MeasuredFog:
             raise ConfigError("single_scattering_albedo", self.single_scattering_albedo, "a value in [0, 1]")
         _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
         if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
-            raise ConfigError("trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]")
+            raise ConfigError(
+                "trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]"
+            )
 
     @property
     def extinction_per_m(self) -> float:

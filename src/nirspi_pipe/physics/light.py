@@ -147,8 +147,12 @@ def _sun_per_lux(band_nm: tuple[float, float]) -> tuple[float, float]:
     return float(watts / lux), float(photons / lux)
 
 
-def klux_to_irradiance_w_m2(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0,
-                            spectrum: str = "blackbody") -> float:
+def klux_to_irradiance_w_m2(
+    klux: float,
+    band_nm: tuple[float, float] = (1500.0, 1600.0),
+    temperature_k: float = 5778.0,
+    spectrum: str = "blackbody",
+) -> float:
     """Irradiance (W/m²) inside ``band_nm`` of an illuminance of ``klux`` kilolux, with the
     ``spectrum`` of :data:`SPECTRA` (``temperature_k`` for a blackbody or halogen lamp)."""
     if spectrum == "sun":
@@ -157,8 +161,12 @@ def klux_to_irradiance_w_m2(klux: float, band_nm: tuple[float, float] = (1500.0,
     return total * band_fraction(tuple(band_nm), temperature_k)[0]
 
 
-def klux_to_photon_irradiance(klux: float, band_nm: tuple[float, float] = (1500.0, 1600.0), temperature_k: float = 5778.0,
-                              spectrum: str = "blackbody") -> float:
+def klux_to_photon_irradiance(
+    klux: float,
+    band_nm: tuple[float, float] = (1500.0, 1600.0),
+    temperature_k: float = 5778.0,
+    spectrum: str = "blackbody",
+) -> float:
     """Photon irradiance (photons s⁻¹ m⁻²) inside ``band_nm`` of ``klux`` kilolux (see
     :func:`klux_to_irradiance_w_m2`)."""
     if spectrum == "sun":
@@ -223,7 +231,9 @@ class Background:
             if self.spectrum == "halogen":
                 object.__setattr__(self, "flicker_hz", 2.0 * self.mains_hz)
         if not 1000.0 <= self.spectrum_temperature_k <= 20000.0:
-            raise ConfigError("spectrum_temperature_k", self.spectrum_temperature_k, "a temperature in K in [1000, 20000]")
+            raise ConfigError(
+                "spectrum_temperature_k", self.spectrum_temperature_k, "a temperature in K in [1000, 20000]"
+            )
         if not 0.0 <= self.surround_reflectance <= 1.0:
             raise ConfigError("surround_reflectance", self.surround_reflectance, "a reflectance in [0, 1]")
         for key in ("drift_rel_per_s", "flicker_rel", "wander_rel"):

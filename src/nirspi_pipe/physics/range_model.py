@@ -103,7 +103,9 @@ def reading_noise_electrons(
     s = signal_electrons(z, reflectance, budget, beta_per_m, fog_extent_m)
     fog_path = np.minimum(z, fog_extent_m)
     veil = backscatter(backscatter_gain, budget.white_electrons(1.0), beta_per_m, fog_path)
-    ambient = budget.ambient_electrons(photon_irradiance, koschmieder_radiance(reflectance, albedo, beta_per_m, fog_path))
+    ambient = budget.ambient_electrons(
+        photon_irradiance, koschmieder_radiance(reflectance, albedo, beta_per_m, fog_path)
+    )
     return detector.noise_e(0.5 * (s + veil) + ambient)
 
 

@@ -30,10 +30,22 @@ __all__ = ["MESH_SUFFIXES", "MeshFileError", "parse_mesh", "read_mesh_file"]
 MESH_SUFFIXES = (".ply", ".stl", ".obj")
 
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 _MAX_HEADER = 65536
 _MAX_POLYGON = 1024  # assumed: corners per face; real polygons have a handful, and a fan of 1024 is 1022 triangles
@@ -88,8 +100,11 @@ def parse_mesh(data: bytes, suffix: str, where: str, budget: int | None = None) 
     bad_face = np.flatnonzero((faces < 0).any(axis=1) | (faces >= verts.shape[0]).any(axis=1))
     if bad_face.size:
         f = int(bad_face[0])
-        raise _fail(where, f"face {f} uses vertex {faces[f].tolist()}, out of range [0, {verts.shape[0]}) "
-                           f"({bad_face.size} such face(s))")
+        raise _fail(
+            where,
+            f"face {f} uses vertex {faces[f].tolist()}, out of range [0, {verts.shape[0]}) "
+            f"({bad_face.size} such face(s))",
+        )
     return verts, faces
 
 
@@ -118,8 +133,11 @@ def _ply_header(data: bytes, where: str) -> tuple[str, list[tuple[str, int, list
             continue
         if tok[0] == "format":
             if len(tok) != 3 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise _fail(where, f"header line {no}: format {sanitize_text(line, 60)!r} is not allowed; "
-                                   "allowed: ascii, binary_little_endian, binary_big_endian")
+                raise _fail(
+                    where,
+                    f"header line {no}: format {sanitize_text(line, 60)!r} is not allowed; "
+                    "allowed: ascii, binary_little_endian, binary_big_endian",
+                )
             fmt = tok[1]
         elif tok[0] == "element":
             if len(tok) != 3 or not tok[2].isdigit():
@@ -135,8 +153,11 @@ def _ply_header(data: bytes, where: str) -> tuple[str, list[tuple[str, int, list
                     raise _fail(where, f"header line {no}: a list count must be an integer type")
                 elements[-1][2].append((tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
             else:
-                raise _fail(where, f"header line {no}: unreadable property {sanitize_text(line, 60)!r} "
-                                   f"(types: {', '.join(sorted(_PLY_TYPES))})")
+                raise _fail(
+                    where,
+                    f"header line {no}: unreadable property {sanitize_text(line, 60)!r} "
+                    f"(types: {', '.join(sorted(_PLY_TYPES))})",
+                )
         else:
             raise _fail(where, f"header line {no}: unknown keyword {sanitize_text(tok[0], 30)!r}")
     if fmt is None:
@@ -167,8 +188,11 @@ def _ply(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
                 per += 3 * max((np.dtype(p[3]).itemsize for p in props if p[1] == "list"), default=0)
         need += count * per
         if need > body:
-            raise _fail(where, f"header declares {count} {name} element(s) needing at least {need} bytes, "
-                               f"the file holds {body} after its header (truncated or a hostile header)")
+            raise _fail(
+                where,
+                f"header declares {count} {name} element(s) needing at least {need} bytes, "
+                f"the file holds {body} after its header (truncated or a hostile header)",
+            )
     nv = elements[names.index("vertex")][1]
     nf = elements[names.index("face")][1]
     check_budget(nv * 3 * 8 + nf * 3 * 8 * 2, f"{nv} vertices and {nf} faces", where, limit)
@@ -226,8 +250,11 @@ def _ply_uniform_faces(
     fields: list[tuple[Any, ...]] = []
     for i, p in enumerate(props):
         if p[1] == "list":
-            fields += [("count", endian + p[2]), ("idx", endian + p[3], (k,))] if p[0] in ("vertex_indices", "vertex_index") \
+            fields += (
+                [("count", endian + p[2]), ("idx", endian + p[3], (k,))]
+                if p[0] in ("vertex_indices", "vertex_index")
                 else [(f"c{i}", endian + p[2]), (f"l{i}", endian + p[3], (k,))]
+            )
         else:
             fields.append((f"p{i}", endian + p[1]))
     dt = np.dtype(fields)
@@ -286,7 +313,9 @@ def _corners(corners: object, r: int, where: str) -> list[int]:
     return c
 
 
-def _ply_ascii(body: bytes, elements: list[tuple[str, int, list[tuple[str, ...]]]], where: str) -> tuple[np.ndarray, np.ndarray]:
+def _ply_ascii(
+    body: bytes, elements: list[tuple[str, int, list[tuple[str, ...]]]], where: str
+) -> tuple[np.ndarray, np.ndarray]:
     lines = [ln for ln in body.split(b"\n") if ln.strip()]
     at = 0
     out: dict[str, np.ndarray] = {}
@@ -316,7 +345,9 @@ def _ply_ascii(body: bytes, elements: list[tuple[str, int, list[tuple[str, ...]]
                         raise ValueError
                     polys.append([int(t) for t in tok[skip + 1 : skip + 1 + k]])
                 except (ValueError, IndexError):
-                    raise _fail(where, f"face {r}: unreadable row {sanitize_text(row.decode('latin1'), 60)!r}") from None
+                    raise _fail(
+                        where, f"face {r}: unreadable row {sanitize_text(row.decode('latin1'), 60)!r}"
+                    ) from None
             out["face"] = _fan(polys)
     return out["vertex"], out["face"]
 
@@ -354,8 +385,11 @@ def _stl(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
             tri = np.frombuffer(data, dtype=_STL_DTYPE, count=count, offset=84)
             return _merge(tri["v"])
         if not data.lstrip().startswith(b"solid"):
-            raise _fail(where, f"binary STL header declares {count} triangles ({84 + 50 * count} bytes), "
-                               f"the file has {len(data)} bytes")
+            raise _fail(
+                where,
+                f"binary STL header declares {count} triangles ({84 + 50 * count} bytes), "
+                f"the file has {len(data)} bytes",
+            )
     if not data.lstrip().startswith(b"solid"):
         raise _fail(where, "not an STL file (binary: 84-byte header; ASCII: starts with 'solid')")
     check_budget(len(data) * _TEXT_FACTOR, "parsing the ASCII STL", where, limit)
@@ -394,7 +428,9 @@ def _obj(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
                 try:
                     i = int(t.split(b"/", 1)[0])
                 except ValueError:
-                    raise _fail(where, f"line {no}: corner {sanitize_text(t.decode('latin1'), 30)!r} is not an index") from None
+                    raise _fail(
+                        where, f"line {no}: corner {sanitize_text(t.decode('latin1'), 30)!r} is not an index"
+                    ) from None
                 if i == 0:
                     raise _fail(where, f"line {no}: vertex index 0 (OBJ indices start at 1)")
                 face.append(i - 1 if i > 0 else len(verts) + i)

@@ -36,9 +36,7 @@ class Sphere:
     def __post_init__(self) -> None:
         check_common(self.distance_mm, self.reflectance, self.supersample)
         if not 0 < self.diameter_mm < 2 * self.distance_mm:
-            raise ConfigError(
-                "diameter_mm", self.diameter_mm, f"a diameter in mm in (0, {2 * self.distance_mm:g})"
-            )
+            raise ConfigError("diameter_mm", self.diameter_mm, f"a diameter in mm in (0, {2 * self.distance_mm:g})")
 
     def render(self, camera: Camera) -> Scene:
         """Ray-cast the sphere; see :func:`~nirspi_pipe.scene.render.compose_scene`."""
@@ -100,7 +98,9 @@ def _read_image_bounded(file: Path, path: str, budget: int | None = None) -> np.
                 w, h = im.size
                 bands = max(1, len(im.getbands()))
                 # the decoded pixels, then float64 grey conversion of up to 3 channels and its result
-                check_budget(w * h * (bands * 4 + 4 * 8), f"a {w}x{h} image with {bands} band(s)", f"image {path}", budget)
+                check_budget(
+                    w * h * (bands * 4 + 4 * 8), f"a {w}x{h} image with {bands} band(s)", f"image {path}", budget
+                )
                 decoded: Image.Image = im
                 if im.mode in ("P", "PA", "1", "CMYK", "YCbCr", "LAB", "HSV"):
                     decoded = im.convert("RGBA" if "A" in im.mode or "transparency" in im.info else "RGB")
@@ -108,7 +108,9 @@ def _read_image_bounded(file: Path, path: str, budget: int | None = None) -> np.
     except UnsafeInputError as exc:
         raise ConfigError("path", path, f"an image within the read budget ({str(exc).split(': ', 1)[-1]})") from None
     except Exception as exc:  # noqa: BLE001 - unreadable, truncated or not an image
-        raise ConfigError("path", path, f"a readable image file ({type(exc).__name__}: {sanitize_text(exc, 100)})") from None
+        raise ConfigError(
+            "path", path, f"a readable image file ({type(exc).__name__}: {sanitize_text(exc, 100)})"
+        ) from None
     if img.ndim not in (2, 3) or img.size == 0:
         raise ConfigError("path", path, f"a 2-D image (got an array of shape {img.shape})")
     return img
@@ -145,11 +147,7 @@ class ImageTarget:
 
         texture = load_gray_image(self.path)
         d = self.distance_mm * 1e-3
-        half = (
-            0.5 * self.size_mm * 1e-3
-            if self.size_mm is not None
-            else d * np.tan(np.deg2rad(camera.fov_deg) / 2.0)
-        )
+        half = 0.5 * self.size_mm * 1e-3 if self.size_mm is not None else d * np.tan(np.deg2rad(camera.fov_deg) / 2.0)
         rays = camera.rays(self.supersample)
         t = d / rays[..., 2]
         x, y = rays[..., 0] * t, rays[..., 1] * t

@@ -64,7 +64,9 @@ def _check_rotation(rotation_deg: object) -> tuple[float, float, float]:
 
 def _check_size(key: str, value: float, distance_mm: float) -> None:
     if not np.isfinite(value) or not 0 < value < 2 * distance_mm:
-        raise ConfigError(key, value, f"a size in mm in (0, {2 * distance_mm:g}) (the object must stay in front of the camera)")
+        raise ConfigError(
+            key, value, f"a size in mm in (0, {2 * distance_mm:g}) (the object must stay in front of the camera)"
+        )
 
 
 def ray_boxes(
@@ -125,7 +127,9 @@ class Torus:
         check_common(self.distance_mm, self.reflectance, self.supersample)
         _check_size("outer_diameter_mm", self.outer_diameter_mm, self.distance_mm)
         if not np.isfinite(self.inner_diameter_mm) or not 0 <= self.inner_diameter_mm < self.outer_diameter_mm:
-            raise ConfigError("inner_diameter_mm", self.inner_diameter_mm, f"a diameter in mm in [0, {self.outer_diameter_mm:g})")
+            raise ConfigError(
+                "inner_diameter_mm", self.inner_diameter_mm, f"a diameter in mm in [0, {self.outer_diameter_mm:g})"
+            )
         object.__setattr__(self, "rotation_deg", _check_rotation(self.rotation_deg))
 
     def render(self, camera: Camera) -> Scene:
@@ -233,8 +237,12 @@ class UShape:
         check_common(self.distance_mm, self.reflectance, self.supersample)
         for key in ("width_mm", "height_mm", "depth_mm"):
             _check_size(key, getattr(self, key), self.distance_mm)
-        if not np.isfinite(self.thickness_mm) or not 0 < self.thickness_mm < 0.5 * min(self.width_mm, 2 * self.height_mm):
-            raise ConfigError("thickness_mm", self.thickness_mm, "a thickness in mm below half the width and the height")
+        if not np.isfinite(self.thickness_mm) or not 0 < self.thickness_mm < 0.5 * min(
+            self.width_mm, 2 * self.height_mm
+        ):
+            raise ConfigError(
+                "thickness_mm", self.thickness_mm, "a thickness in mm below half the width and the height"
+            )
         object.__setattr__(self, "rotation_deg", _check_rotation(self.rotation_deg))
 
     def boxes(self) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -385,8 +393,12 @@ def raycast_mesh(
     fc = np.asarray(faces, dtype=np.int64)
     if (v[:, 2] <= 1e-6).any():
         nearest_mm = float(v[:, 2].min()) * 1e3
-        raise ConfigError("distance_mm", "?", f"a distance that keeps the whole mesh in front of the camera "
-                          f"(its nearest vertex is at z = {nearest_mm:.3g} mm)")
+        raise ConfigError(
+            "distance_mm",
+            "?",
+            f"a distance that keeps the whole mesh in front of the camera "
+            f"(its nearest vertex is at z = {nearest_mm:.3g} mm)",
+        )
     f = camera.focal_px
     col = f * v[:, 0] / v[:, 2] + n / 2.0
     row = n / 2.0 - f * v[:, 1] / v[:, 2]
@@ -499,8 +511,12 @@ class MeshScene:
         nearest_mm = float(vm[:, 2].min()) * 1e3
         if nearest_mm <= 1e-3:  # behind or at the pinhole: the projection is undefined
             reach = self.distance_mm - nearest_mm
-            raise ConfigError("distance_mm", self.distance_mm, f"a distance above {reach:.4g} mm, which keeps the whole mesh "
-                              f"in front of the camera (or a smaller size_mm/scale)")
+            raise ConfigError(
+                "distance_mm",
+                self.distance_mm,
+                f"a distance above {reach:.4g} mm, which keeps the whole mesh "
+                f"in front of the camera (or a smaller size_mm/scale)",
+            )
         rays, t, tri, u, v = raycast_mesh(camera, self.supersample, vm, faces, orientation=_orientation(self.path))
         hit = tri >= 0
         e1 = vm[faces[:, 1]] - vm[faces[:, 0]]

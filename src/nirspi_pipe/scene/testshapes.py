@@ -25,8 +25,8 @@ Lambertian, light at the camera (:func:`~nirspi_pipe.scene.render.compose_scene`
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -50,7 +50,9 @@ def grid_surface(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, n
     return points.reshape(-1, 3), normals.reshape(-1, 3), faces
 
 
-def _sphere(radius: float, centre: tuple[float, float, float], n: int = 48) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sphere(
+    radius: float, centre: tuple[float, float, float], n: int = 48
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     th, ph = np.meshgrid(np.linspace(0.0, np.pi, n + 1), np.linspace(0.0, 2 * np.pi, 2 * n + 1), indexing="ij")
     nrm = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
     return grid_surface(radius * nrm + np.asarray(centre), nrm)
@@ -111,8 +113,9 @@ def _vase(size: float, n: int = 160) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def _bowl(radius: float, rim_deg: float = 60.0, n: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Inside of a spherical cap: bottom at ``z = +radius`` (far), rim towards the camera (−z)."""
-    th, ph = np.meshgrid(np.linspace(0.0, np.deg2rad(rim_deg), n + 1), np.linspace(0.0, 2 * np.pi, 2 * n + 1),
-                         indexing="ij")
+    th, ph = np.meshgrid(
+        np.linspace(0.0, np.deg2rad(rim_deg), n + 1), np.linspace(0.0, 2 * np.pi, 2 * n + 1), indexing="ij"
+    )
     d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
     pts = radius * d - np.array([0.0, 0.0, radius * np.cos(np.deg2rad(rim_deg))])  # rim at z = 0 plane
     return grid_surface(pts, -d)  # inward normals: the concave side faces the camera
@@ -135,11 +138,13 @@ def shape_mesh(kind: str, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
     if kind == "bowl":
         return _bowl(0.6 * size)
     if kind == "multi":
-        return _merge([
-            _sphere(0.24 * size, (-0.40 * size, -0.20 * size, 0.0)),
-            _sphere(0.18 * size, (0.36 * size, 0.25 * size, 0.3 * size)),
-            _sphere(0.14 * size, (0.25 * size, -0.40 * size, -0.2 * size)),
-        ])
+        return _merge(
+            [
+                _sphere(0.24 * size, (-0.40 * size, -0.20 * size, 0.0)),
+                _sphere(0.18 * size, (0.36 * size, 0.25 * size, 0.3 * size)),
+                _sphere(0.14 * size, (0.25 * size, -0.40 * size, -0.2 * size)),
+            ]
+        )
     if kind == "partial":
         return _sphere(0.5 * size, (0.56 * size, 0.0, 0.0))
     if kind == "off_centre":
@@ -150,8 +155,14 @@ def shape_mesh(kind: str, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 def render_smooth_mesh(
-    name: str, camera: Camera, supersample: int, verts_m: np.ndarray, vnormals: np.ndarray, faces: np.ndarray,
-    reflectance: float, distance_m: float,
+    name: str,
+    camera: Camera,
+    supersample: int,
+    verts_m: np.ndarray,
+    vnormals: np.ndarray,
+    faces: np.ndarray,
+    reflectance: float,
+    distance_m: float,
 ) -> Scene:
     """Ray-cast a mesh with given vertex normals (interpolated, two-sided) into a :class:`Scene`."""
     rays, t, tri, u, v = raycast_mesh(camera, supersample, verts_m, faces)
@@ -211,5 +222,6 @@ class GeneratedShape:
     def render(self, camera: Camera) -> Scene:
         """Ray-cast the shape (smooth shading, two-sided)."""
         v, nr, f = self.placed()
-        return render_smooth_mesh(self.kind, camera, self.supersample, v, nr, f, self.reflectance,
-                                  self.distance_mm * 1e-3)
+        return render_smooth_mesh(
+            self.kind, camera, self.supersample, v, nr, f, self.reflectance, self.distance_mm * 1e-3
+        )

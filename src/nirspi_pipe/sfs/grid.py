@@ -15,6 +15,7 @@ __all__ = ["BIG", "SweepProblem", "SweepResult", "sweep_orders"]
 #: Initial value of unknown cells: finite, so nothing ever becomes inf or NaN.
 BIG = 1.0e12
 
+
 @dataclass(frozen=True)
 class SweepProblem:
     """One static HJ problem on an ``(r, c)`` pixel grid.

@@ -190,8 +190,7 @@ def _run(
                 errs = [ln for ln in lines if "error" in ln.lower() and "clBuildProgram" not in ln]
                 why = errs[0] if errs else (lines[0] if lines else type(exc).__name__)
                 raise NirspiError(
-                    f"sfs.backend=opencl: the OpenCL kernel could not run here ({why}); "
-                    "use sfs.backend=numpy"
+                    f"sfs.backend=opencl: the OpenCL kernel could not run here ({why}); use sfs.backend=numpy"
                 ) from None
             raise
     return solve_numpy(problem, scheme, tol, max_sweeps, slope_average=slope_average)
@@ -233,11 +232,12 @@ def singular_depths(
     region = np.isin(obj_lab, multi)
     seeds = contour & region
     if not seeds.any():
-        warnings.warn("sfs: several singular regions but no occluding contour in view: all kept at z = 0 "
-                      "(ambiguous)", stacklevel=3)
+        warnings.warn(
+            "sfs: several singular regions but no occluding contour in view: all kept at z = 0 (ambiguous)",
+            stacklevel=3,
+        )
         return depth, info
-    problem = SweepProblem(rhs=np.where(seeds, 1.0, np.maximum(f, 1e-12)), fixed=seeds,
-                           init=np.where(seeds, 0.0, BIG))
+    problem = SweepProblem(rhs=np.where(seeds, 1.0, np.maximum(f, 1e-12)), fixed=seeds, init=np.where(seeds, 0.0, BIG))
     h = _run(problem, scheme, backend, tol, max_sweeps, slope_average).z
     h_k = np.asarray(ndimage.median(np.where(h < 0.5 * BIG, h, np.nan), src_lab, np.arange(1, n_src + 1)))
     lifted, spread = 0, 0.0
@@ -364,8 +364,9 @@ class LaxFriedrichsSFS:
         backend = _resolve(self.backend, 0, scheme, self.slope_average)
         z_src, sing = np.zeros(f.shape), dict[str, Any]()
         if self.singular == "maximal":
-            z_src, sing = singular_depths(f, prep, scheme, backend, float(self.tol), int(self.max_sweeps),
-                                          self.slope_average)
+            z_src, sing = singular_depths(
+                f, prep, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average
+            )
         problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, z_src, BIG))
         res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average)
         extra = {"focal_px": float(camera.focal_px), "backend_requested": self.backend, **self._model_info(), **sing}

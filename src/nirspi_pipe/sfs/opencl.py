@@ -416,10 +416,19 @@ def solve_opencl(
     max_rounds = max(1, -(-int(max_sweeps) // 4))
     lsz = int(max(1, local_size))
     kernel(
-        queue, (lsz,), (lsz,), *bufs,
-        np.int32(rows), np.int32(cols), np.float64(sx), np.float64(sy),
-        np.float64(2.0 / float(problem.focal_px)), np.int32(max_rounds), np.float64(tol),
-        out_buf, cl.LocalMemory(8 * lsz),
+        queue,
+        (lsz,),
+        (lsz,),
+        *bufs,
+        np.int32(rows),
+        np.int32(cols),
+        np.float64(sx),
+        np.float64(sy),
+        np.float64(2.0 / float(problem.focal_px)),
+        np.int32(max_rounds),
+        np.float64(tol),
+        out_buf,
+        cl.LocalMemory(8 * lsz),
     )
     cl.enqueue_copy(queue, z, bufs[0])
     cl.enqueue_copy(queue, out, out_buf)
@@ -465,9 +474,16 @@ def _solve_second_order(
     max_rounds = max(1, -(-int(max_sweeps) // 4))
     lsz = int(max(1, local_size))
     kernel(
-        queue, (lsz,), (lsz,), *bufs,
-        np.int32(rows), np.int32(cols), np.int32(max_rounds), np.float64(tol),
-        out_buf, cl.LocalMemory(8 * lsz),
+        queue,
+        (lsz,),
+        (lsz,),
+        *bufs,
+        np.int32(rows),
+        np.int32(cols),
+        np.int32(max_rounds),
+        np.float64(tol),
+        out_buf,
+        cl.LocalMemory(8 * lsz),
     )
     cl.enqueue_copy(queue, z, bufs[0])
     cl.enqueue_copy(queue, out, out_buf)

@@ -72,7 +72,7 @@ KNOWN = 0.5 * BIG
 
 #: Constants shared with the OpenCL kernel (formatted into its source with ``%r``).
 HALF_PI = float(0.5 * np.pi)
-GAUSS_Q = float(0.5 / np.sqrt(3.0)) # two-point Gauss nodes at 1/2 ± GAUSS_Q of the segment
+GAUSS_Q = float(0.5 / np.sqrt(3.0))  # two-point Gauss nodes at 1/2 ± GAUSS_Q of the segment
 #: Larger slopes are clipped (a wall: a step of 1e50 is never taken, cells behind it stay BIG),
 #: so that every product in the update (up to ~F⁶) stays finite.
 F_MAX = 1e50

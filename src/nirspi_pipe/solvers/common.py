@@ -44,21 +44,16 @@ def checked_coefficients(acquisition: Acquisition, solver: str) -> np.ndarray:
     """The calibrated ±1 measurements (relative radiance × pixels), checked; see module doc."""
     c = np.asarray(acquisition.coefficients(), dtype=np.float64)
     if c.shape != (len(acquisition.indices),):
-        raise NirspiError(
-            f"solver={solver}: {c.size} measurements for {len(acquisition.indices)} patterns"
-        )
+        raise NirspiError(f"solver={solver}: {c.size} measurements for {len(acquisition.indices)} patterns")
     if c.size == 0:
         raise NirspiError(f"solver={solver}: the acquisition has no measurements")
     bad = ~np.isfinite(c)
     if bad.any():
-        warnings.warn(
-            f"{solver}: {int(bad.sum())} non-finite measurement(s) replaced by 0", stacklevel=3
-        )
+        warnings.warn(f"{solver}: {int(bad.sum())} non-finite measurement(s) replaced by 0", stacklevel=3)
         c = np.where(bad, 0.0, c)
     if not np.any(c):
         warnings.warn(
-            f"{solver}: all {c.size} measurements are zero (no signal); the image is blank and "
-            "meaningless",
+            f"{solver}: all {c.size} measurements are zero (no signal); the image is blank and meaningless",
             stacklevel=3,
         )
         return c
@@ -72,8 +67,8 @@ def checked_coefficients(acquisition: Acquisition, solver: str) -> np.ndarray:
             )
         dc = c[idx == 0]
         bound = abs(float(dc[0])) if dc.size else float(acquisition.n_pixels)
-        bound_text = "the DC reading (|c_k| <= c_0 for a non-negative scene)" if dc.size else (
-            "n² (relative radiance <= 1)"
+        bound_text = (
+            "the DC reading (|c_k| <= c_0 for a non-negative scene)" if dc.size else ("n² (relative radiance <= 1)")
         )
         check = idx != 0
     else:
@@ -134,8 +129,7 @@ def measurement_operator(acquisition: Acquisition) -> LinearOperator:
     p = np.asarray(acquisition.patterns, dtype=np.float64)
     if p.shape != (len(acquisition.indices), acquisition.n_pixels):
         raise NirspiError(
-            f"explicit patterns have shape {p.shape}, expected "
-            f"({len(acquisition.indices)}, {acquisition.n_pixels})"
+            f"explicit patterns have shape {p.shape}, expected ({len(acquisition.indices)}, {acquisition.n_pixels})"
         )
     return aslinearoperator(p)
 

@@ -67,6 +67,7 @@ class CorrelationSolver:
             design = np.stack([p @ g, p.sum(axis=1)], axis=1)  # P g and P 1
             (alpha, offset), *_ = np.linalg.lstsq(design, c, rcond=None)
             image = (alpha * g + offset).reshape(n, n)
-            return Image2D(image, info={"iterations": 1, "stop_reason": "direct", "alpha": float(alpha),
-                                        "offset": float(offset)})
+            return Image2D(
+                image, info={"iterations": 1, "stop_reason": "direct", "alpha": float(alpha), "offset": float(offset)}
+            )
         return Image2D(image, info={"iterations": 1, "stop_reason": "direct"})

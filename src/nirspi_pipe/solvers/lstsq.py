@@ -71,9 +71,7 @@ class LstsqSolver:
         y = checked_coefficients(acquisition, "lstsq")
         op = measurement_operator(acquisition)
         limit = self.iter_lim if self.iter_lim is not None else SAFETY_FACTOR * max(op.shape)
-        x, istop, itn, r1norm = lsqr(
-            op, y, damp=self.damp, atol=self.atol, btol=self.btol, iter_lim=limit
-        )[:4]
+        x, istop, itn, r1norm = lsqr(op, y, damp=self.damp, atol=self.atol, btol=self.btol, iter_lim=limit)[:4]
         if int(istop) == 7:
             warnings.warn(
                 f"lstsq: LSQR stopped at its iteration limit {limit} before its tolerances "

@@ -255,8 +255,11 @@ def omp_hadamard(
     ny = float(np.linalg.norm(y))
     info: dict = {"backend": backend, "basis": basis}
     if ny == 0.0 or k_max == 0:
-        info.update(iterations=0, stop_reason="zero_measurements" if ny == 0.0 else "max_atoms",
-                    relative_residual=0.0 if ny == 0.0 else 1.0)
+        info.update(
+            iterations=0,
+            stop_reason="zero_measurements" if ny == 0.0 else "max_atoms",
+            relative_residual=0.0 if ny == 0.0 else 1.0,
+        )
         return np.zeros((n, n)), info
 
     m2 = m_mat * m_mat
@@ -312,8 +315,11 @@ def omp_explicit(
     ny = float(np.linalg.norm(y))
     info: dict = {"backend": "numpy", "basis": basis}
     if ny == 0.0 or k_max == 0:
-        info.update(iterations=0, stop_reason="zero_measurements" if ny == 0.0 else "max_atoms",
-                    relative_residual=0.0 if ny == 0.0 else 1.0)
+        info.update(
+            iterations=0,
+            stop_reason="zero_measurements" if ny == 0.0 else "max_atoms",
+            relative_residual=0.0 if ny == 0.0 else 1.0,
+        )
         return np.zeros((n, n)), info
     colnorm = np.linalg.norm(engine.a, axis=0)
     coeffs, k, stop, res = omp_core(
@@ -378,7 +384,12 @@ class OMPSolver:
         y = checked_coefficients(acquisition, "omp")
         if acquisition.patterns is not None:
             image, info = omp_explicit(
-                y, acquisition.n, acquisition.patterns, self.basis, self.atoms(len(y)), float(self.tol),
+                y,
+                acquisition.n,
+                acquisition.patterns,
+                self.basis,
+                self.atoms(len(y)),
+                float(self.tol),
                 bool(self.normalize),
             )
             return Image2D(image, info=info)

@@ -116,8 +116,9 @@ class OpenCLOmpBackend:
         self.k_mt_r = kernels["mt_r"]
         self.k_t_m = kernels["t_m"]
         self.d_m = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(m_mat, np.float64))
-        self.d_mt = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR,
-                              hostbuf=np.ascontiguousarray(m_mat.T, np.float64))
+        self.d_mt = cl.Buffer(
+            self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(m_mat.T, np.float64)
+        )
         self.d_rows = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=rows.astype(np.int32))
         self.d_cols = cl.Buffer(self.ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=cols.astype(np.int32))
         self.d_resid = cl.Buffer(self.ctx, mf.READ_ONLY, size=8 * self.m_count)

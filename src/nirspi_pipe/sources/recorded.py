@@ -98,7 +98,9 @@ def recording_to_acquisition(
             times = _pair_times(t, np.arange(m), np.arange(m, 2 * m))
     else:
         match = match_hadamard(rec.patterns)
-        info.update(patterns_given="explicit", pattern_kind=match.kind, hadamard=match.hadamard, fast_path=match.hadamard)
+        info.update(
+            patterns_given="explicit", pattern_kind=match.kind, hadamard=match.hadamard, fast_path=match.hadamard
+        )
         if match.kind == "split":
             pos, neg = match.pos_rows, match.neg_rows
             y_pos, y_neg = y[pos] - offset, y[neg] - offset
@@ -164,7 +166,10 @@ class Recorded:
     subtract_offset: bool = True
     use_scan_ratio: bool = True
     scan_indices: ScanIndices | None = field(
-        default=None, repr=False, compare=False, metadata={"config": False}  # set by the runner, not a config key
+        default=None,
+        repr=False,
+        compare=False,
+        metadata={"config": False},  # set by the runner, not a config key
     )
 
     needs_scene: ClassVar[bool] = False
@@ -177,9 +182,7 @@ class Recorded:
         if not Path(self.path).is_file():
             raise ConfigError("path", self.path, "an existing .npz file")
 
-    def acquire(
-        self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator
-    ) -> Acquisition:
+    def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Load, validate and convert the recording; ``scene`` and ``rng`` are not used, and of
         ``indices`` only their number (the scan ratio) matters."""
         rec = load_recording(self.path, indices_from_order=self.scan_indices)  # type: ignore[arg-type]

@@ -106,8 +106,15 @@ class Simulator:
         """
         n = int(scene.radiance.shape[0])
         empty = np.zeros(0)
-        exposure = Exposure(scene=scene, indices=np.zeros(0, dtype=np.int64), n=n, t_pos=empty, t_neg=empty,
-                            t_dark=empty, budget=self.budget)
+        exposure = Exposure(
+            scene=scene,
+            indices=np.zeros(0, dtype=np.int64),
+            n=n,
+            t_pos=empty,
+            t_neg=empty,
+            t_dark=empty,
+            budget=self.budget,
+        )
         signal = Signal(image_e=scene.radiance * exposure.ref_e)
         veil = None
         for effect in self.effects:

@@ -54,7 +54,9 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
     if count != len(indices):
         raise StreamError("count", f"device announces {count} frames, {len(indices)} were requested", where)
     if _header_int(header, "frame_bytes", where) != FRAME_DTYPE.itemsize:
-        raise StreamError("frame_bytes", f"{header['frame_bytes']} != {FRAME_DTYPE.itemsize} (protocol mismatch)", where)
+        raise StreamError(
+            "frame_bytes", f"{header['frame_bytes']} != {FRAME_DTYPE.itemsize} (protocol mismatch)", where
+        )
     gain = header.get("gain", 1.0)
     if isinstance(gain, bool) or not isinstance(gain, (int, float)) or not np.isfinite(gain) or gain <= 0:
         raise StreamError("gain", f"expected a number > 0, got {short_repr(gain)}", where)
@@ -67,7 +69,9 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
         raise StreamError("seq", f"frame {bad[0]} has seq {seq[bad[0]]} (frames lost or reordered)", where)
     bad = np.flatnonzero(frames["index"] != indices)
     if bad.size:
-        raise StreamError("index", f"frame {bad[0]} measured pattern {frames['index'][bad[0]]}, requested {indices[bad[0]]}", where)
+        raise StreamError(
+            "index", f"frame {bad[0]} measured pattern {frames['index'][bad[0]]}, requested {indices[bad[0]]}", where
+        )
     y_pos = frames["y_pos"].astype(np.float64)
     y_neg = frames["y_neg"].astype(np.float64)
     differential = bool(count) and bool(np.all(np.isnan(y_neg)))
@@ -78,14 +82,22 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
     back = np.flatnonzero(np.diff(frames["t_s"]) < 0)
     if back.size:
         i = int(back[0]) + 1
-        raise StreamError("t_s", f"timestamps must not decrease (as in recorded files): frame {i} at "
-                          f"{frames['t_s'][i]:g} s after frame {i - 1} at {frames['t_s'][i - 1]:g} s", where)
+        raise StreamError(
+            "t_s",
+            f"timestamps must not decrease (as in recorded files): frame {i} at "
+            f"{frames['t_s'][i]:g} s after frame {i - 1} at {frames['t_s'][i - 1]:g} s",
+            where,
+        )
     limit = max_safe_reading(count, n * n)
     for name, arr in (("y_pos", y_pos),) + (() if differential else (("y_neg", y_neg),)):
         peak = float(np.max(np.abs(arr))) / float(gain) if count else 0.0
         if not peak <= limit:
-            raise StreamError(name, f"|reading| / gain reaches {peak:.3g}; the reconstruction would overflow "
-                              f"float64 (at most {limit:.3g} for {count} readings of {n}x{n})", where)
+            raise StreamError(
+                name,
+                f"|reading| / gain reaches {peak:.3g}; the reconstruction would overflow "
+                f"float64 (at most {limit:.3g} for {count} readings of {n}x{n})",
+                where,
+            )
     end = read_exact(fh, len(END_MARKER) + 4, "end", where)
     if end[:4] != END_MARKER:
         raise StreamError("end", f"expected the end marker {END_MARKER!r}, got {end[:4]!r}", where)
@@ -133,14 +145,17 @@ class Stream:
     def __post_init__(self) -> None:
         if not isinstance(self.host, str) or not self.host:
             raise ConfigError("host", self.host, "a host name or IP address")
-        if self.port is None or isinstance(self.port, bool) or not isinstance(self.port, int) or not 1 <= self.port <= 65535:
+        if (
+            self.port is None
+            or isinstance(self.port, bool)
+            or not isinstance(self.port, int)
+            or not 1 <= self.port <= 65535
+        ):
             raise ConfigError("port", self.port, "a TCP port 1-65535 (source.port=PORT)")
         if not (isinstance(self.timeout_s, (int, float)) and np.isfinite(self.timeout_s) and self.timeout_s > 0):
             raise ConfigError("timeout_s", self.timeout_s, "seconds > 0")
 
-    def acquire(
-        self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator
-    ) -> Acquisition:
+    def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Send the pattern ``indices`` and receive one frame per pattern (``scene``, ``rng`` unused)."""
         where = f"stream {self.host}:{self.port} (timeout_s={self.timeout_s:g})"
         idx = np.ascontiguousarray(indices, dtype="<i8")
@@ -156,8 +171,10 @@ class Stream:
             try:
                 write_json_line(fh, {"protocol": PROTOCOL, "n": int(n), "count": int(idx.size)})  # type: ignore[arg-type]
                 fh.write(idx.tobytes())
-            except socket.timeout:
-                raise StreamError("request", f"not sent within {self.timeout_s:g} s (source.timeout_s)", where) from None
+            except TimeoutError:
+                raise StreamError(
+                    "request", f"not sent within {self.timeout_s:g} s (source.timeout_s)", where
+                ) from None
             except OSError as exc:
                 raise StreamError("request", f"sending failed ({exc})", where) from None
             return receive_acquisition(fh, idx.astype(np.int64), n, where)

@@ -89,16 +89,22 @@ def paired_vs_basic(df: pd.DataFrame, metric: str, scan: str) -> tuple[float, fl
     return float(d.mean()), se, int(d.size)
 
 
-def compare_metric(df: pd.DataFrame, group: pd.DataFrame, scan: str, key: str, col: str,
-                   paper: pd.DataFrame) -> dict[str, float]:
+def compare_metric(
+    df: pd.DataFrame, group: pd.DataFrame, scan: str, key: str, col: str, paper: pd.DataFrame
+) -> dict[str, float]:
     """One scan's cells for metric ``col``: its :func:`stats` over ``group`` (prefixed ``key``),
     the paper's value ``paper.loc[scan, key]``, the difference, and the paired difference to
     Basic over ``df`` with its standard error."""
     st = stats(group[col], key)
     d, se, _ = paired_vs_basic(df, col, scan)
     p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
-    return {**st, f"paper_{key}": p, f"diff_{key}": st[f"{key}_mean"] - p,
-            f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se}
+    return {
+        **st,
+        f"paper_{key}": p,
+        f"diff_{key}": st[f"{key}_mean"] - p,
+        f"{key}_d_vs_basic": d,
+        f"{key}_se_vs_basic": se,
+    }
 
 
 def scan_by_level_rows(table: pd.DataFrame, levels: list[float], cell: Callable[[pd.Series], str]) -> list[str]:
@@ -141,10 +147,15 @@ def failures_note(frame: pd.DataFrame, used: pd.DataFrame) -> str:
     bad = total - len(used)
     note = f"{len(used)} successful jobs"
     if bad:
-        errs = frame.loc[frame["status"] != "ok", "error"].dropna().astype(str) if "error" in frame else pd.Series([], dtype=str)
+        errs = (
+            frame.loc[frame["status"] != "ok", "error"].dropna().astype(str)
+            if "error" in frame
+            else pd.Series([], dtype=str)
+        )
         top = errs.value_counts().head(2)
         note += f"; {bad} failed or missing, left out" + (
-            " (" + "; ".join(f"{n}× {e[:90]}" for e, n in top.items()) + ")" if len(top) else "")
+            " (" + "; ".join(f"{n}× {e[:90]}" for e, n in top.items()) + ")" if len(top) else ""
+        )
     return note + "."
 
 
@@ -156,12 +167,20 @@ def conditions_note(df: pd.DataFrame) -> str:
     if "seed" in df.columns:
         parts.append(f"{df['seed'].nunique()} seeds")
     if "illumination.klux" in df.columns:
-        parts.append("background " + ", ".join(f"{k:g}" for k in sorted(df["illumination.klux"].dropna().unique())) + " kLux")
+        parts.append(
+            "background " + ", ".join(f"{k:g}" for k in sorted(df["illumination.klux"].dropna().unique())) + " kLux"
+        )
     return "; ".join(parts)
 
 
-def bar_plot(path: Path, title: str, groups: list[str], series: dict[str, tuple[list[float], list[float]]],
-             paper: dict[str, list[float]] | None, ylabel: str) -> None:
+def bar_plot(
+    path: Path,
+    title: str,
+    groups: list[str],
+    series: dict[str, tuple[list[float], list[float]]],
+    paper: dict[str, list[float]] | None,
+    ylabel: str,
+) -> None:
     """Grouped bars (one group per scan method): ours (mean, std error bars) and the paper's values
     (hatched), written as a PNG."""
     import matplotlib

@@ -74,10 +74,13 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, paper:
         "",
     ]
     lines += scan_by_level_rows(
-        table, levels,
-        lambda r: f"{r['ssim_mean']:.3f} ± {r['ssim_std']:.3f}{signif(r['ssim_d_vs_basic'], r['ssim_se_vs_basic'])}"
-                  f" / {r['psnr_db_mean']:.2f} ± "
-                  f"{r['psnr_db_std']:.2f}{signif(r['psnr_db_d_vs_basic'], r['psnr_db_se_vs_basic'])}",
+        table,
+        levels,
+        lambda r: (
+            f"{r['ssim_mean']:.3f} ± {r['ssim_std']:.3f}{signif(r['ssim_d_vs_basic'], r['ssim_se_vs_basic'])}"
+            f" / {r['psnr_db_mean']:.2f} ± "
+            f"{r['psnr_db_std']:.2f}{signif(r['psnr_db_d_vs_basic'], r['psnr_db_se_vs_basic'])}"
+        ),
     )
     hi = table[table["klux"] == levels[-1]].sort_values("psnr_db_mean", ascending=False)
     lines += [

@@ -64,8 +64,11 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         "over objects × seeds († = more than two standard errors from 0). 8²: the camera's reconstruction; "
         "32²: after FSRCNN ×4, against the scene rendered at 32².",
         "",
-        "| mechanism | sampling | " + " | ".join(f"{SCAN_LABELS[s]} 8²" for s in SCANS) + " | "
-        + " | ".join(f"{SCAN_LABELS[s]} 32²" for s in SCANS) + " | best (8²) |",
+        "| mechanism | sampling | "
+        + " | ".join(f"{SCAN_LABELS[s]} 8²" for s in SCANS)
+        + " | "
+        + " | ".join(f"{SCAN_LABELS[s]} 32²" for s in SCANS)
+        + " | best (8²) |",
         "|---|---:|" + "---:|" * (2 * len(SCANS)) + "---|",
     ]
     for (mech, ratio), g in table.groupby(["mechanism", "ratio"], sort=False):
@@ -73,9 +76,17 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         cells8 = [_cell(g.loc[s], s, "psnr8_db") if s in g.index else "" for s in SCANS]
         cells32 = [_cell(g.loc[s], s, "psnr32_db") if s in g.index else "" for s in SCANS]
         best = g["psnr8_db_mean"].idxmax()
-        sig = any(abs(g.loc[s, "psnr8_db_d_vs_basic"]) > 2 * g.loc[s, "psnr8_db_se_vs_basic"]
-                  for s in g.index if s != "basic" and np.isfinite(g.loc[s, "psnr8_db_se_vs_basic"]))
-        lines.append(f"| {mech} | {ratio:.0%} | " + " | ".join(cells8) + " | " + " | ".join(cells32)
-                     + f" | {SCAN_LABELS.get(best, best)}{'' if sig else ' (n.s.)'} |")
+        sig = any(
+            abs(g.loc[s, "psnr8_db_d_vs_basic"]) > 2 * g.loc[s, "psnr8_db_se_vs_basic"]
+            for s in g.index
+            if s != "basic" and np.isfinite(g.loc[s, "psnr8_db_se_vs_basic"])
+        )
+        lines.append(
+            f"| {mech} | {ratio:.0%} | "
+            + " | ".join(cells8)
+            + " | "
+            + " | ".join(cells32)
+            + f" | {SCAN_LABELS.get(best, best)}{'' if sig else ' (n.s.)'} |"
+        )
     lines += ["", failures_note(frame, df), ""]
     return "\n".join(lines)

@@ -40,7 +40,9 @@ ROWS = {
 REFLECTANCES = (0.2, 0.5, 0.8)
 
 
-def lsm_max_distance(z_m: np.ndarray, signal_e: np.ndarray, noise_e: np.ndarray, led_count: int) -> tuple[float, dict[str, float]]:
+def lsm_max_distance(
+    z_m: np.ndarray, signal_e: np.ndarray, noise_e: np.ndarray, led_count: int
+) -> tuple[float, dict[str, float]]:
     """LSM estimate of the maximum distance (m) from measured signals and noises at ``z_m``.
 
     Returns the distance and the fit parameters (``a``, ``b``, ``beta_fit_per_m``, ``c0``, ``c1``).
@@ -86,7 +88,13 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build Table 2 from a sweep's results into ``out_dir`` (see the module docstring)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    need = ["scene.reflectance", "scene.distance_mm", "derived.measured_signal_e", "derived.measured_noise_e", "derived.range_max_m"]
+    need = [
+        "scene.reflectance",
+        "scene.distance_mm",
+        "derived.measured_signal_e",
+        "derived.measured_noise_e",
+        "derived.range_max_m",
+    ]
     missing = [c for c in need if c not in frame]
     if missing:
         raise ValueError(f"table2 needs columns {missing}: run `nirspi-run -m +experiment=table2`")
@@ -115,7 +123,12 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             except ValueError:
                 continue
             ours[f"measured_{tag}"][refl] = z_max
-            fits[(fogged, refl)] = {"fit": fit, "data": good, "led": led, "beta": float(g["derived.beta_per_m"].median())}
+            fits[(fogged, refl)] = {
+                "fit": fit,
+                "data": good,
+                "led": led,
+                "beta": float(g["derived.beta_per_m"].median()),
+            }
 
     cols: dict[str, list[float]] = {}
     for refl in REFLECTANCES:
@@ -149,7 +162,11 @@ def _markdown(table: pd.DataFrame, fits: dict) -> str:
     for row, label in ROWS.items():
         cells = []
         for refl in REFLECTANCES:
-            v, p, d = table.loc[row, f"R={refl} (cm)"], table.loc[row, f"paper R={refl} (cm)"], table.loc[row, f"diff R={refl} (%)"]
+            v, p, d = (
+                table.loc[row, f"R={refl} (cm)"],
+                table.loc[row, f"paper R={refl} (cm)"],
+                table.loc[row, f"diff R={refl} (%)"],
+            )
             mark = "*" if (row, refl) in cal else ""
             cells.append("n/a" if not np.isfinite(v) else f"{v:.1f}{mark} ({p:g}, {d:+.1f} %)")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
@@ -158,8 +175,15 @@ def _markdown(table: pd.DataFrame, fits: dict) -> str:
         lines += ["", f"Largest theory difference: {np.nanmax(theory):.1f} % (target: within 5 %)."]
     fogfits = [(refl, v) for (fogged, refl), v in sorted(fits.items()) if fogged]
     if fogfits:
-        lines += ["", "LSM fit of the fogged signal, `ln(S z²) = a − 2β z`: " + ", ".join(
-            f"R = {refl}: β_fit = {v['fit']['beta_fit_per_m']:.3f} /m (true {v['beta']:.3f} /m)" for refl, v in fogfits) + "."]
+        lines += [
+            "",
+            "LSM fit of the fogged signal, `ln(S z²) = a − 2β z`: "
+            + ", ".join(
+                f"R = {refl}: β_fit = {v['fit']['beta_fit_per_m']:.3f} /m (true {v['beta']:.3f} /m)"
+                for refl, v in fogfits
+            )
+            + ".",
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -205,8 +229,10 @@ def _plot_contrast(beta: float | None, path: Path) -> None:
     if beta is None:
         beta = MieFog().extinction_per_m
     q = MieFog().mie.q_ext
-    betas = {f"chamber, Mie Q_ext = {q:.2f}: β = {beta:.2f} /m": beta,
-             f"Table 1's Q_ext = 0.8: β = {beta * 0.8 / q:.2f} /m": beta * 0.8 / q}
+    betas = {
+        f"chamber, Mie Q_ext = {q:.2f}: β = {beta:.2f} /m": beta,
+        f"Table 1's Q_ext = 0.8: β = {beta * 0.8 / q:.2f} /m": beta * 0.8 / q,
+    }
     fig, ax = plt.subplots(figsize=(6, 4))
     zmax = 1.2 * visibility_m(min(betas.values()))
     z = np.linspace(0.0, zmax, 400)

@@ -61,13 +61,24 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             d, se, _ = paired_vs_basic(dk, METRIC, scan)
             p = float(paper.get((scan, float(klux)), np.nan))
             st = stats(g[METRIC], "improvement_pct")
-            rows.append({
-                "scan": scan, "klux": float(klux), "n": int(g[METRIC].notna().sum()), **st,
-                "paper_improvement_pct": p, "diff_pct_points": st["improvement_pct_mean"] - p,
-                "d_vs_basic": d, "se_vs_basic": se,
-                "depth_rmse_sfs_mm_mean": float(g["metrics.depth_rmse_sfs_mm"].mean()) if "metrics.depth_rmse_sfs_mm" in g else np.nan,
-                "depth_rmse_fused_mm_mean": float(g["metrics.depth_rmse_fused_mm"].mean()) if "metrics.depth_rmse_fused_mm" in g else np.nan,
-            })
+            rows.append(
+                {
+                    "scan": scan,
+                    "klux": float(klux),
+                    "n": int(g[METRIC].notna().sum()),
+                    **st,
+                    "paper_improvement_pct": p,
+                    "diff_pct_points": st["improvement_pct_mean"] - p,
+                    "d_vs_basic": d,
+                    "se_vs_basic": se,
+                    "depth_rmse_sfs_mm_mean": float(g["metrics.depth_rmse_sfs_mm"].mean())
+                    if "metrics.depth_rmse_sfs_mm" in g
+                    else np.nan,
+                    "depth_rmse_fused_mm_mean": float(g["metrics.depth_rmse_fused_mm"].mean())
+                    if "metrics.depth_rmse_fused_mm" in g
+                    else np.nan,
+                }
+            )
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "table3.csv", index=False, float_format="%.6g")
     (out_dir / "table3.md").write_text(_markdown(table, frame, df))
@@ -77,8 +88,14 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
         t = table[table["klux"] == k].set_index("scan").reindex(list(SCANS))
         series[f"{k:g} kLux"] = (t["improvement_pct_mean"].tolist(), t["improvement_pct_std"].tolist())
     pap = {f"{k:g} kLux": [float(paper.get((s, float(k)), np.nan)) for s in SCANS] for k in levels}
-    bar_plot(out_dir / "table3.png", "Table 3: improvement rate (Eq. 17), fog", [SCAN_LABELS[s] for s in SCANS],
-             series, pap, "improvement of depth RMSE (%)")
+    bar_plot(
+        out_dir / "table3.png",
+        "Table 3: improvement rate (Eq. 17), fog",
+        [SCAN_LABELS[s] for s in SCANS],
+        series,
+        pap,
+        "improvement of depth RMSE (%)",
+    )
     return table
 
 
@@ -92,15 +109,22 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         "",
     ]
     lines += scan_by_level_rows(
-        table, levels,
-        lambda r: f"{fmt(r['improvement_pct_mean'], r['improvement_pct_std'], 1)} % "
-                  f"({r['paper_improvement_pct']:.2f} %){signif(r['d_vs_basic'], r['se_vs_basic'])}",
+        table,
+        levels,
+        lambda r: (
+            f"{fmt(r['improvement_pct_mean'], r['improvement_pct_std'], 1)} % "
+            f"({r['paper_improvement_pct']:.2f} %){signif(r['d_vs_basic'], r['se_vs_basic'])}"
+        ),
     )
     lines += [
         "",
-        "Paired difference to Basic (percentage points, mean ± standard error): " + "; ".join(
+        "Paired difference to Basic (percentage points, mean ± standard error): "
+        + "; ".join(
             f"{r.scan} {r.klux:g} kLux {r.d_vs_basic:+.1f} ± {r.se_vs_basic:.1f}"
-            for r in table.itertuples() if r.scan != "basic" and np.isfinite(r.d_vs_basic)) + ".",
+            for r in table.itertuples()
+            if r.scan != "basic" and np.isfinite(r.d_vs_basic)
+        )
+        + ".",
         "",
         f"Depth RMSE (Eq. 16), mean over all rows: SFS {table['depth_rmse_sfs_mm_mean'].mean():.1f} mm, "
         f"after Alg. A3 {table['depth_rmse_fused_mm_mean'].mean():.1f} mm. "

@@ -57,10 +57,14 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
     table.to_csv(out_dir / f"{name}.csv", index=False, float_format="%.6g")
     (out_dir / f"{name}.md").write_text(_markdown(table, frame, df, name, fog))
     t = table.set_index("scan").reindex(list(SCANS))
-    bar_plot(out_dir / f"{name}.png", f"Table {name[len('table'):]}: equiangle skewness, {'fog' if fog else 'no fog'}",
-             [SCAN_LABELS[s] for s in SCANS],
-             {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
-             {k: t[f"paper_{k}"].tolist() for k in COLUMNS}, "mean equiangle skewness (0 best, 1 degenerate)")
+    bar_plot(
+        out_dir / f"{name}.png",
+        f"Table {name[len('table') :]}: equiangle skewness, {'fog' if fog else 'no fog'}",
+        [SCAN_LABELS[s] for s in SCANS],
+        {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
+        {k: t[f"paper_{k}"].tolist() for k in COLUMNS},
+        "mean equiangle skewness (0 best, 1 degenerate)",
+    )
     return table
 
 
@@ -72,7 +76,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, name: str, fog: bool) -> str:
     title = "with 3 µm fog" if fog else "without fog"
     lines = [
-        f"# Table {name[len('table'):]}: surface quality (mean equiangle skewness), {title}",
+        f"# Table {name[len('table') :]}: surface quality (mean equiangle skewness), {title}",
         "",
         "Each cell: ours, mean ± std over objects × seeds × kLux (the paper's value). "
         "† marks a paired difference to Basic beyond two standard errors. "
@@ -82,8 +86,11 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, name: 
         "|---|---:|---:|",
     ]
     for r in table.itertuples():
-        cells = [f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'))} ({getattr(r, f'paper_{k}'):.2f})"
-                 f"{signif(getattr(r, f'{k}_d_vs_basic'), getattr(r, f'{k}_se_vs_basic'))}" for k in COLUMNS]
+        cells = [
+            f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'))} ({getattr(r, f'paper_{k}'):.2f})"
+            f"{signif(getattr(r, f'{k}_d_vs_basic'), getattr(r, f'{k}_se_vs_basic'))}"
+            for k in COLUMNS
+        ]
         lines.append(f"| {SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
     lines += [
         "",

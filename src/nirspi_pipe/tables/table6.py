@@ -73,15 +73,24 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     table.to_csv(out_dir / "table6.csv", index=False, float_format="%.6g")
     (out_dir / "table6.md").write_text(_markdown(table, frame, df))
     t = table.set_index("scan").reindex(list(SCANS))
-    bar_plot(out_dir / "table6.png", "Table 6: 3D processing time per job", [SCAN_LABELS[s] for s in SCANS],
-             {"SFS": (t["time_sfs_ms_mean"].tolist(), t["time_sfs_ms_std"].tolist()),
-              "3D mesh": (t["time_3dmesh_ms_mean"].tolist(), t["time_3dmesh_ms_std"].tolist())},
-             {"SFS": t["paper_time_sfs_ms"].tolist(), "3D mesh": t["paper_time_3dmesh_ms"].tolist()}, "ms")
+    bar_plot(
+        out_dir / "table6.png",
+        "Table 6: 3D processing time per job",
+        [SCAN_LABELS[s] for s in SCANS],
+        {
+            "SFS": (t["time_sfs_ms_mean"].tolist(), t["time_sfs_ms_std"].tolist()),
+            "3D mesh": (t["time_3dmesh_ms_mean"].tolist(), t["time_3dmesh_ms_std"].tolist()),
+        },
+        {"SFS": t["paper_time_sfs_ms"].tolist(), "3D mesh": t["paper_time_3dmesh_ms"].tolist()},
+        "ms",
+    )
     return table
 
 
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str:
-    backends = sorted({b for v in table.get("sfs_backend", pd.Series(dtype=str)).dropna() for b in str(v).split(",") if b})
+    backends = sorted(
+        {b for v in table.get("sfs_backend", pd.Series(dtype=str)).dropna() for b in str(v).split(",") if b}
+    )
     lines = [
         "# Table 6: 3D reconstruction processing time (ms)",
         "",
@@ -94,11 +103,15 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         "|---|---:|---:|---:|",
     ]
     for r in table.itertuples():
-        cells = [f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'), 1)} ({getattr(r, f'paper_{k}'):.2f})" for k in KEYS]
+        cells = [
+            f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'), 1)} ({getattr(r, f'paper_{k}'):.2f})" for k in KEYS
+        ]
         lines.append(f"| {SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        "Ours / paper (total): " + ", ".join(f"{SCAN_LABELS[r.scan]} {r.time_total_ms_ratio:.2f}×" for r in table.itertuples()) + ".",
+        "Ours / paper (total): "
+        + ", ".join(f"{SCAN_LABELS[r.scan]} {r.time_total_ms_ratio:.2f}×" for r in table.itertuples())
+        + ".",
         "",
         f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame)] if fogged(df).all() else frame, df)}",
     ]

@@ -56,8 +56,14 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             row.update(compare_metric(df, g, scan, key, col, paper))
         st = stats(g["time_total_ms"], "time_total_ms")
         p = float(paper.loc[scan, "time_total_ms"]) if scan in paper.index else np.nan
-        row.update({"time_total_ms_mean": st["time_total_ms_mean"], "time_total_ms_std": st["time_total_ms_std"],
-                    "paper_time_total_ms": p, "time_total_ms_ratio": st["time_total_ms_mean"] / p if p else np.nan})
+        row.update(
+            {
+                "time_total_ms_mean": st["time_total_ms_mean"],
+                "time_total_ms_std": st["time_total_ms_std"],
+                "paper_time_total_ms": p,
+                "time_total_ms_ratio": st["time_total_ms_mean"] / p if p else np.nan,
+            }
+        )
         rows.append(row)
     table = pd.DataFrame(rows)
     table.to_csv(out_dir / "table7.csv", index=False, float_format="%.6g")
@@ -86,7 +92,8 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
             f"| {SCAN_LABELS[r.scan]} "
             f"| {fmt(r.skewness_mean, r.skewness_std)} ({r.paper_skewness:.2f}){signif(r.skewness_d_vs_basic, r.skewness_se_vs_basic)} "
             f"| {fmt(r.improvement_pct_mean, r.improvement_pct_std, 1)} ({r.paper_improvement_pct:.0f}){signif(r.improvement_pct_d_vs_basic, r.improvement_pct_se_vs_basic)} "
-            f"| {fmt(r.time_total_ms_mean, r.time_total_ms_std, 1)} ({r.paper_time_total_ms:.2f}) |")
+            f"| {fmt(r.time_total_ms_mean, r.time_total_ms_std, 1)} ({r.paper_time_total_ms:.2f}) |"
+        )
     paper = table.rename(columns={"paper_skewness": "ps", "paper_improvement_pct": "pi"})
     lines += [
         "",

@@ -49,9 +49,24 @@ __all__ = [
 
 #: scikit-image samples used for training (all ship with scikit-image; none is downloaded).
 TRAIN_SAMPLES = (
-    "brick", "grass", "gravel", "rocket", "coffee", "chelsea", "clock", "horse",
-    "hubble_deep_field", "immunohistochemistry", "page", "text", "retina", "cell",
-    "colorwheel", "shepp_logan_phantom", "logo", "checkerboard",
+    "brick",
+    "grass",
+    "gravel",
+    "rocket",
+    "coffee",
+    "chelsea",
+    "clock",
+    "horse",
+    "hubble_deep_field",
+    "immunohistochemistry",
+    "page",
+    "text",
+    "retina",
+    "cell",
+    "colorwheel",
+    "shepp_logan_phantom",
+    "logo",
+    "checkerboard",
 )
 #: scikit-image samples kept for evaluation only (``camera`` is the default ``scene=image``).
 HELDOUT_SAMPLES = ("camera", "astronaut", "coins", "moon")
@@ -160,7 +175,9 @@ def random_shapes_hr(side: int, rng: np.random.Generator) -> np.ndarray:
     return np.clip(block_mean(img, ss), 0.0, 1.0)
 
 
-def sphere_hr(side: int, distance_mm: float, diameter_mm: float, reflectance: float, fov_deg: float = 20.0) -> np.ndarray:
+def sphere_hr(
+    side: int, distance_mm: float, diameter_mm: float, reflectance: float, fov_deg: float = 20.0
+) -> np.ndarray:
     """The project's sphere scene rendered at ``side × side`` (any side), radiance in [0, 1]."""
     scene = Sphere(distance_mm=distance_mm, diameter_mm=diameter_mm, reflectance=reflectance, supersample=2)
     return scene.render(RenderCamera(resolution=side, fov_deg=fov_deg)).radiance
@@ -178,8 +195,14 @@ def _noise(rng: np.random.Generator, noise_max: float, noise_min: float | None =
 
 
 def training_pairs(
-    scale: int, n_lr: int = 64, variants: int = 3, n_shapes: int = 30, n_spheres: int = 10,
-    noise_max: float = 2e-3, seed: int = TRAIN_SEED, noise_min: float | None = None,
+    scale: int,
+    n_lr: int = 64,
+    variants: int = 3,
+    n_shapes: int = 30,
+    n_spheres: int = 10,
+    noise_max: float = 2e-3,
+    seed: int = TRAIN_SEED,
+    noise_min: float | None = None,
 ) -> Iterator[Pair]:
     """Training examples: each training sample image ``variants`` times (random crop, flip,
     rotation, reflectance in [0.3, 1], noise), ``n_shapes`` synthetic scenes and ``n_spheres``
@@ -202,7 +225,9 @@ def training_pairs(
         yield Pair(f"sphere#{i}", hr, spi_lowres(hr, scale, nr, rng), nr)
 
 
-def heldout_pairs(scale: int, noise_rel: float, n_lr: int = 64, n_shapes: int = 4, seed: int = HELDOUT_SEED) -> list[Pair]:
+def heldout_pairs(
+    scale: int, noise_rel: float, n_lr: int = 64, n_shapes: int = 4, seed: int = HELDOUT_SEED
+) -> list[Pair]:
     """Held-out examples: the held-out sample images (central square, reflectance 0.8), the
     paper's sphere (Ø50 mm at 200 mm, and Ø50 mm at 150 mm), and ``n_shapes`` synthetic scenes
     from a seed the training never uses; all with the same ``noise_rel``."""

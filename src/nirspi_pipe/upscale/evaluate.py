@@ -20,7 +20,9 @@ from nirspi_pipe.upscale.fsrcnn import FsrcnnWeights, fsrcnn_forward
 __all__ = ["score_heldout", "summarise"]
 
 
-def score_heldout(weights: FsrcnnWeights, noise_rels: tuple[float, ...] = (0.0, 1e-3), n_lr: int = 64) -> list[dict[str, Any]]:
+def score_heldout(
+    weights: FsrcnnWeights, noise_rels: tuple[float, ...] = (0.0, 1e-3), n_lr: int = 64
+) -> list[dict[str, Any]]:
     """One row per held-out image and noise level: ``psnr_bicubic``, ``psnr_fsrcnn`` (dB),
     ``ssim_bicubic``, ``ssim_fsrcnn`` and ``gain_db`` = fsrcnn − bicubic PSNR."""
     rows = []
@@ -48,6 +50,9 @@ def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     out = []
     for scale, noise in keys:
         sel = [r for r in rows if r["scale"] == scale and r["noise_rel"] == noise]
-        mean = {k: float(np.mean([r[k] for r in sel])) for k in ("psnr_bicubic", "psnr_fsrcnn", "ssim_bicubic", "ssim_fsrcnn", "gain_db")}
+        mean = {
+            k: float(np.mean([r[k] for r in sel]))
+            for k in ("psnr_bicubic", "psnr_fsrcnn", "ssim_bicubic", "ssim_fsrcnn", "gain_db")
+        }
         out.append({"scale": scale, "noise_rel": noise, "images": len(sel), **mean})
     return out

@@ -216,13 +216,17 @@ def _read_weights(path: str | Path) -> FsrcnnWeights:
         w, b, a = get(f"conv{i}_w", 4), get(f"conv{i}_b", 1), get(f"conv{i}_a", 1)
         out, cin, k1, k2 = w.shape
         if cin != channels or k1 != k2 or k1 % 2 != 1 or b.shape != (out,) or a.shape != (out,):
-            raise ValueError(f"key 'conv{i}_w': shape {w.shape} does not follow {channels} input channels "
-                             "(odd square kernels; bias and PReLU slopes of one value per output)")
+            raise ValueError(
+                f"key 'conv{i}_w': shape {w.shape} does not follow {channels} input channels "
+                "(odd square kernels; bias and PReLU slopes of one value per output)"
+            )
         layers.append(ConvLayer(w, b, a))
         channels = out
     deconv_w, deconv_b = get("deconv_w", 4), get("deconv_b", 1)
     if deconv_w.shape != (channels, 1, DECONV_KERNEL, DECONV_KERNEL) or deconv_b.shape != (1,):
-        raise ValueError(f"key 'deconv_w': shape {deconv_w.shape}, expected {(channels, 1, DECONV_KERNEL, DECONV_KERNEL)}")
+        raise ValueError(
+            f"key 'deconv_w': shape {deconv_w.shape}, expected {(channels, 1, DECONV_KERNEL, DECONV_KERNEL)}"
+        )
     scalars = {}
     for key in ("scale", "residual", "border"):
         v = get(key, 0)
@@ -286,14 +290,19 @@ def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
     """
     file = resolve_weights(scale, path)
     if not file.is_file():
-        raise ConfigError("weights", str(path) if path else None,
-                          f"an existing .npz file or a shipped name ({', '.join(shipped_weights())}); {file} not found")
+        raise ConfigError(
+            "weights",
+            str(path) if path else None,
+            f"an existing .npz file or a shipped name ({', '.join(shipped_weights())}); {file} not found",
+        )
     try:
         weights = _load_cached(str(file.resolve()))
     except Exception as exc:  # noqa: BLE001 - any unreadable file is a config problem
         from nirspi_pipe.safeio import sanitize_text
 
-        raise ConfigError("weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({sanitize_text(exc)})") from None
+        raise ConfigError(
+            "weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({sanitize_text(exc)})"
+        ) from None
     if weights.scale != int(scale):
         raise ConfigError("weights", str(file), f"weights trained for scale {scale} (this file is ×{weights.scale})")
     return weights

@@ -53,8 +53,11 @@ class UpscaleMetrics(ImageMetrics):
         out = super().compute(products)
         up, truth = products.upscaled, products.truth
         if up is None or truth is None or self.scene is None:
-            warnings.warn("metrics=upscale: needs an upscale stage, a ground truth and a scene model; "
-                          "only the camera-resolution metrics were computed", stacklevel=2)
+            warnings.warn(
+                "metrics=upscale: needs an upscale stage, a ground truth and a scene model; "
+                "only the camera-resolution metrics were computed",
+                stacklevel=2,
+            )
             return out
         est = np.asarray(up.data, dtype=np.float64)
         n = truth.camera.resolution

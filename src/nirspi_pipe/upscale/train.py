@@ -94,8 +94,18 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
     border = 4 + ns.m  # receptive radius in low-res pixels: conv5 2 + m·1 + deconv 2 (≤ 4 + m)
 
     t0 = time.perf_counter()
-    pairs = list(training_pairs(scale, n_lr=ns.n_lr, variants=ns.variants, n_shapes=ns.shapes, n_spheres=ns.spheres,
-                                noise_max=ns.noise_max, noise_min=ns.noise_min, seed=ns.data_seed))
+    pairs = list(
+        training_pairs(
+            scale,
+            n_lr=ns.n_lr,
+            variants=ns.variants,
+            n_shapes=ns.shapes,
+            n_spheres=ns.spheres,
+            noise_max=ns.noise_max,
+            noise_min=ns.noise_min,
+            seed=ns.data_seed,
+        )
+    )
     lr = np.stack([p.lr for p in pairs]).astype(np.float32)
     hr = np.stack([p.hr for p in pairs]).astype(np.float32)
     if ns.residual:  # predict hr − bicubic(lr), bicubic over the whole image as at inference
@@ -124,8 +134,14 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
         ys, xs = rng.integers(0, side - win + 1, (2, ns.batch))
         xb = torch.stack([lr_t[i, y : y + win, x : x + win] for i, y, x in zip(k, ys, xs)])[:, None]
         yb = torch.stack(
-            [hr_t[i, (y + border) * scale : (y + border + patch) * scale, (x + border) * scale : (x + border + patch) * scale]
-             for i, y, x in zip(k, ys, xs)]
+            [
+                hr_t[
+                    i,
+                    (y + border) * scale : (y + border + patch) * scale,
+                    (x + border) * scale : (x + border + patch) * scale,
+                ]
+                for i, y, x in zip(k, ys, xs)
+            ]
         )[:, None]
         rot, flip = int(rng.integers(4)), bool(rng.integers(2))  # same for LR and HR: blocks stay aligned
         xb, yb = torch.rot90(xb, rot, (2, 3)), torch.rot90(yb, rot, (2, 3))
@@ -140,7 +156,9 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
         losses.append(float(loss.detach()))
         if (it + 1) % max(ns.iters // 10, 1) == 0:
             recent = float(np.mean(losses[-100:]))
-            log(f"x{scale}: iter {it + 1}/{ns.iters} mse {recent:.3e} (psnr {-10 * np.log10(recent):.2f} dB) {time.perf_counter() - t0:.0f} s")
+            log(
+                f"x{scale}: iter {it + 1}/{ns.iters} mse {recent:.3e} (psnr {-10 * np.log10(recent):.2f} dB) {time.perf_counter() - t0:.0f} s"
+            )
     train_s = time.perf_counter() - t0
 
     meta: dict[str, Any] = {
@@ -148,13 +166,27 @@ def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
         "trained_by": "nirspi-train-fsrcnn",
         "argv": " ".join(ns.argv),
         "d_s_m": [ns.d, ns.s, ns.m],
-        "iters": ns.iters, "batch": ns.batch, "patch_lr": patch, "whole_images": whole, "border_lr": border,
-        "adam_lr": ns.lr, "seed": ns.seed, "data_seed": ns.data_seed,
-        "n_lr": ns.n_lr, "variants": ns.variants, "shapes": ns.shapes, "spheres": ns.spheres, "noise_max": ns.noise_max,
+        "iters": ns.iters,
+        "batch": ns.batch,
+        "patch_lr": patch,
+        "whole_images": whole,
+        "border_lr": border,
+        "adam_lr": ns.lr,
+        "seed": ns.seed,
+        "data_seed": ns.data_seed,
+        "n_lr": ns.n_lr,
+        "variants": ns.variants,
+        "shapes": ns.shapes,
+        "spheres": ns.spheres,
+        "noise_max": ns.noise_max,
         "noise_min": ns.noise_min,
-        "train_images": len(pairs), "train_samples": list(TRAIN_SAMPLES), "heldout_samples": list(HELDOUT_SAMPLES),
-        "final_train_mse": float(np.mean(losses[-200:])), "train_seconds": round(train_s, 1),
-        "heldout_noise": list(ns.heldout_noise), "torch": torch.__version__,
+        "train_images": len(pairs),
+        "train_samples": list(TRAIN_SAMPLES),
+        "heldout_samples": list(HELDOUT_SAMPLES),
+        "final_train_mse": float(np.mean(losses[-200:])),
+        "train_seconds": round(train_s, 1),
+        "heldout_noise": list(ns.heldout_noise),
+        "torch": torch.__version__,
     }
     weights = _to_weights(net, scale, ns.residual, border, meta)
 
@@ -186,7 +218,9 @@ def main(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(prog="nirspi-train-fsrcnn", description=__doc__.split("\n\n")[0])
     p.add_argument("--scales", type=int, nargs="+", default=[2, 3, 4], choices=[2, 3, 4])
-    p.add_argument("--out", type=Path, default=_DEFAULT_OUT, help="folder for fsrcnn_x{scale}.npz (default: the package's)")
+    p.add_argument(
+        "--out", type=Path, default=_DEFAULT_OUT, help="folder for fsrcnn_x{scale}.npz (default: the package's)"
+    )
     p.add_argument("--d", type=int, default=32, help="feature channels (paper: d)")
     p.add_argument("--s", type=int, default=8, help="shrunk channels (paper: s)")
     p.add_argument("--m", type=int, default=2, help="mapping layers (paper: m)")
@@ -199,12 +233,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shapes", type=int, default=30, help="synthetic shape scenes in the training set")
     p.add_argument("--spheres", type=int, default=10, help="rendered spheres in the training set")
     p.add_argument("--noise-max", type=float, default=2e-3, help="largest training noise_rel")
-    p.add_argument("--noise-min", type=float, default=None,
-                   help="smallest non-zero training noise_rel (default: noise-max/30)")
-    p.add_argument("--heldout-noise", type=float, nargs="+", default=[0.0, 1e-3],
-                   help="noise_rel levels of the held-out scores written into meta")
+    p.add_argument(
+        "--noise-min", type=float, default=None, help="smallest non-zero training noise_rel (default: noise-max/30)"
+    )
+    p.add_argument(
+        "--heldout-noise",
+        type=float,
+        nargs="+",
+        default=[0.0, 1e-3],
+        help="noise_rel levels of the held-out scores written into meta",
+    )
     p.add_argument("--name", default="fsrcnn_x{scale}.npz", help="output file name ({scale} is replaced)")
-    p.add_argument("--plain", action="store_true", help="the paper's plain FSRCNN (default: learn a correction to bicubic)")
+    p.add_argument(
+        "--plain", action="store_true", help="the paper's plain FSRCNN (default: learn a correction to bicubic)"
+    )
     p.add_argument("--seed", type=int, default=0, help="initialisation and batch seed")
     p.add_argument("--data-seed", type=int, default=20160, help="training-data seed")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")

@@ -142,7 +142,9 @@ def admm_tv(
             up = up + x - p
         uw = uw + x - w
         uv = uv + gx - v
-        r_norm = float(np.sqrt(np.sum((x - w) ** 2) + np.sum((gx - v) ** 2) + (np.sum((x - p) ** 2) if nonneg else 0.0)))
+        r_norm = float(
+            np.sqrt(np.sum((x - w) ** 2) + np.sum((gx - v) ** 2) + (np.sum((x - p) ** 2) if nonneg else 0.0))
+        )
         s_norm = rho * float(
             np.sqrt(np.sum((w - w_old) ** 2) + np.sum((v - v_old) ** 2) + (np.sum((p - p_old) ** 2) if nonneg else 0.0))
         )
@@ -217,8 +219,13 @@ class ADMMTVSolver:
         op = measurement_operator(acquisition) if keep.all() else None
         forward = op.matvec if op is not None else (lambda v: measurement_operator(acquisition).matvec(v)[keep])
         lam, weight_info = choose_weight(
-            self.tv_weight, self.lam_floor, acquisition, y, data_scale(acquisition),
-            lambda d, w: solve_for(d, w)[0], forward,
+            self.tv_weight,
+            self.lam_floor,
+            acquisition,
+            y,
+            data_scale(acquisition),
+            lambda d, w: solve_for(d, w)[0],
+            forward,
         )
         if lam == 0.0 and patterns is not None:  # exact data, explicit patterns: least squares to tolerance
             from nirspi_pipe.solvers.lstsq import LstsqSolver
