@@ -12,6 +12,7 @@ set -uo pipefail
 # NIRSPI_CI_SWEEPS: folder for the sweeps (default: a new temporary one); NIRSPI_CI_REFERENCE: the
 # reference folder to check against (default: the installed experiments/reference/ci).
 out=${NIRSPI_CI_SWEEPS:-$(mktemp -d -t nirspi-cpus-XXXX)}
+mkdir -p "$out"
 ref_args=()
 if [ -n "${NIRSPI_CI_REFERENCE:-}" ]; then ref_args=(--reference "$NIRSPI_CI_REFERENCE"); fi
 export OPENBLAS_NUM_THREADS=1
