@@ -155,14 +155,17 @@ def conv_transpose2d(
 def fsrcnn_forward(image: np.ndarray, weights: FsrcnnWeights) -> np.ndarray:
     """Run FSRCNN on a 2D image (relative radiance) → ``(h·scale, w·scale)`` float64, unclipped.
 
-    The input is mirrored by ``weights.border`` pixels, the network runs in float32, and the
-    output is cropped back to the image (see the module docstring).
+    The input is mirrored by ``weights.border`` pixels, the network runs in float64 (the weights
+    are stored in float32), and the output is cropped back to the image (see the module docstring).
+    float64, not float32: the 3D path shades the upscaled image, and float32 rounding differed by
+    ~1e-7 between OpenBLAS kernel sets (Haswell vs Sandybridge), enough to flip a point of the fused
+    cloud (issue 12; ``bash .ci/reproduce-cpus.sh``).
     """
     from nirspi_pipe.upscale.bicubic import bicubic
 
     s, pad = weights.scale, weights.border
     lr = np.asarray(image, dtype=np.float64)
-    x = np.pad(lr, pad, mode="symmetric").astype(np.float32)[None]
+    x = np.pad(lr, pad, mode="symmetric")[None]
     for layer in weights.layers:
         x = prelu(conv2d(x, layer.w, layer.b), layer.alpha)
     y = conv_transpose2d(x, weights.deconv_w, weights.deconv_b, s, DECONV_PADDING, s - 1)[0]
