@@ -2,9 +2,10 @@
 
 Needs PyTorch (``pip install 'nirspi-pipe[train]'``); inference does not. The recipe, the data
 and how to reproduce the shipped files are in ``docs/upscale.md``. In short: pairs of
-(SPI reconstruction at ``n = 64``, true radiance at ``64·scale``) from
+(SPI reconstruction at ``n = 64``, true radiance at ``64·scale``; ``--n-lr 8`` for the paper's
+8 × 8 LED device, whose weights ship as ``fsrcnn_x4_led8.npz``) from
 :func:`nirspi_pipe.upscale.data.training_pairs`; random ``patch + 2·border`` low-res crops with
-flips and rotations; a global residual (the network learns ``hr − bicubic(lr)``; ``--plain``
+flips and rotations (whole images mirrored by ``border`` when ``n`` is no larger than the patch); a global residual (the network learns ``hr − bicubic(lr)``; ``--plain``
 for the paper's plain FSRCNN); MSE on the central ``patch × patch`` (×scale) region only; Adam with a
 cosine learning-rate decay; a fixed number of iterations and seeds (no model selection on the
 held-out set). After training it checks that the numpy inference reproduces the PyTorch network,
