@@ -120,3 +120,37 @@ def test_surface_stages_load_pymeshlab_when_built_not_when_timed(stage: str) -> 
         "assert 'pymeshlab' in sys.modules, 'not loaded at build'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_power_crust_is_bit_identical_across_openblas_kernel_sets() -> None:
+    """Issue 12: the pole computation uses no BLAS/LAPACK (Cramer's rule written out) and the
+    samples are snapped to CLOUD_QUANTUM_M, so the mesh is the same bits under every kernel set
+    OpenBLAS can run here (with LAPACK's solve, Sandybridge gave 782 vertices where Haswell gave 783)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import hashlib, numpy as np\n"
+        "from nirspi_pipe.mesh.powercrust import PowerCrust\n"
+        "from nirspi_pipe.types import PointCloud\n"
+        "i = np.arange(400) + 0.5\n"
+        "phi, th = np.arccos(1 - 2 * i / 400), np.pi * (1 + 5**0.5) * i\n"
+        "u = np.column_stack([np.cos(th) * np.sin(phi), np.sin(th) * np.sin(phi), np.cos(phi)])\n"
+        "r = 0.025 + np.random.default_rng(3).normal(0, 2e-4, 400)\n"
+        "pts = np.array([0.0, 0.0, 0.2]) + u * r[:, None]\n"
+        "pts = pts[pts[:, 2] < 0.2 + 0.01]\n"  # the camera-facing part, as SFS + iToF sees it
+        "m = PowerCrust().reconstruct(PointCloud(points_m=pts))\n"
+        "print(hashlib.sha256(m.vertices_m.tobytes() + m.faces.tobytes()).hexdigest())\n"
+    )
+    digests = {}
+    for core in ("", "Haswell", "Sandybridge", "Prescott"):
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+        if core:
+            env["OPENBLAS_CORETYPE"] = core
+        run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+        if run.returncode < 0 or run.returncode == 132:  # this CPU cannot execute that kernel set
+            continue
+        assert run.returncode == 0, run.stderr[-2000:]
+        digests[core or "detected"] = run.stdout.strip()
+    assert len(digests) >= 2 and len(set(digests.values())) == 1, digests

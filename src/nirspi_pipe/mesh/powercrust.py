@@ -48,27 +48,45 @@ from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud
 from nirspi_pipe.types import Mesh, PointCloud
 
+#: Grid (m) the samples are snapped to before the Delaunay/Qhull steps. Assumed: 10 nm, five orders
+#: of magnitude below the cloud's sample spacing (~1 mm at 20 cm) and eight above the difference
+#: measured between OpenBLAS kernel sets in the fused cloud (2e-16 m), so the combinatorial steps
+#: see the same input on every CPU (issue 12) while the geometry does not move measurably.
+CLOUD_QUANTUM_M = 1e-8
+
 __all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
+
+
+def _dot3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of ``(..., 3)`` arrays, written out: elementwise IEEE operations only,
+    so the result does not depend on the CPU's BLAS kernels (issue 12)."""
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
 
 
 def circumcentres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Power centres ``(t, 3)`` of tetrahedra ``(t, 4, 3)`` with vertex weights ``(t, 4)``
     (``None`` = circumcentres), and a ``(t,)`` bool flag of the non-degenerate ones.
 
-    The centre ``c`` solves ``2(p_i − p_0)·c = |p_i|² − w_i − |p_0|² + w_0`` for i = 1..3.
+    The centre ``c`` solves ``2(p_i − p_0)·c = |p_i|² − w_i − |p_0|² + w_0`` for i = 1..3, by
+    Cramer's rule with cross products (rows ``r_i``: ``c = Σ b_i (r_j × r_k) / r_1·(r_2 × r_3)``).
+    Not ``np.linalg.solve``: LAPACK's rounding differs between OpenBLAS kernel sets, the centres of
+    near-flat tetrahedra amplify it, and Qhull's hull of the poles then changed its faces
+    (Haswell vs Sandybridge, ``bash .ci/reproduce-cpus.sh``).
     """
     p0 = tets[:, 0]
-    a = 2.0 * (tets[:, 1:] - p0[:, None, :])
-    lift = np.einsum("tij,tij->ti", tets, tets)
+    r = 2.0 * (tets[:, 1:] - p0[:, None, :])
+    lift = _dot3(tets, tets)
     if weights is not None:
         lift = lift - weights
     b = lift[:, 1:] - lift[:, :1]
-    det = np.linalg.det(a)
-    scale = np.max(np.abs(a), axis=(1, 2)) ** 3
+    c23, c31, c12 = np.cross(r[:, 1], r[:, 2]), np.cross(r[:, 2], r[:, 0]), np.cross(r[:, 0], r[:, 1])
+    det = _dot3(r[:, 0], c23)
+    scale = np.max(np.abs(r), axis=(1, 2)) ** 3
     ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
     c = np.zeros((len(tets), 3))
     if ok.any():
-        c[ok] = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
+        num = b[ok, 0:1] * c23[ok] + b[ok, 1:2] * c31[ok] + b[ok, 2:3] * c12[ok]
+        c[ok] = num / det[ok][:, None]
     return c, ok
 
 
@@ -148,7 +166,7 @@ def _label_amenta(
         if a == b:
             continue
         u, w = poles[a] - samples[o], poles[b] - samples[o]
-        cos = float(u @ w / max(np.linalg.norm(u) * np.linalg.norm(w), 1e-300))
+        cos = float(_dot3(u, w) / max(np.linalg.norm(u) * np.linalg.norm(w), 1e-300))
         nbr[a].append((int(b), -cos, False))
         nbr[b].append((int(a), -cos, False))
     if len(edges):
@@ -378,6 +396,7 @@ class PowerCrust:
         pts = np.asarray(cloud.points_m, dtype=np.float64)
         if not np.all(np.isfinite(pts)):
             raise NirspiError("power crust: the point cloud has non-finite points")
+        pts = np.round(pts / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
         verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor)
         info["faces_closed"] = int(len(faces))
         if not self.closed:
