@@ -62,41 +62,11 @@ def execute_job(
 
     from nirspi_pipe.finite import drop_nonfinite
     from nirspi_pipe.pipeline import run_pipeline
-    from nirspi_pipe.records import (
-        InputHasher,
-        OutputError,
-        atomic_write,
-        config_hash,
-        job_key_of,
-        provenance,
-        write_record,
-    )
+    from nirspi_pipe.records import OutputError, atomic_write, new_record, write_record
 
     config: Any = OmegaConf.to_container(cfg, resolve=True)
-    inputs = InputHasher().hashes(config)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    record: dict[str, Any] = {
-        "config": config,
-        "choices": choices,
-        "metrics": {},
-        "timings_ms": {},
-        "derived": {},
-        "info": {},
-        "meta": {
-            "config_hash": config_hash(config),
-            "job_key": job_key_of(config, inputs),
-            "inputs": inputs,  # sha256 of every input file the config names
-            "seed": _seed_or_none(cfg),
-            **provenance(),
-            "status": "failed",
-            "error": None,
-            "warnings": [],
-            "overrides": overrides,
-            "job_num": job_num,
-            "attempt": attempt,
-            "started": started,
-        },
-    }
+    record = new_record(config, choices, overrides, job_num, attempt, seed=_seed_or_none(cfg), started=started)
     t0 = time.perf_counter()
     output = None
     try:

@@ -33,13 +33,11 @@ from typing import Any
 
 from nirspi_pipe.records import (
     RECORD_NAME,
-    InputHasher,
     JobLock,
     OutputError,
     atomic_write,
     code_identity,
-    config_hash,
-    job_key_of,
+    new_record,
     provenance,
     read_record,
     write_record,
@@ -208,29 +206,7 @@ def _record_crash(
         config = {str(k): v for k, v in container.items()} if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}
-    inputs = InputHasher().hashes(config)
-    record = {
-        "config": config,
-        "choices": choices,
-        "metrics": {},
-        "timings_ms": {},
-        "derived": {},
-        "info": {},
-        "meta": {
-            "config_hash": config_hash(config),
-            "job_key": job_key_of(config, inputs),
-            "inputs": inputs,
-            **provenance(),
-            "status": "failed",
-            "error": message,
-            "error_type": "JobCrash",
-            **fields,
-            "attempt": attempt,
-            "warnings": [],
-            "overrides": overrides,
-            "job_num": job_num,
-        },
-    }
+    record = new_record(config, choices, overrides, job_num, attempt, error=message, error_type="JobCrash", **fields)
     try:
         write_record(out_dir, record)
     except OutputError as exc:

@@ -50,6 +50,7 @@ __all__ = [
     "config_hash",
     "input_files",
     "job_key_of",
+    "new_record",
     "provenance",
     "read_record",
     "source_hash",
@@ -438,6 +439,41 @@ def provenance() -> dict[str, Any]:
         "code": ident["code"],
         "platform": f"{platform.system()}-{platform.machine()} ({platform.platform()})",
         "opencl_devices": list(opencl_devices()),
+    }
+
+
+def new_record(
+    config: dict[str, Any],
+    choices: Mapping[str, str],
+    overrides: list[str],
+    job_num: int | None,
+    attempt: int | None,
+    **meta: Any,
+) -> dict[str, Any]:
+    """A job's record before its run: the resolved ``config`` and its keys (config hash; job key
+    with the sha256 of every input file the config names), :func:`provenance`, empty results and
+    ``status: failed`` until the run says otherwise; ``meta`` adds or overrides fields of ``meta``."""
+    inputs = InputHasher().hashes(config)
+    return {
+        "config": config,
+        "choices": dict(choices),
+        "metrics": {},
+        "timings_ms": {},
+        "derived": {},
+        "info": {},
+        "meta": {
+            "config_hash": config_hash(config),
+            "job_key": job_key_of(config, inputs),
+            "inputs": inputs,
+            **provenance(),
+            "status": "failed",
+            "error": None,
+            "warnings": [],
+            "overrides": overrides,
+            "job_num": job_num,
+            "attempt": attempt,
+            **meta,
+        },
     }
 
 
