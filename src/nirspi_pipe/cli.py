@@ -53,7 +53,8 @@ def execute_job(
     attempt: int | None = None,
     on_output: Any = None,
 ) -> dict[str, Any]:
-    """Run one job and write its record and arrays into ``out_dir``. Never raises for a failing
+    """Run one job (``cfg``: a composed config or its resolved plain dict) and write its record
+    and arrays into ``out_dir``. Never raises for a failing
     pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
     traceback goes to ``error.txt``. Returns the record. Raises
     :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
@@ -64,7 +65,7 @@ def execute_job(
     from nirspi_pipe.pipeline import run_pipeline
     from nirspi_pipe.records import OutputError, atomic_write, new_record, write_record
 
-    config: Any = OmegaConf.to_container(cfg, resolve=True)
+    config: Any = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     record = new_record(config, choices, overrides, job_num, attempt, seed=_seed_or_none(cfg), started=started)
     t0 = time.perf_counter()

@@ -43,7 +43,15 @@ from nirspi_pipe.records import (
     write_record,
 )
 
-__all__ = ["ATTEMPTS_NAME", "crash_message", "read_attempts", "run_sweep_job"]
+__all__ = [
+    "ATTEMPTS_NAME",
+    "CHILD_FAILED_STATUS",
+    "ClaimedJob",
+    "crash_message",
+    "execute_attempt",
+    "read_attempts",
+    "run_sweep_job",
+]
 
 log = logging.getLogger(__name__)
 
@@ -134,26 +142,119 @@ def run_sweep_job(
     """Run ``execute(cfg, out_dir, choices, overrides, job_num, attempt=n)`` (which writes the
     job's record) as described in the module docstring. Never raises for a failing or crashing
     job; returns the record written (or, when even that could not be written, the one meant)."""
-    out_dir = Path(out_dir)
-    lock = JobLock(out_dir)
-    if not lock.acquire(wait=False):
-        print(f"nirspi-run: job {out_dir.name} is running in another process; waiting for it", flush=True)
-        lock.acquire()
+    job = ClaimedJob.claim(cfg, out_dir, choices, overrides, job_num, sweep_file, resume, wait=True)
+    assert job is not None  # noqa: S101 - wait=True always takes the lock
+    if job.done is not None:
+        return job.finish(None)
+    if not hasattr(os, "fork"):  # pragma: no cover - Windows: no isolation
+        try:
+            job.done = execute(cfg, out_dir, choices, overrides, job_num, attempt=job.attempt)
+        except BaseException:
+            job.lock.release()
+            raise
+        return job.finish(None)
+    pid = job.fork(execute)
+    while True:
+        try:
+            _, status = os.waitpid(pid, 0)
+            break
+        except InterruptedError:  # pragma: no cover - retried by Python since 3.5
+            continue
+    return job.finish(status)
+
+
+#: Wait status of a child whose job runner itself raised (exit code :data:`_CHILD_FAILED`).
+CHILD_FAILED_STATUS = _CHILD_FAILED << 8
+
+
+def execute_attempt(
+    execute: Callable[..., dict[str, Any]],
+    cfg: Any,
+    out_dir: Path,
+    choices: dict[str, str],
+    overrides: list[str],
+    job_num: int | None,
+    attempt: int,
+) -> int:
+    """Run attempt ``attempt`` of a claimed job in this process (a forked child, or a runner of
+    the ``nirspi`` launcher); the wait status a child doing it would give: 0, or
+    :data:`CHILD_FAILED_STATUS` when ``execute`` raised (traceback on stderr)."""
     try:
-        done = _done_ok(out_dir, sweep_file, resume)
-        if done is not None:
-            return done
-        attempt = _bump_attempts(out_dir)
-        provenance()  # computed once per worker (cached), inherited by every forked child
-        if not hasattr(os, "fork"):  # pragma: no cover - Windows: no isolation
-            return execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+        execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+    except Exception:  # noqa: BLE001 - reported as the crash of this job; a runner goes on
+        traceback.print_exc()
+        return CHILD_FAILED_STATUS
+    return 0
+
+
+class ClaimedJob:
+    """One sweep job between its claim (lock taken, attempt counted) and its end (:meth:`finish`
+    with the wait status of the process that ran it: the record, a crash record when that
+    process wrote none for this attempt, the lock released).
+
+    :func:`run_sweep_job` runs it in a forked child (:meth:`fork`) and waits; the ``nirspi``
+    launcher (:mod:`nirspi_pipe.launcher`) hands claimed jobs to runner processes and finishes
+    each with 0 when its runner reports it done, or with the runner's wait status when the
+    runner died running it."""
+
+    def __init__(self, lock: JobLock, out_dir: Path, fields: dict[str, Any]) -> None:
+        self.lock, self.out_dir, self.fields = lock, out_dir, fields
+        self.attempt = 0
+        self.done: dict[str, Any] | None = None
+
+    @classmethod
+    def claim(
+        cls,
+        cfg: Any,
+        out_dir: Path,
+        choices: dict[str, str],
+        overrides: list[str],
+        job_num: int | None = None,
+        sweep_file: Path | None = None,
+        resume: bool = False,
+        wait: bool = True,
+    ) -> ClaimedJob | None:
+        """Take the job folder's lock, then either find the job done (``done``: its ``ok``
+        record; nothing to run) or count this attempt (``attempt``). With ``wait=False`` returns
+        None, without side effects, when another process holds the lock."""
+        out_dir = Path(out_dir)
+        lock = JobLock(out_dir)
+        if not lock.acquire(wait=False):
+            if not wait:
+                return None
+            print(f"nirspi-run: job {out_dir.name} is running in another process; waiting for it", flush=True)
+            lock.acquire()
+        job = cls(lock, out_dir, {"cfg": cfg, "choices": choices, "overrides": overrides, "job_num": job_num})
+        try:
+            job.done = _done_ok(out_dir, sweep_file, resume)
+            if job.done is None:
+                job.attempt = _bump_attempts(out_dir)
+                provenance()  # computed once per process (cached), inherited by every forked child
+        except BaseException:
+            lock.release()
+            raise
+        return job
+
+    def run_here(self, execute: Callable[..., dict[str, Any]]) -> int:
+        """Run the job in this process: :func:`execute_attempt` of its fields."""
+        f = self.fields
+        return execute_attempt(
+            execute, f["cfg"], self.out_dir, f["choices"], f["overrides"], f["job_num"], self.attempt
+        )
+
+    def fork(self, execute: Callable[..., dict[str, Any]]) -> int:
+        """Run the job in a forked child; its pid (wait for it, then :meth:`finish`)."""
         sys.stdout.flush()
         sys.stderr.flush()
-        pid = os.fork()
+        try:
+            pid = os.fork()
+        except BaseException:
+            self.lock.release()
+            raise
         if pid == 0:  # pragma: no cover - the child (coverage does not follow forks)
             code = 0
             try:
-                execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+                code = 0 if self.run_here(execute) == 0 else _CHILD_FAILED
             except BaseException:  # noqa: BLE001 - the child must never return into the worker
                 traceback.print_exc()
                 code = _CHILD_FAILED
@@ -163,18 +264,25 @@ def run_sweep_job(
                     sys.stderr.flush()
                 finally:
                     os._exit(code)
-        while True:
-            try:
-                _, status = os.waitpid(pid, 0)
-                break
-            except InterruptedError:  # pragma: no cover - retried by Python since 3.5
-                continue
-        rec = _own_record(out_dir, attempt)
-        if rec is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
-            return rec
-        return _record_crash(out_dir, status, rec, cfg, choices, overrides, job_num, attempt)
-    finally:
-        lock.release()
+        return pid
+
+    def finish(self, status: int | None) -> dict[str, Any]:
+        """The job's record once the process that ran it ended it with wait status ``status``
+        (None: nothing ran, ``done`` is the record); writes a crash record when that process
+        wrote none of this attempt. Releases the lock."""
+        try:
+            if status is None:
+                assert self.done is not None  # noqa: S101 - nothing ran: claim() found it done
+                return self.done
+            rec = _own_record(self.out_dir, self.attempt)
+            if rec is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
+                return rec
+            f = self.fields
+            return _record_crash(
+                self.out_dir, status, rec, f["cfg"], f["choices"], f["overrides"], f["job_num"], self.attempt
+            )
+        finally:
+            self.lock.release()
 
 
 def _own_record(out_dir: Path, attempt: int) -> dict[str, Any] | None:
@@ -202,7 +310,7 @@ def _record_crash(
         return rec  # the child recorded its own failure, then exited non-zero: keep its words
     config: dict[str, Any]
     try:
-        container = OmegaConf.to_container(cfg, resolve=True)
+        container = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
         config = {str(k): v for k, v in container.items()} if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -62,42 +62,6 @@ EFFECT_GROUPS = ("fog", "illumination", "detector")
 _EFFECT_PARENT = "source.effects."
 
 
-def _unwrap(exc: BaseException) -> tuple[BaseException, str | None]:
-    """The innermost cause of a Hydra InstantiationException chain, and the ``full_key`` of the
-    innermost node Hydra names (the node whose call failed), when it says."""
-    full_key = None
-    while exc.__cause__ is not None and type(exc).__name__ == "InstantiationException":
-        for line in str(exc).splitlines():
-            if line.startswith("full_key: "):
-                full_key = line[len("full_key: ") :].strip()
-        exc = exc.__cause__
-    return exc, full_key
-
-
-def _list_keys(node: Any, key: str, full_key: str | None) -> str | None:
-    """Hydra names list items without a separator (``source.effects.extra0``): spell them as a
-    user types them (``source.effects.extra.0``), by walking ``node`` (built as ``key``)."""
-    from omegaconf import DictConfig, ListConfig
-
-    if not full_key or not full_key.startswith(key + "."):
-        return full_key
-    out, sub = [key], node
-    for part in full_key[len(key) + 1 :].split("."):
-        if isinstance(sub, DictConfig) and part in sub:
-            out.append(part)
-            sub = sub._get_node(part)  # noqa: SLF001 - the raw child, unresolved
-            continue
-        head = part.rstrip("0123456789")
-        index = part[len(head) :]
-        child = sub._get_node(head) if isinstance(sub, DictConfig) and head in sub else None  # noqa: SLF001
-        if index and isinstance(child, ListConfig) and int(index) < len(child):
-            out += [head, index]
-            sub = child[int(index)]
-            continue
-        return full_key  # not ours to respell
-    return ".".join(out)
-
-
 def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     """Where to report an error of node ``full_key`` built as part of group ``key``: the path the
     user types, and whether it is absolute (an effect group inside ``source.effects``)."""
@@ -108,22 +72,72 @@ def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     return (full_key, False) if full_key.startswith(key + ".") else (key, False)
 
 
-def build(node: DictConfig, key: str) -> Any:
+class _BuildFailure(Exception):
+    """A stage constructor raised while building the node at ``path`` (the innermost one)."""
+
+    def __init__(self, inner: BaseException, path: str, node: dict[str, Any]) -> None:
+        super().__init__(str(inner))
+        self.inner, self.path, self.node = inner, path, node
+
+
+#: Keys of a ``_target_`` node that are not constructor arguments (Hydra's ``instantiate`` keys).
+_RESERVED = ("_target_", "_recursive_", "_partial_", "_convert_", "_args_")
+
+
+def _instantiate(node: Any, path: str) -> Any:
+    """``hydra.utils.instantiate(node, _convert_="all")`` for a resolved plain container: every
+    dict with a ``_target_`` becomes ``target(**children)`` (``_recursive_: false`` passes the
+    children as they are, ``_partial_: true`` gives a ``functools.partial``), other dicts and lists
+    stay plain. Written out because Hydra's ``instantiate`` cost 57-62 ms per job on the
+    paper's table3 config (it copies and re-resolves the node in OmegaConf), against under 1 ms
+    here, timing both on the ten stage nodes of one composed job (a sweep ran beside it); a paper sweep builds
+    432 jobs. ``tests/test_config.py`` builds every shipped option through it."""
+    if isinstance(node, list):
+        return [_instantiate(v, f"{path}.{i}") for i, v in enumerate(node)]
+    if not isinstance(node, dict):
+        return node
+    recursive = node.get("_recursive_", True) is not False
+    kwargs = {
+        str(k): (_instantiate(v, f"{path}.{k}") if recursive else v) for k, v in node.items() if k not in _RESERVED
+    }
+    target = node.get("_target_")
+    if target is None:
+        return kwargs
+    try:
+        fn = locate(str(target))
+        if fn is None:
+            raise ImportError(f"Error locating target '{target}': no such module or attribute")
+        args = [
+            (_instantiate(v, f"{path}._args_.{i}") if recursive else v) for i, v in enumerate(node.get("_args_", []))
+        ]
+        if node.get("_partial_", False):
+            import functools
+
+            return functools.partial(fn, *args, **kwargs)
+        return fn(*args, **kwargs)
+    except _BuildFailure:
+        raise
+    except Exception as exc:  # noqa: BLE001 - translated by build()
+        raise _BuildFailure(exc, path, node) from exc
+
+
+def build(node: Any, key: str) -> Any:
     """Instantiate one config node (``_target_``) recursively, turning errors into one-line
-    messages.
+    messages. ``node`` is a config node or its resolved plain container.
 
     A :class:`ConfigError` raised by the stage is re-raised with its key prefixed by the node it
     came from, so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …`` (and
     ``fog.beta_per_m=…`` for the fog model that ``source.effects`` builds).
     """
-    from hydra.utils import instantiate
+    from omegaconf import Container, OmegaConf
 
-    check_types(node, key)
+    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node
+    check_types(plain, key)
     try:
-        return instantiate(node, _convert_="all")
-    except Exception as exc:  # noqa: BLE001 - translated below
-        inner, full_key = _unwrap(exc)
-        where, absolute = _user_key(_list_keys(node, key, full_key), key)
+        return _instantiate(plain, key)
+    except _BuildFailure as failure:
+        inner = failure.inner
+        where, absolute = _user_key(failure.path, key)
         if isinstance(inner, ConfigError):
             err = inner.under(where)
             raise (
@@ -131,8 +145,8 @@ def build(node: DictConfig, key: str) -> Any:
             ) from None
         if isinstance(inner, TypeError) and "unexpected keyword argument" in str(inner):
             bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
-            raise ConfigError(f"{where}.{bad}", None, _accepted_keys(node), unknown_key=True) from None
-        raise
+            raise ConfigError(f"{where}.{bad}", None, _accepted_keys(failure.node), unknown_key=True) from None
+        raise inner from None
 
 
 _KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a string"}
@@ -177,26 +191,27 @@ def _allowed_for(cls: Any, params: dict[str, Any], name: str, kinds: tuple[type,
 
 
 def check_types(node: Any, key: str) -> None:
-    """Scalar fields of every ``_target_`` dataclass in ``node`` have their annotated type; a
-    string for a number (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming
-    the key and the stage's allowed values. The dataclass annotations are the source of types."""
+    """Scalar fields of every ``_target_`` dataclass in ``node`` (a config node or its resolved
+    plain container) have their annotated type; a string for a number
+    (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming the key and the stage's
+    allowed values. The dataclass annotations are the source of types."""
     import dataclasses
     import inspect
     import typing
 
-    from omegaconf import DictConfig, ListConfig, OmegaConf
+    from omegaconf import Container, OmegaConf
 
     def walk(sub: Any, path: str) -> None:
-        if isinstance(sub, ListConfig):
+        if isinstance(sub, list):
             for i, item in enumerate(sub):
                 walk(item, f"{path}.{i}")
             return
-        if not isinstance(sub, DictConfig):
+        if not isinstance(sub, dict):
             return
-        for k in sub.keys():
+        for k, v in sub.items():
             if not str(k).startswith("_"):
-                walk(sub[k], f"{path}.{k!s}")  # resolved: ${fog} is the fog group's node
-        target = sub.get("_target_") if "_target_" in sub else None
+                walk(v, f"{path}.{k!s}")
+        target = sub.get("_target_")
         if not isinstance(target, str):
             return
         fn = locate(target)
@@ -210,33 +225,25 @@ def check_types(node: Any, key: str) -> None:
                 names = [p for p in inspect.signature(fn).parameters if p in hints]
         except Exception:  # noqa: BLE001 - unresolvable annotations: instantiation reports problems
             return
-        params = None
         for name in names:
             if name not in sub:
                 continue
             kinds = _scalar_kinds(hints.get(name))
-            if kinds is None:
+            if kinds is None or _type_ok(sub[name], kinds):
                 continue
-            value = OmegaConf.select(sub, name)  # resolved
-            if _type_ok(value, kinds):
-                continue
-            if params is None:
-                raw = OmegaConf.to_container(sub, resolve=True)
-                params = (
-                    {str(k): v for k, v in raw.items() if not str(k).startswith("_")} if isinstance(raw, dict) else {}
-                )
+            params = {str(k): v for k, v in sub.items() if not str(k).startswith("_")}
             where, _ = _user_key(f"{path}.{name}", key)
-            raise ConfigError(where, value, _allowed_for(fn, params, name, kinds), absolute=True)
+            raise ConfigError(where, sub[name], _allowed_for(fn, params, name, kinds), absolute=True)
 
     try:
-        walk(node, key)
+        walk(OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node, key)
     except ConfigError:
         raise
     except Exception:  # noqa: BLE001 - the check is a courtesy; instantiation reports the rest
         return
 
 
-def _accepted_keys(node: DictConfig) -> str:
+def _accepted_keys(node: Any) -> str:
     """Comma-separated constructor parameters of a node's ``_target_`` (for error messages)."""
     import inspect
 
@@ -249,7 +256,7 @@ def _accepted_keys(node: DictConfig) -> str:
     return ", ".join(p for p in params if p not in ("self", "args", "kwargs"))
 
 
-def build_stages(cfg: DictConfig) -> dict[str, Any]:
+def build_stages(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped)."""
     stages: dict[str, Any] = {}
     for group in STAGE_GROUPS:
@@ -313,28 +320,33 @@ def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
     return {k: dict(v.info) for k, v in pairs.items() if v is not None and v.info}
 
 
-def effective_seed(cfg: DictConfig) -> int:
+def effective_seed(cfg: DictConfig | Mapping[str, Any]) -> int:
     """The run's seed: ``cfg.seed``, or when it is null a seed derived from the hash of the
     resolved config (so every job of a sweep gets its own, reproducible noise)."""
-    from omegaconf import OmegaConf
+    from omegaconf import Container, OmegaConf
 
     from nirspi_pipe.records import config_hash
 
     seed = cfg.get("seed", 0)
     if seed is None:
-        resolved: Any = OmegaConf.to_container(cfg, resolve=True)
+        resolved: Any = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, Container) else cfg
         return int(config_hash(resolved)[:8], 16)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError("seed", seed, "an integer >= 0, or null (derived from the config)")
     return seed
 
 
-def run_pipeline(cfg: DictConfig) -> RunOutput:
+def run_pipeline(cfg: DictConfig | Mapping[str, Any]) -> RunOutput:
     """Run one configuration end to end and return its products, metrics and timings (ms).
+    ``cfg`` is a composed config or its resolved plain container (what the nirspi launcher runs:
+    turning it back into an OmegaConf node would cost ~40 ms per job).
 
     Raises :class:`ConfigError` / :class:`NirspiError` for bad configuration or input; other
     exceptions are bugs or numerical failures and propagate unchanged.
     """
+    from nirspi_pipe.scene.render import forget_renders
+
+    forget_renders()  # ground truths rendered by the metrics are shared within this run only
     seed = effective_seed(cfg)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
@@ -342,7 +354,7 @@ def run_pipeline(cfg: DictConfig) -> RunOutput:
     clock = _Clock()
     with _recorded_warnings() as caught:
         with clock.stage("build"):
-            camera: Camera = build(cfg.camera, "camera")
+            camera: Camera = build(cfg["camera"], "camera")
             stages = build_stages(cfg)
         for required in ("source", "scan", "solver"):
             if required not in stages:

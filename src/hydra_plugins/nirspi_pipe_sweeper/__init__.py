@@ -1,8 +1,10 @@
-"""Hydra looks for sweeper classes in the ``hydra_plugins`` namespace; this is nirspi-pipe's.
+"""Hydra looks for sweeper and launcher classes in the ``hydra_plugins`` namespace; these are
+nirspi-pipe's.
 
-The implementation lives in :mod:`nirspi_pipe.sweeper`.
+The implementations live in :mod:`nirspi_pipe.sweeper` and :mod:`nirspi_pipe.launcher`.
 """
 
+from nirspi_pipe.launcher import NirspiLauncherBase
 from nirspi_pipe.sweeper import NirspiSweeperBase
 
 
@@ -10,4 +12,8 @@ class NirspiSweeper(NirspiSweeperBase):
     """Config-hash keyed, resumable grid sweeper with progress (``hydra/sweeper=nirspi``)."""
 
 
-__all__ = ["NirspiSweeper"]
+class NirspiLauncher(NirspiLauncherBase):
+    """Sweep jobs as forked children of the sweeping process (``hydra/launcher=nirspi``)."""
+
+
+__all__ = ["NirspiLauncher", "NirspiSweeper"]

@@ -73,7 +73,7 @@ def main(argv: list[str]) -> int:
             print(proc.stdout[-2000:], proc.stderr[-2000:], file=sys.stderr)
             return 1
         info = json.loads((sweep / "sweep.json").read_text())
-        keying = (sweep / "sweep.json").stat().st_mtime - float(info["started"])
+        keying = float(info["keying_s"])  # the sweeper's own measure (sweep.json is written after it)
         frame = pd.read_parquet(sweep / "results.parquet")
     ref = 0.5 * (ref_before + reference_s())
     stages = {

@@ -297,10 +297,11 @@ class Metrics3D:
             return out
         depth = products.depth
         if fine and depth is not None and depth.depth_m.shape[0] != truth.camera.resolution:
+            from nirspi_pipe.scene.render import render_cached
             from nirspi_pipe.upscale.data import RenderCamera
 
             side = int(depth.depth_m.shape[0])
-            truth = self.scene.render(RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
+            truth = render_cached(self.scene, RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
         cam = truth.camera
         tmask = truth.mask & np.isfinite(truth.depth_m)
         cloud, mesh = products.cloud, products.mesh

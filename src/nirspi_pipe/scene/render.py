@@ -9,12 +9,42 @@ normals are averaged over the hitting rays only.
 
 from __future__ import annotations
 
+from functools import lru_cache
+from typing import Any
+
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.types import Camera, Scene
 
-__all__ = ["compose_scene", "check_common"]
+__all__ = ["check_common", "compose_scene", "forget_renders", "render_cached"]
+
+
+def render_cached(shape: Any, camera: Any) -> Scene:
+    """``shape.render(camera)``, remembered within one run (:func:`forget_renders`, which the
+    runner calls as each run starts: a scene that reads a file must see the file as it is). The
+    metrics stages render the same ground truth on the same fine grid, the upscale and the 3D
+    metrics of one job (the torus costs 20-30 ms each time). The arrays of a remembered scene are
+    read-only. Unhashable scene objects are rendered each time."""
+    try:
+        hash((shape, camera))
+    except TypeError:
+        return shape.render(camera)
+    return _render_remembered(shape, camera)
+
+
+def forget_renders() -> None:
+    """Forget the scenes :func:`render_cached` remembers."""
+    _render_remembered.cache_clear()
+
+
+@lru_cache(maxsize=4)
+def _render_remembered(shape: Any, camera: Any) -> Scene:
+    scene = shape.render(camera)
+    for value in vars(scene).values():
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+    return scene
 
 
 def check_common(distance_mm: float, reflectance: float, supersample: int) -> None:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.metrics import ImageMetrics
+from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products
 from nirspi_pipe.upscale.base import finish
 from nirspi_pipe.upscale.bicubic import bicubic
@@ -64,7 +65,7 @@ class UpscaleMetrics(ImageMetrics):
         scale = est.shape[0] // n
         if est.shape != (n * scale, n * scale) or scale < 1:
             raise ValueError(f"upscaled image {est.shape} is not an integer multiple of {n}x{n}")
-        fine = self.scene.render(RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
+        fine = render_cached(self.scene, RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
         reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
         out.update(self.score(ref, est, reference, prefix="upscale_"))

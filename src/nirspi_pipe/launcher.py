@@ -1,0 +1,417 @@
+"""The ``nirspi`` launcher (``hydra/launcher=nirspi``, the default): sweep jobs as forked children.
+
+The nirspi sweeper composes every job's config to key its folder (:mod:`nirspi_pipe.sweeper`).
+This launcher runs exactly those configs: the sweeping process imports the stage modules once,
+then forks one child per job, at most ``n_jobs`` at a time (one per core by default), and waits
+for whichever ends first. A job therefore costs no second Hydra composition (0.4-1 s each,
+``python -m cProfile`` of ``hydra.compose`` on the paper's configs), no worker start-up and no
+pickling. Each child is the crash-isolated child every launcher uses (:mod:`nirspi_pipe.jobs`):
+the folder's lock, the attempt count, and a ``failed`` record naming the signal when it
+segfaults or is killed; the other jobs go on.
+
+What it leaves out, compared with ``hydra/launcher=joblib``: no per-job ``.hydra/`` folder or
+``<job>.log`` (``record.json`` holds the resolved config, the group choices and the overrides),
+and Hydra's per-job callbacks (``on_job_start``/``on_job_end``) are not called; the sweep's
+``on_multirun_end`` (which collects the results) is. With another sweeper
+(``hydra/sweeper=basic``), :meth:`NirspiLauncherBase.launch` composes each job through Hydra's
+config loader first, then runs it the same way.
+
+Where ``os.fork`` does not exist (Windows) the jobs run one after another in the sweeping process.
+"""
+
+from __future__ import annotations
+
+import gc
+import logging
+import os
+import signal
+import sys
+import time
+from collections import deque
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.plugins.launcher import Launcher
+from threadpoolctl import threadpool_limits
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.sweeper import ComposedJob, format_progress
+
+__all__ = ["NirspiLauncherBase", "prewarm"]
+
+log = logging.getLogger(__name__)
+
+#: Seconds between two progress lines (the last one is always printed).
+PROGRESS_INTERVAL_S = 2.0
+
+
+def _execute(
+    config: dict[str, Any],
+    out_dir: Path,
+    choices: dict[str, Any],
+    overrides: list[str],
+    job_num: int | None,
+    attempt: int | None = None,
+) -> dict[str, Any]:
+    """:func:`nirspi_pipe.cli.execute_job` on a composed job's resolved plain config."""
+    from nirspi_pipe.cli import execute_job
+
+    return execute_job(config, out_dir, choices, overrides, job_num, attempt=attempt)
+
+
+def _targets(node: Any) -> set[str]:
+    if isinstance(node, dict):
+        found = {str(node["_target_"])} if isinstance(node.get("_target_"), str) else set()
+        for value in node.values():
+            found |= _targets(value)
+        return found
+    if isinstance(node, list):
+        return set().union(*(_targets(v) for v in node)) if node else set()
+    return set()
+
+
+#: Modules the stages import inside their functions (listed from ``sys.modules`` before and after
+#: one job of each paper experiment in a prewarmed process), imported once before the forks.
+_LAZY_IMPORTS = (
+    "nirspi_pipe.finite",
+    "nirspi_pipe.safeio",
+    "nirspi_pipe.physics.range_model",
+    "nirspi_pipe.physics.timevarying",
+    "nirspi_pipe.upscale.data",
+    "nirspi_pipe.upscale.metrics",
+    "nirspi_pipe.mesh.outputs",
+    "nirspi_pipe.sfs.opencl",
+    "miepython",
+    "skimage.filters.thresholding",
+    "skimage.transform",
+    "skimage.metrics",
+)
+
+
+def prewarm(configs: Sequence[dict[str, Any]]) -> list[str]:
+    """Import, once in the sweeping process, what every forked job would otherwise import again:
+    the pipeline, the module of every ``_target_`` the configs name, pymeshlab and pyvista when a
+    surface stage is used, pyopencl when an SFS stage may use it, and the run's provenance.
+    Nothing that starts threads: no OpenCL platform or context (PoCL's worker threads would not
+    exist in the forked children), so each job still builds its kernel (pyopencl's disk cache).
+    Returns the targets that could not be imported (their jobs report it)."""
+    from nirspi_pipe import cli, pipeline  # noqa: F401 - imported for their side effect
+    from nirspi_pipe.configs import locate
+    from nirspi_pipe.records import provenance
+
+    provenance()
+    missing = []
+    targets: set[str] = set()
+    for config in configs:
+        targets |= _targets(config)
+    for target in sorted(targets):
+        try:
+            if locate(target) is None:
+                missing.append(target)
+        except Exception:  # noqa: BLE001 - the job itself reports a bad target
+            missing.append(target)
+    import importlib
+
+    for name in _LAZY_IMPORTS:
+        try:
+            importlib.import_module(name)
+        except Exception:  # noqa: BLE001 - an optional module: the job that needs it reports it
+            missing.append(name)
+    if any(config.get("surface") for config in configs):
+        from nirspi_pipe.mesh.remesh import load_meshlab
+
+        load_meshlab()
+        import pyvista  # noqa: F401 - mesh.ply is written through it (0.5 s to import)
+    if any(str((config.get("sfs") or {}).get("backend", "")) in ("auto", "opencl") for config in configs):
+        import pyopencl  # noqa: F401 - imported only: no platform or context, which start threads
+    return missing
+
+
+class NirspiLauncherBase(Launcher):
+    """Runs sweep jobs as forked children of the sweeping process (module docstring).
+
+    Args:
+        n_jobs: jobs at once; -1 (default) one per core (``os.cpu_count()``).
+    """
+
+    def __init__(self, n_jobs: int = -1) -> None:
+        if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or not (n_jobs == -1 or n_jobs >= 1):
+            raise ConfigError("hydra.launcher.n_jobs", n_jobs, "-1 (one per core) or an integer >= 1", absolute=True)
+        self.n_jobs = n_jobs
+        self.hydra_context: Any = None
+        self.task_function: Any = None
+        self.config: Any = None
+
+    def setup(self, *, hydra_context: Any, task_function: Any, config: Any) -> None:
+        self.hydra_context, self.task_function, self.config = hydra_context, task_function, config
+
+    @property
+    def workers(self) -> int:
+        return self.n_jobs if self.n_jobs > 0 else max(1, os.cpu_count() or 1)
+
+    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        """Hydra's launcher interface (any sweeper): compose each job with Hydra's config loader,
+        then run it as :meth:`run_composed` does, into ``hydra.sweep.dir/hydra.sweep.subdir``."""
+        from omegaconf import OmegaConf, open_dict
+
+        from nirspi_pipe.sweeper import _choices, _resolved
+
+        items = []
+        for idx, overrides in enumerate(job_overrides):
+            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+            with open_dict(cfg):
+                cfg.hydra.job.num = initial_job_idx + idx
+                cfg.hydra.job.id = f"{cfg.hydra.job.name}_{initial_job_idx + idx}"
+            out_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
+            task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])  # type: ignore[arg-type]
+            items.append((out_dir, initial_job_idx + idx, ComposedJob(_resolved(cfg), _choices(cfg), task)))
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        return self._run(items, sweep_dir, None, False)
+
+    def run_composed(
+        self, jobs: Sequence[tuple[str, list[str], ComposedJob]], sweep_dir: Path, sweep_file: Path, resume: bool
+    ) -> list[JobReturn]:
+        """Run the nirspi sweeper's composed jobs ``(key, overrides, job)`` into ``sweep_dir/key``
+        (job numbers in this order), printing progress as they finish."""
+        items = [(Path(sweep_dir) / key, num, job) for num, (key, _ov, job) in enumerate(jobs)]
+        return self._run(items, Path(sweep_dir), sweep_file, resume)
+
+    def _run(
+        self, items: list[tuple[Path, int, ComposedJob]], sweep_dir: Path, sweep_file: Path | None, resume: bool
+    ) -> list[JobReturn]:
+        from nirspi_pipe.jobs import ClaimedJob, run_sweep_job
+
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        t0 = time.perf_counter()
+        missing = prewarm([job.config for _, _, job in items])
+        if missing:
+            log.debug("not importable (their jobs will say so): %s", ", ".join(missing))
+        records: list[dict[str, Any] | None] = [None] * len(items)
+        progress = _Progress(len(items))
+        started = time.time()
+
+        def finished(i: int, rec: dict[str, Any]) -> None:
+            records[i] = rec
+            status = rec.get("meta", {}).get("status")
+            if status != "ok":
+                log.error("job %s failed: %s", items[i][0].name, rec.get("meta", {}).get("error"))
+            progress.add(status == "ok", time.time() - started)
+
+        def claim(i: int, wait: bool) -> ClaimedJob | None:
+            out_dir, num, job = items[i]
+            return ClaimedJob.claim(
+                job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume, wait=wait
+            )
+
+        if not hasattr(os, "fork"):  # pragma: no cover - Windows: in-process, one at a time
+            for i, (out_dir, num, job) in enumerate(items):
+                rec = run_sweep_job(
+                    _execute, job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume
+                )
+                finished(i, rec)
+            return _returns(items, records)
+        # BLAS/OpenMP threads per job as loky gives its workers (cores // jobs at once): the jobs
+        # do not oversubscribe the cores, and their numbers equal hydra/launcher=joblib's bit for bit
+        limits = threadpool_limits(limits=max(1, (os.cpu_count() or 1) // self.workers))
+        gc.freeze()  # the runners' garbage collector then leaves the parent's objects (and pages) alone
+        log.info("prewarmed in %.2f s; %d jobs, %d at a time", time.perf_counter() - t0, len(items), self.workers)
+        pool = _RunnerPool(items, min(self.workers, len(items)))
+        pending = deque(range(len(items)))
+        deferred: list[int] = []  # another process holds the folder's lock: waited for at the end
+        try:
+            while pending or deferred or pool.busy:
+                while pool.has_idle() and (pending or (deferred and not pool.busy)):
+                    if pending:
+                        i = pending.popleft()
+                        claimed = claim(i, wait=False)
+                        if claimed is None:
+                            deferred.append(i)
+                            continue
+                    else:
+                        i = deferred.pop(0)
+                        claimed = claim(i, wait=True)
+                    assert claimed is not None  # noqa: S101 - wait=True always claims
+                    if claimed.done is not None:
+                        finished(i, claimed.finish(None))
+                    else:
+                        pool.dispatch(i, claimed)
+                if pool.busy:
+                    for i, claimed, status in pool.wait():
+                        finished(i, claimed.finish(status))
+        except BaseException:
+            for _i, claimed, status in pool.kill():
+                claimed.finish(status)
+            raise
+        finally:
+            pool.close()
+            limits.restore_original_limits()
+            gc.unfreeze()
+        progress.flush()
+        return _returns(items, records)
+
+
+def _returns(items: list[tuple[Path, int, ComposedJob]], records: list[dict[str, Any] | None]) -> list[JobReturn]:
+    return [
+        JobReturn(
+            overrides=list(job.task_overrides),
+            working_dir=str(out_dir),
+            task_name="nirspi_pipe",
+            status=JobStatus.COMPLETED,
+            _return_value=rec,
+        )
+        for (out_dir, _num, job), rec in zip(items, records, strict=True)
+    ]
+
+
+def _runner_main(conn: Any, items: list[tuple[Path, int, ComposedJob]]) -> None:
+    """A runner: run the jobs the launcher sends (``(index, attempt)``), one at a time, and answer
+    ``(index, wait status)`` for each; stop at ``None`` or when the launcher is gone."""
+    from nirspi_pipe.jobs import execute_attempt
+
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        i, attempt = msg
+        out_dir, num, job = items[i]
+        status = execute_attempt(_execute, job.config, out_dir, job.choices, job.task_overrides, num, attempt)
+        sys.stdout.flush()
+        sys.stderr.flush()
+        conn.send((i, status))
+
+
+class _Runner:
+    def __init__(self, pid: int, conn: Any) -> None:
+        self.pid, self.conn = pid, conn
+
+
+class _RunnerPool:
+    """Runner processes forked from the prewarmed sweeping process. Each runs the jobs it is sent
+    one after another, in-process, so that what a job builds once per process (the OpenCL
+    context and kernels, about 0.1 s; module caches) is built once per runner rather than once
+    per job. A runner that dies (segfault, ``SIGKILL``, out-of-memory) takes only the job it was
+    running: :meth:`wait` reports that job with the runner's wait status (a crash record
+    follows) and a fresh runner takes its place."""
+
+    def __init__(self, items: list[tuple[Path, int, ComposedJob]], size: int) -> None:
+        self.items = items
+        self.idle: list[_Runner] = [self._spawn() for _ in range(size)]
+        self.running: dict[Any, tuple[_Runner, int, Any]] = {}  # conn -> (runner, index, claimed job)
+
+    @property
+    def busy(self) -> bool:
+        return bool(self.running)
+
+    def has_idle(self) -> bool:
+        return bool(self.idle)
+
+    def _spawn(self) -> _Runner:
+        import multiprocessing
+
+        parent_end, child_end = multiprocessing.Pipe()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        pid = os.fork()
+        if pid == 0:  # pragma: no cover - the runner (coverage does not follow forks)
+            code = 0
+            try:
+                parent_end.close()
+                _runner_main(child_end, self.items)
+            except BaseException:  # noqa: BLE001 - a runner must never return into the launcher
+                code = 70
+            finally:
+                os._exit(code)
+        child_end.close()
+        return _Runner(pid, parent_end)
+
+    def dispatch(self, i: int, claimed: Any) -> None:
+        """Send job ``i`` (claimed: lock taken, attempt counted) to an idle runner."""
+        runner = self.idle.pop()
+        try:
+            runner.conn.send((i, claimed.attempt))
+        except OSError:  # the runner died idle: start another and send it there
+            runner.conn.close()
+            _reap(runner.pid)
+            runner = self._spawn()
+            runner.conn.send((i, claimed.attempt))
+        self.running[runner.conn] = (runner, i, claimed)
+
+    def wait(self) -> list[tuple[int, Any, int]]:
+        """Block until at least one runner answers or dies; ``(index, claimed job, wait status)``
+        of each job that ended."""
+        from multiprocessing.connection import wait
+
+        ended = []
+        for ready in wait(list(self.running)):
+            runner, i, claimed = self.running.pop(ready)
+            conn = runner.conn
+            try:
+                _j, status = conn.recv()
+                self.idle.append(runner)
+            except (EOFError, OSError):  # the runner died running job i
+                status = _reap(runner.pid)
+                conn.close()
+                self.idle.append(self._spawn())
+            ended.append((i, claimed, status))
+        return ended
+
+    def kill(self) -> list[tuple[int, Any, int]]:
+        """Stop the runners with jobs in flight (an interrupt); those jobs with their wait status."""
+        ended = []
+        for conn, (runner, i, claimed) in list(self.running.items()):
+            try:
+                os.kill(runner.pid, signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+            ended.append((i, claimed, _reap(runner.pid)))
+            conn.close()
+        self.running.clear()
+        return ended
+
+    def close(self) -> None:
+        """Tell the idle runners to stop and wait for them."""
+        for runner in self.idle:
+            try:
+                runner.conn.send(None)
+            except OSError:
+                pass
+            runner.conn.close()
+            _reap(runner.pid)
+        self.idle.clear()
+
+
+def _reap(pid: int) -> int:
+    """Wait for child ``pid``; its wait status (``SIGKILL``'s when it is already gone)."""
+    try:
+        return os.waitpid(pid, 0)[1]
+    except ChildProcessError:
+        return int(signal.SIGKILL)
+
+
+class _Progress:
+    """The sweep's progress line from the launcher's own counts, at most every
+    :data:`PROGRESS_INTERVAL_S` (and always for the last job)."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.done, self.failed, self.printed = total, 0, 0, 0
+        self._last_print = 0.0
+        self._elapsed = 0.0
+
+    def add(self, ok: bool, elapsed_s: float) -> None:
+        self.done += 1
+        self.failed += not ok
+        self._elapsed = elapsed_s
+        if time.perf_counter() - self._last_print >= PROGRESS_INTERVAL_S or self.done == self.total:
+            self.flush()
+
+    def flush(self) -> None:
+        """Print the line if a job finished since the last one."""
+        if self.done != self.printed:
+            self._last_print, self.printed = time.perf_counter(), self.done
+            line = format_progress(self.done, self.failed, self.total, 0, 0, self._elapsed)
+            print(f"nirspi-run: {line}", flush=True)

@@ -1,0 +1,128 @@
+"""The ``nirspi`` launcher: runner processes, crash isolation, equality with the joblib launcher."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.records import RECORD_NAME, read_record, write_record
+from nirspi_pipe.sweeper import ComposedJob
+
+fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are forked")
+
+
+def _fake_execute(config, out_dir, choices, overrides, job_num, attempt=None):  # type: ignore[no-untyped-def]
+    """What a job does, by ``config["how"]``: crash in one of several ways, or write an ok record
+    naming the runner's pid (to see runners reused and replaced)."""
+    import ctypes
+
+    how = config["how"]
+    if how == "segv":
+        ctypes.string_at(0)
+    elif how == "exit":
+        os._exit(5)
+    elif how == "kill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    elif how == "raise":
+        raise RuntimeError("job runner broke")
+    write_record(out_dir, {"meta": {"status": "ok", "attempt": attempt, "pid": os.getpid(), "num": job_num}})
+    return {}
+
+
+@fork_only
+def test_crashing_jobs_take_only_themselves_down(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Jobs that segfault, exit, are SIGKILLed or raise each get a failed record naming what
+    happened; every other job runs, on runners that are reused and replaced after each crash."""
+    import nirspi_pipe.launcher as launcher
+
+    monkeypatch.setattr(launcher, "_execute", _fake_execute)
+    hows = ["ok", "segv", "ok", "kill", "ok", "exit", "raise", "ok", "ok", "ok"]
+    items = [(tmp_path / f"job{i}", i, ComposedJob({"how": how}, {}, [f"how={how}"])) for i, how in enumerate(hows)]
+    returns = launcher.NirspiLauncherBase(n_jobs=2)._run(items, tmp_path, None, False)
+    assert len(returns) == len(hows)
+    expected = {"segv": "SIGSEGV", "kill": "SIGKILL", "exit": "code 5", "raise": "code 70"}
+    pids = set()
+    for (out_dir, num, _job), how, ret in zip(items, hows, returns, strict=True):
+        meta = read_record(out_dir / RECORD_NAME)["meta"]
+        assert ret.return_value["meta"] == meta
+        assert json.loads((out_dir / "attempts.json").read_text())["attempts"] == 1
+        if how == "ok":
+            assert meta["status"] == "ok" and meta["num"] == num
+            pids.add(meta["pid"])
+            assert meta["pid"] != os.getpid()
+        else:
+            assert meta["status"] == "failed" and meta["error_type"] == "JobCrash", how
+            assert expected[how] in meta["error"], (how, meta["error"])
+            assert meta["overrides"] == [f"how={how}"] and meta["job_num"] == num
+    # 6 ok jobs on 2 runners at a time: reused (fewer pids than jobs), replaced after crashes
+    assert 2 <= len(pids) < hows.count("ok") + 1
+    assert not any(p.name.startswith(".") and p.suffix == ".tmp" for p in tmp_path.rglob("*"))
+
+
+@fork_only
+def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job whose folder another process holds is run after the others, once the lock is free."""
+    import subprocess
+    import sys
+    import time
+
+    import nirspi_pipe.launcher as launcher
+
+    monkeypatch.setattr(launcher, "_execute", _fake_execute)
+    items = [(tmp_path / f"job{i}", i, ComposedJob({"how": "ok"}, {}, [])) for i in range(3)]
+    (tmp_path / "job1").mkdir()
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from nirspi_pipe.records import JobLock; "
+            f"JobLock({str(tmp_path / 'job1')!r}).acquire(); print('held', flush=True); time.sleep(1.5)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        t0 = time.perf_counter()
+        launcher.NirspiLauncherBase(n_jobs=2)._run(items, tmp_path, None, False)
+        assert time.perf_counter() - t0 < 30
+    finally:
+        holder.wait(timeout=30)
+    for out_dir, _num, _job in items:
+        assert read_record(out_dir / RECORD_NAME)["meta"]["status"] == "ok"
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, True, "2"])
+def test_bad_n_jobs_is_one_line(bad: object) -> None:
+    from nirspi_pipe.launcher import NirspiLauncherBase
+
+    with pytest.raises(ConfigError) as info:
+        NirspiLauncherBase(n_jobs=bad)  # type: ignore[arg-type]
+    assert "hydra.launcher.n_jobs" in str(info.value) and "allowed" in str(info.value)
+
+
+@pytest.mark.slow
+def test_same_numbers_as_the_joblib_launcher(cli) -> None:
+    """The default launcher runs the configs the sweeper composed (no second composition): its
+    records hold the same config, choices, overrides and metrics, bit for bit, as joblib's."""
+    grid = ["nirspi-run", "-m", "+experiment=table3_ci", "scan=basic,spiral", "illumination.klux=5"]
+    for launcher_args, folder in (([], "nirspi"), (["hydra/launcher=joblib"], "joblib")):
+        res = cli(*grid, *launcher_args, f"hydra.sweep.dir={folder}", timeout=600)
+        assert res.returncode == 0, res.stderr
+        # the experiment's own grid times the command line's: 16 jobs, 2 distinct, each run once
+        assert "sweep of 16 jobs" in res.stdout and "2 to run" in res.stdout, res.stdout
+        assert "14 identical to another job (run once)" in res.stdout, res.stdout
+    ours = {p.parent.name: read_record(p) for p in (cli.cwd / "nirspi").glob("*/record.json")}
+    theirs = {p.parent.name: read_record(p) for p in (cli.cwd / "joblib").glob("*/record.json")}
+    assert len(ours) == 2 and set(ours) == set(theirs)
+    for key, rec in ours.items():
+        other = theirs[key]
+        for part in ("config", "choices", "metrics", "derived"):
+            assert rec[part] == other[part], (key, part)
+        for field in ("overrides", "job_key", "config_hash", "status", "inputs"):
+            assert rec["meta"][field] == other["meta"][field], (key, field)
