@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from skimage.restoration import denoise_tv_chambolle
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.solvers.common import (
@@ -123,6 +122,10 @@ class FistaTVSolver:
 
     def _prox(self, z: np.ndarray, weight: float) -> np.ndarray:
         """``argmin_u ½‖u − z‖² + weight·TV(u)`` (scikit-image's weight is that factor)."""
+        # imported here: skimage.restoration pulls in scipy.stats (1.0-1.3 s, python -X importtime),
+        # which every nirspi-run with the example plugin installed paid twice at start-up
+        from skimage.restoration import denoise_tv_chambolle
+
         u = z if weight == 0 else denoise_tv_chambolle(z, weight=weight, eps=0.0, max_num_iter=self.tv_iter)
         return np.maximum(u, 0.0) if self.nonneg else u
 
