@@ -33,7 +33,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from scipy.linalg.blas import dtpmv
@@ -145,6 +145,27 @@ def pick_atom(score: np.ndarray) -> int:
     return int(np.flatnonzero(score >= best * (1.0 - TIE_RTOL))[0])
 
 
+T = TypeVar("T")
+
+
+def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
+    """Run ``fn`` with one BLAS thread. Every product of the OMP loop is small (a few million
+    multiply-adds), and on the project's 2-core machines OpenBLAS's second thread made the loop
+    11x slower (128² at 25 %: 14.6 s against 1.3 s, an in-process solve with and without
+    OPENBLAS_NUM_THREADS=1; ``nirspi-bench omp`` times it)."""
+    import functools
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> T:
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+@_one_blas_thread
 def omp_core(
     y: np.ndarray,
     engine: OmpBackend,
@@ -164,25 +185,6 @@ def omp_core(
     ``Aᵀ r`` (analysis). ``‖r‖² = ‖y‖² − ‖z‖²`` gives the stopping test without forming ``r``.
     Returns ``(coefficients (N,), atoms, stop_reason, ‖r‖/‖y‖)``.
     """
-    from threadpoolctl import threadpool_limits
-
-    # One BLAS thread: every product of the loop is small (a few million multiply-adds), and on
-    # the project's 2-core machines OpenBLAS's second thread made the loop 11x slower (128² at
-    # 25 %: 14.6 s against 1.3 s, an in-process solve with and without OPENBLAS_NUM_THREADS=1,
-    # reproduced by `nirspi-bench omp`).
-    with threadpool_limits(limits=1, user_api="blas"):
-        return _omp_loop(y, engine, column, colnorm, k_max, tol, normalize)
-
-
-def _omp_loop(
-    y: np.ndarray,
-    engine: OmpBackend,
-    column: Callable[[int], np.ndarray],
-    colnorm: np.ndarray,
-    k_max: int,
-    tol: float,
-    normalize: bool,
-) -> tuple[np.ndarray, int, str, float]:
     size = colnorm.size
     ny = float(np.linalg.norm(y))
     usable = colnorm > 1e-12 * float(colnorm.max())
