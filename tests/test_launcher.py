@@ -126,3 +126,24 @@ def test_same_numbers_as_the_joblib_launcher(cli) -> None:
             assert rec[part] == other[part], (key, part)
         for field in ("overrides", "job_key", "config_hash", "status", "inputs"):
             assert rec["meta"][field] == other["meta"][field], (key, field)
+
+
+@pytest.mark.slow
+def test_another_sweeper_composes_through_hydra_and_runs_on_runners(cli) -> None:
+    """With Hydra's basic sweeper the launcher composes each job itself (``launch``): numbered
+    folders, the task overrides and job numbers Hydra gives, every job ok."""
+    res = cli(
+        "nirspi-run",
+        "-m",
+        "hydra/sweeper=basic",
+        "seed=0,1",
+        "camera.resolution=16",
+        "output.images=false",
+        "hydra.sweep.dir=sweep",
+    )
+    assert res.returncode == 0, res.stderr
+    assert "2/2 jobs done" in res.stdout
+    for num in (0, 1):
+        rec = read_record(cli.cwd / "sweep" / str(num) / RECORD_NAME)
+        assert rec["meta"]["status"] == "ok" and rec["meta"]["job_num"] == num
+        assert rec["meta"]["overrides"][0] == f"seed={num}" and rec["config"]["seed"] == num
