@@ -52,3 +52,19 @@ def cli(tmp_path: Path):
 
     _run.cwd = tmp_path  # type: ignore[attr-defined]
     return _run
+
+
+def crash_as(how: str) -> None:
+    """Die the way ``how`` names (for crash-isolation tests): ``segv`` (segmentation fault),
+    ``exit`` (``os._exit(5)``), ``kill`` (``SIGKILL``), ``raise`` (an exception); ``ok`` returns."""
+    import ctypes
+    import signal
+
+    if how == "segv":
+        ctypes.string_at(0)
+    elif how == "exit":
+        os._exit(5)
+    elif how == "kill":
+        os.kill(os.getpid(), signal.SIGKILL)
+    elif how == "raise":
+        raise RuntimeError("runner broke")

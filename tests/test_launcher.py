@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 from pathlib import Path
 
 import pytest
 
+from conftest import crash_as
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.records import RECORD_NAME, read_record, write_record
 from nirspi_pipe.sweeper import ComposedJob
@@ -19,17 +19,7 @@ fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are fork
 def _fake_execute(config, out_dir, choices, overrides, job_num, attempt=None):  # type: ignore[no-untyped-def]
     """What a job does, by ``config["how"]``: crash in one of several ways, or write an ok record
     naming the runner's pid (to see runners reused and replaced)."""
-    import ctypes
-
-    how = config["how"]
-    if how == "segv":
-        ctypes.string_at(0)
-    elif how == "exit":
-        os._exit(5)
-    elif how == "kill":
-        os.kill(os.getpid(), signal.SIGKILL)
-    elif how == "raise":
-        raise RuntimeError("job runner broke")
+    crash_as(config["how"])
     write_record(out_dir, {"meta": {"status": "ok", "attempt": attempt, "pid": os.getpid(), "num": job_num}})
     return {}
 

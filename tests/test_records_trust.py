@@ -284,19 +284,12 @@ def test_crash_messages_name_the_signal_or_exit_code() -> None:
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="crash isolation needs os.fork")
 @pytest.mark.parametrize("how", ["segv", "exit", "kill", "raise", "ok"])
 def test_run_sweep_job_survives_its_child(tmp_path: Path, how: str) -> None:
-    import ctypes
-
     from omegaconf import OmegaConf
 
+    from conftest import crash_as
+
     def execute(cfg, out_dir, choices, overrides, job_num, attempt=None):  # type: ignore[no-untyped-def]
-        if how == "segv":
-            ctypes.string_at(0)
-        elif how == "exit":
-            os._exit(5)
-        elif how == "kill":
-            os.kill(os.getpid(), signal.SIGKILL)
-        elif how == "raise":
-            raise RuntimeError("runner broke")
+        crash_as(how)
         write_record(out_dir, {"meta": {"status": "ok", "attempt": attempt}})
         return {}
 

@@ -154,9 +154,9 @@ class NirspiLauncherBase(Launcher):
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         """Hydra's launcher interface (any sweeper): compose each job with Hydra's config loader,
         then run it as :meth:`run_composed` does, into ``hydra.sweep.dir/hydra.sweep.subdir``."""
-        from omegaconf import OmegaConf, open_dict
+        from omegaconf import open_dict
 
-        from nirspi_pipe.sweeper import _choices, _resolved
+        from nirspi_pipe.sweeper import composed_job
 
         items = []
         for idx, overrides in enumerate(job_overrides):
@@ -165,8 +165,7 @@ class NirspiLauncherBase(Launcher):
                 cfg.hydra.job.num = initial_job_idx + idx
                 cfg.hydra.job.id = f"{cfg.hydra.job.name}_{initial_job_idx + idx}"
             out_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
-            task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])  # type: ignore[arg-type]
-            items.append((out_dir, initial_job_idx + idx, ComposedJob(_resolved(cfg), _choices(cfg), task)))
+            items.append((out_dir, initial_job_idx + idx, composed_job(cfg)))
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
         return self._run(items, sweep_dir, None, False)
 

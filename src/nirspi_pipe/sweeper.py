@@ -56,6 +56,7 @@ from nirspi_pipe.records import (
 __all__ = [
     "SWEEP_FILE",
     "ComposedJob",
+    "composed_job",
     "NirspiSweeperBase",
     "ProgressWatcher",
     "SweepFileError",
@@ -173,6 +174,12 @@ class ComposedJob:
     config: dict[str, Any]
     choices: dict[str, Any]
     task_overrides: list[str]
+
+
+def composed_job(cfg: Any) -> ComposedJob:
+    """The :class:`ComposedJob` of a config Hydra composed (``load_sweep_config``)."""
+    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])  # type: ignore[arg-type]
+    return ComposedJob(_resolved(cfg), _choices(cfg), task)
 
 
 def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
@@ -429,16 +436,7 @@ class NirspiSweeperBase(Sweeper):
 
     def _composed(self, overrides: list[str]) -> ComposedJob:
         """:meth:`compose`, as a :class:`ComposedJob`."""
-        cfg = self.compose(overrides)
-        return ComposedJob(_resolved(cfg), _choices(cfg), self._task_overrides(overrides))
-
-    def _task_overrides(self, overrides: list[str]) -> list[str]:
-        """The overrides that Hydra hands the task (``hydra.overrides.task``): all but ``hydra.*``."""
-        try:
-            parsed = self._parser().parse_overrides(list(overrides))
-        except Exception:  # noqa: BLE001 - composition reports bad syntax
-            return list(overrides)
-        return [text for ov, text in zip(parsed, overrides, strict=True) if not ov.is_hydra_override()]
+        return composed_job(self.compose(overrides))
 
     def _compose(self, overrides: list[str], bases: dict[tuple[str, ...], Any]) -> ComposedJob:
         """:meth:`compose`, fast for grids.
@@ -458,7 +456,7 @@ class NirspiSweeperBase(Sweeper):
         split = self._split(overrides)
         if split is None:
             return self._composed(overrides)
-        base_key, updates = split
+        base_key, updates, task = split
         if base_key not in bases:
             cfg = self.compose(list(base_key))
             raw = cast("dict[str, Any]", OmegaConf.to_container(cfg, resolve=False))
@@ -473,17 +471,22 @@ class NirspiSweeperBase(Sweeper):
             resolved = _resolve_plain(plain_cfg)
         except Exception:  # noqa: BLE001 - let Hydra's composition say what is wrong
             return self._composed(overrides)
-        return ComposedJob(resolved, dict(choices), self._task_overrides(overrides))
+        return ComposedJob(resolved, dict(choices), task)
 
-    def _split(self, overrides: list[str]) -> tuple[tuple[str, ...], list[Any]] | None:
-        """``(structural overrides, parsed plain value overrides)`` of a job (None: unparsable)."""
+    def _split(self, overrides: list[str]) -> tuple[tuple[str, ...], list[Any], list[str]] | None:
+        """``(structural overrides, parsed plain value overrides, task overrides)`` of a job, from
+        one parse (None: unparsable). The task overrides are all but ``hydra.*``, as Hydra hands
+        them to the task (``hydra.overrides.task``)."""
         try:
             parsed = self._parser().parse_overrides(overrides)
         except Exception:  # noqa: BLE001 - Hydra reports it properly when it composes
             return None
         structural: list[str] = []
         updates: list[Any] = []
+        task: list[str] = []
         for ov, text in zip(parsed, overrides, strict=True):
+            if not ov.is_hydra_override():
+                task.append(text)
             plain = (
                 not (ov.is_add() or ov.is_delete() or ov.is_force_add())
                 and ov.package is None
@@ -494,7 +497,7 @@ class NirspiSweeperBase(Sweeper):
                 updates.append(ov)
             else:
                 structural.append(text)
-        return tuple(structural), updates
+        return tuple(structural), updates, task
 
     def _compose_failure(self, overrides: list[str], exc: Exception) -> str:
         """One line naming the first override with which the job stops composing."""
