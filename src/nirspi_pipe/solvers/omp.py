@@ -11,10 +11,11 @@ residual with every atom is ``G = Mᵀ R M`` (``R``: the residual scattered on t
 Hadamard grid), two ``n × n`` products, ``O(n³) = O(N^{3/2})``. No ``N × N`` (nor ``m × N``)
 matrix is ever formed.
 
-Algorithm (Pati et al. 1993): repeat — pick the atom whose normalised correlation with the
-residual is largest; orthogonalise its column against the chosen ones (classical Gram–Schmidt,
-twice: CGS2); remove it from the residual — until ``‖r‖ ≤ tol·‖y‖``, ``max_atoms`` atoms, or
-no atom is left. Then ``R s = Qᵀ y`` (triangular) gives the coefficients on the support.
+Algorithm (Pati et al. 1993): repeat — pick the atom whose (optionally normalised) correlation
+with the residual is largest; orthogonalise it against the chosen ones; remove it from the
+residual — until ``‖r‖ ≤ tol·‖y‖``, ``max_atoms`` atoms, or no atom is left. The
+orthogonalisation is an incremental Cholesky factor of the support's Gram matrix (see
+:func:`omp_core`), and the correlations are updated per atom rather than recomputed.
 
 Ties (symmetric scenes have exactly equal correlations) are broken deterministically: among
 the atoms within a relative ``1e-9`` of the best score, the lowest index wins. This is what
@@ -23,7 +24,7 @@ and agree to ``1e-5``.
 
 Back ends: ``numpy`` (the reference) and ``opencl`` (:mod:`nirspi_pipe.solvers.omp_opencl`,
 pyopencl, float64; PoCL on the CPU here), which runs the correlation ``Mᵀ R M`` and the
-Gram–Schmidt products in OpenCL kernels. The selection rule, the bookkeeping and the final
+synthesis ``M S Mᵀ`` in OpenCL kernels. The selection rule, the bookkeeping and the final
 triangular solve are shared host code.
 """
 
@@ -36,7 +37,7 @@ from functools import lru_cache
 from typing import Any, Protocol, TypeVar
 
 import numpy as np
-from scipy.linalg.blas import dtpmv
+from scipy.linalg.blas import daxpy, dtpmv
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import sylvester
@@ -47,10 +48,6 @@ __all__ = ["OMPSolver", "basis_matrix", "haar_matrix", "dct_matrix", "omp_hadama
 
 #: Relative window within which correlation scores count as tied (lowest atom index wins).
 TIE_RTOL = 1e-9
-#: Support columns kept for the residual while they fit in this many bytes (assumed: a typical
-#: 2 MiB per-core L2 cache; beyond it the memory-bound product loses to the in-cache transform,
-#: measured with ``nirspi-bench omp``: 64² 0.92× the reference with columns, 1.24× without).
-COLUMN_CACHE_BYTES = 2 << 20
 
 
 @lru_cache(maxsize=16)
@@ -92,48 +89,101 @@ class OmpBackend(Protocol):
     def correlate(self, residual: np.ndarray) -> np.ndarray:
         """``Aᵀ r`` raveled (``(N,)``): ``Mᵀ R M``, ``R`` the residual scattered on the measured cells."""
 
-    def gram(self, column: np.ndarray, support: np.ndarray) -> np.ndarray:
-        """``(Aᵀ a)[support]``: the correlations of ``column`` with the support's atoms."""
+    def gram(self, p: int, support: np.ndarray) -> np.ndarray:
+        """``A_Sᵀ a_p``: the correlations of atom ``p`` with the support's atoms."""
 
-    def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
-        """``A s`` (``(m,)``): ``(M S Mᵀ)`` at the measured cells, ``S`` the ``n × n`` coefficients."""
+    def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """``Aᵀ A_S u`` (``(N,)``): the correlations of the combination ``Σ u_j a_{support_j}``."""
+
+
+def project_by_transforms(engine: Any, support: np.ndarray, u: np.ndarray, size: int) -> np.ndarray:
+    """``Aᵀ A_S u`` as one full synthesis (``engine.synthesize``) and one correlation."""
+    coeffs = np.zeros(size)
+    coeffs[support] = u
+    return np.asarray(engine.correlate(engine.synthesize(coeffs)))
 
 
 class NumpyOmpBackend:
     """Reference back end: the separable transform ``M = H Bᵀ`` as matrix products, restricted to
     the Hadamard rows ``U`` and columns ``V`` that hold a measurement (``R`` is zero elsewhere; a
-    low-sequency order at 25 % uses about 70 % of each), and a product whose result is needed
-    only at some cells is done once and finished per cell."""
+    low-sequency order at 25 % uses about 70 % of each).
+
+    :meth:`project` synthesises only from the basis rows and columns the support uses, in the
+    order they joined it (``M_U[:, a_S] S_c M_V[:, b_S]ᵀ``, with ``S_c`` the support's
+    coefficients on those rows and columns), keeps the measured cells with a 0/1 mask, and
+    correlates: no gather or scatter of ``m`` values."""
 
     def __init__(self, m_mat: np.ndarray, rows: np.ndarray, cols: np.ndarray, k_max: int) -> None:
-        self.n = m_mat.shape[0]
-        used_rows, self.rows = np.unique(rows, return_inverse=True)
-        used_cols, self.cols = np.unique(cols, return_inverse=True)
+        self.n = n = m_mat.shape[0]
+        used_rows, u_of = np.unique(rows, return_inverse=True)
+        used_cols, v_of = np.unique(cols, return_inverse=True)
+        self.cells = u_of * used_cols.size + v_of  # measured cells, flat on the |U| × |V| grid
         self.mu_t = np.ascontiguousarray(m_mat[used_rows].T)  # (n, |U|)
-        self.mu = np.ascontiguousarray(m_mat[used_rows])  # (|U|, n)
         self.mv = np.ascontiguousarray(m_mat[used_cols])  # (|V|, n)
         self.mv_t = np.ascontiguousarray(self.mv.T)  # (n, |V|)
         self.grid = np.zeros((used_rows.size, used_cols.size))
-        #: multiply–adds of one synthesis (two products), for omp_core's choice of residual route
-        self.synth_cost = float(self.n * self.n * (used_rows.size + used_cols.size))
-
-    def _scatter_left(self, values: np.ndarray) -> np.ndarray:
-        """``Mᵀ R`` (``(n, |V|)``) for ``R`` the values scattered on the measured cells."""
-        self.grid[self.rows, self.cols] = values
-        out = self.mu_t @ self.grid
-        self.grid[self.rows, self.cols] = 0.0
-        return out
+        self.flat = self.grid.ravel()  # a view: flat scatters are 4× faster than (row, col) ones
+        self.mask = np.zeros_like(self.grid)
+        self.mask.ravel()[self.cells] = 1.0
+        # the support's basis rows a (columns of M_U, stored as rows of M_Uᵀ) and columns b, in
+        # the order they joined the support; slot[a] is a's position there (−1: not yet)
+        self.sel_a = np.zeros((n, used_rows.size))
+        self.sel_b = np.zeros((n, used_cols.size))
+        self.slot_a = np.full(n, -1, dtype=np.int64)
+        self.slot_b = np.full(n, -1, dtype=np.int64)
+        self.na = self.nb = self.known = 0
+        self.pos_a = np.zeros(k_max, dtype=np.int64)
+        self.pos_b = np.zeros(k_max, dtype=np.int64)
+        self.pos = np.zeros(k_max, dtype=np.int64)  # pos_a · n + pos_b
+        self.coef = np.zeros((n, n))
+        self.synth = np.empty_like(self.grid)
+        self.left = np.empty((n, used_cols.size))
+        self.out = np.empty((n, n))  # project's result, overwritten by the next call
 
     def correlate(self, residual: np.ndarray) -> np.ndarray:
-        return (self._scatter_left(residual) @ self.mv).ravel()
+        self.flat[self.cells] = residual
+        out = (self.mu_t @ self.grid) @ self.mv
+        self.flat[self.cells] = 0.0
+        return out.ravel()
 
-    def gram(self, column: np.ndarray, support: np.ndarray) -> np.ndarray:
-        t = self._scatter_left(column)
-        a_idx, b_idx = np.divmod(support, self.n)
-        return np.einsum("ij,ij->i", t[a_idx], self.mv_t[b_idx])
+    def gram(self, p: int, support: np.ndarray) -> np.ndarray:
+        # a_p on the grid is mask ⊙ (x yᵀ), x = M_U[:, a], y = M_V[:, b]; so
+        # A_Sᵀ a_p = ((M_Uᵀ[a_S] ⊙ x) mask) ⊙ y) M_V[:, b_S] read at the support's cells
+        k = support.size
+        self._admit(support)
+        a, b = divmod(p, self.n)
+        left = (self.sel_a[: self.na] * self.mu_t[a]) @ self.mask  # (na, |V|)
+        left *= self.mv_t[b]
+        return (left @ self.sel_b[: self.nb].T).ravel()[self.pos_a[:k] * self.nb + self.pos_b[:k]]
 
-    def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
-        return (self.mu @ coeffs.reshape(self.n, self.n) @ self.mv_t)[self.rows, self.cols]  # (M S Mᵀ)[i_k, j_k]
+    def _admit(self, support: np.ndarray) -> None:
+        """Record the atoms of ``support`` that joined since the last call (the support only grows
+        within one solve; a shorter one starts over)."""
+        if support.size < self.known:
+            self.slot_a[:], self.slot_b[:], self.coef[:] = -1, -1, 0.0
+            self.na = self.nb = self.known = 0
+        for j in range(self.known, support.size):
+            a, b = divmod(int(support[j]), self.n)
+            if self.slot_a[a] < 0:
+                self.slot_a[a], self.sel_a[self.na] = self.na, self.mu_t[a]
+                self.na += 1
+            if self.slot_b[b] < 0:
+                self.slot_b[b], self.sel_b[self.nb] = self.nb, self.mv_t[b]
+                self.nb += 1
+            self.pos_a[j], self.pos_b[j] = self.slot_a[a], self.slot_b[b]
+            self.pos[j] = self.slot_a[a] * self.n + self.slot_b[b]
+        self.known = support.size
+
+    def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
+        k = support.size
+        self._admit(support)
+        na, nb = self.na, self.nb
+        self.coef.ravel()[self.pos[:k]] = u  # overwrites every earlier support cell
+        part = self.sel_a[:na].T @ self.coef[:na, :nb]  # (|U|, nb)
+        synth = np.matmul(part, self.sel_b[:nb], out=self.synth)  # (|U|, |V|): A_S u, Hadamard rows × cols
+        synth *= self.mask
+        np.matmul(np.matmul(self.mu_t, synth, out=self.left), self.mv, out=self.out)
+        return self.out.ravel()
 
 
 def pick_atom(score: np.ndarray) -> int:
@@ -142,7 +192,7 @@ def pick_atom(score: np.ndarray) -> int:
     best = float(score.max())
     if not best > 0.0:
         return -1
-    return int(np.flatnonzero(score >= best * (1.0 - TIE_RTOL))[0])
+    return int(np.argmax(score >= best * (1.0 - TIE_RTOL)))  # the first index in the window
 
 
 T = TypeVar("T")
@@ -169,7 +219,6 @@ def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
 def omp_core(
     y: np.ndarray,
     engine: OmpBackend,
-    column: Callable[[int], np.ndarray],
     colnorm: np.ndarray,
     k_max: int,
     tol: float,
@@ -177,12 +226,19 @@ def omp_core(
 ) -> tuple[np.ndarray, int, str, float]:
     """OMP with an incremental Cholesky factor of the support's Gram matrix ``A_SᵀA_S = L Lᵀ``,
     kept as its inverse ``L⁻¹`` (lower triangular; adding an atom appends a row and leaves the
-    others unchanged).
+    others unchanged). ``Q = A_S L⁻ᵀ`` are the orthonormalised atoms (never formed: row ``k`` of
+    ``L⁻¹`` holds ``q_k`` as a combination of the support's atoms).
 
-    Per atom: the Gram column ``A_Sᵀ a_p`` by the transform, ``w = L⁻¹ A_Sᵀa_p`` and the new row of
-    ``L⁻¹`` (two matrix–vector products, ``O(k²)``), ``z = L⁻¹ A_Sᵀ y`` and the coefficients
-    ``s = L⁻ᵀ z`` updated in ``O(k)``, then the residual ``y − A s`` (synthesis) and its correlation
-    ``Aᵀ r`` (analysis). ``‖r‖² = ‖y‖² − ‖z‖²`` gives the stopping test without forming ``r``.
+    Per atom ``p``:
+
+    * ``w = Qᵀ a_p = L⁻¹ A_Sᵀ a_p``: the Gram column ``A_Sᵀ a_p`` (``engine.gram``) and one
+      triangular product (``O(k²)``);
+    * ``d² = ‖a_p‖² − ‖w‖²``, the new row of ``L⁻¹`` ``[−wᵀL⁻¹, 1]/d`` (``O(k²)``), and
+      ``z_k = q_kᵀ y = (a_pᵀy − w·z)/d``; the coefficients ``s = L⁻ᵀ z`` gain one term (``O(k)``);
+    * the residual ``r ← r − z_k q_k`` changes the correlations by ``−z_k Aᵀ q_k``: one
+      synthesis of ``q_k`` from its ``k`` atoms and one correlation (``engine.project``).
+
+    ``‖r‖² = ‖y‖² − ‖z‖²`` gives the stopping test without forming ``r``.
     Returns ``(coefficients (N,), atoms, stop_reason, ‖r‖/‖y‖)``.
     """
     size = colnorm.size
@@ -191,22 +247,14 @@ def omp_core(
     # selection weight; 0 for atoms already chosen or invisible (score 0 is never picked)
     weight = np.where(usable, 1.0 / np.where(usable, colnorm, 1.0), 0.0) if normalize else usable.astype(np.float64)
     aty = engine.correlate(y)
-    g = aty
+    g = aty.copy()  # Aᵀ r, updated per atom
     # L⁻¹ stored as Uᵀ, U upper triangular packed by columns: column j of U (row j of L⁻¹) is
     # ap[j(j+1)/2 : (j+1)(j+2)/2], so adding an atom appends; BLAS tpmv reads only the triangle.
     ap = np.zeros(k_max * (k_max + 1) // 2)
     z = np.zeros(k_max)
     s_sup = np.zeros(k_max)  # coefficients on the support, in support order
     support = np.zeros(k_max, dtype=np.int64)
-    coeffs = np.zeros(size)
     score = np.empty(size)
-    # The residual y − A_S s from the stored support columns costs m·k multiply–adds, read from
-    # memory; the synthesis transform costs about synth_cost, in cache. Keep the columns while the
-    # stored product is cheaper and they fit in COLUMN_CACHE_BYTES.
-    synth_cost = float(getattr(engine, "synth_cost", 0.0))
-    m = y.size
-    keep_cols = int(min(k_max, synth_cost // max(m, 1), COLUMN_CACHE_BYTES // (8 * max(m, 1))))
-    acols = np.zeros((keep_cols, m))
     stop, k, res, z2 = "max_atoms", 0, 1.0, 0.0
     while k < k_max:
         np.multiply(np.abs(g, out=score), weight, out=score)
@@ -215,38 +263,32 @@ def omp_core(
             stop = "exhausted"
             break
         weight[p] = 0.0
-        a = column(p)
-        a2 = float(a @ a)
+        a2 = float(colnorm[p]) ** 2
         start = k * (k + 1) // 2
-        if k:
-            w = dtpmv(k, ap, engine.gram(a, support[:k]), lower=0, trans=1)  # L⁻¹ A_Sᵀ a
-            d2 = a2 - float(w @ w)
-        else:
+        if not k:
             w, d2 = np.zeros(0), a2
+        else:
+            w = dtpmv(k, ap, engine.gram(p, support[:k]), lower=0, trans=1)  # L⁻¹ A_Sᵀ a
+            d2 = a2 - float(w @ w)
         if not d2 > 1e-20 * a2:
             continue  # linearly dependent on the support: skip the atom
         d = np.sqrt(d2)
         if k:
             ap[start : start + k] = dtpmv(k, ap, w, lower=0, trans=0) * (-1.0 / d)  # −(wᵀ L⁻¹)/d
         ap[start + k] = 1.0 / d
-        z[k] = (float(aty[p]) - float(w @ z[:k])) / d
+        zk = (float(aty[p]) - float(w @ z[:k])) / d
+        z[k] = zk
         support[k] = p
-        if k < keep_cols:
-            acols[k] = a
-        s_sup[: k + 1] += z[k] * ap[start : start + k + 1]  # s = L⁻ᵀ z, one new term
-        z2 += z[k] * z[k]
+        s_sup[: k + 1] += zk * ap[start : start + k + 1]  # s = L⁻ᵀ z, one new term
+        z2 += zk * zk
         k += 1
         res = float(np.sqrt(max(ny * ny - z2, 0.0))) / ny
         if res <= tol:
             stop = "residual_tol"
             break
         if k < k_max:
-            if k <= keep_cols:
-                g = engine.correlate(y - s_sup[:k] @ acols[:k])
-            else:
-                coeffs[support[:k]] = s_sup[:k]
-                g = engine.correlate(y - engine.synthesize(coeffs))
-    coeffs[:] = 0.0
+            daxpy(engine.project(support[:k], ap[start : start + k]), g, a=-zk)  # r −= z_k q_k: g −= z_k Aᵀq_k
+    coeffs = np.zeros(size)
     coeffs[support[:k]] = s_sup[:k]
     return coeffs, k, stop, res
 
@@ -294,11 +336,7 @@ def omp_hadamard(
 
         engine = OpenCLOmpBackend(m_mat, rows, cols, k_max)
 
-    def column(p: int) -> np.ndarray:
-        a_idx, b_idx = divmod(p, n)
-        return m_mat[rows, a_idx] * m_mat[cols, b_idx]
-
-    coeffs, k, stop, res = omp_core(np.asarray(y, np.float64), engine, column, colnorm, k_max, tol, normalize)
+    coeffs, k, stop, res = omp_core(np.asarray(y, np.float64), engine, colnorm, k_max, tol, normalize)
     s = coeffs.reshape(n, n)
     image = b.T @ s @ b  # X = Bᵀ S B
     info.update(iterations=k, stop_reason=stop, relative_residual=res)
@@ -317,12 +355,11 @@ class DenseOmpBackend:
     def correlate(self, residual: np.ndarray) -> np.ndarray:
         return residual @ self.a
 
-    def gram(self, column: np.ndarray, support: np.ndarray) -> np.ndarray:
-        return column @ self.a[:, support]
+    def gram(self, p: int, support: np.ndarray) -> np.ndarray:
+        return self.a[:, p] @ self.a[:, support]
 
-    def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
-        nz = np.flatnonzero(coeffs)
-        return self.a[:, nz] @ coeffs[nz]
+    def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return (self.a[:, support] @ u) @ self.a
 
 
 def omp_explicit(
@@ -343,9 +380,7 @@ def omp_explicit(
         )
         return np.zeros((n, n)), info
     colnorm = np.linalg.norm(engine.a, axis=0)
-    coeffs, k, stop, res = omp_core(
-        np.asarray(y, np.float64), engine, lambda p: engine.a[:, p], colnorm, k_max, tol, normalize
-    )
+    coeffs, k, stop, res = omp_core(np.asarray(y, np.float64), engine, colnorm, k_max, tol, normalize)
     image = b.T @ coeffs.reshape(n, n) @ b
     info.update(iterations=k, stop_reason=stop, relative_residual=res)
     return image, info

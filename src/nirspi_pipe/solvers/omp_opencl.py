@@ -110,6 +110,7 @@ class OpenCLOmpBackend:
         self.n = int(m_mat.shape[0])
         self.m_count = int(rows.size)
         self.rows, self.cols = rows, cols
+        self.m_host = m_mat
         mf = cl.mem_flags
         n2 = self.n * self.n
         self.k_scatter = kernels["scatter"]
@@ -142,8 +143,15 @@ class OpenCLOmpBackend:
         self.k_scatter(q, (self.m_count,), None, self.d_grid, self.d_rows, self.d_cols, self.d_resid, n)
         return self._products(self.d_m, self.d_m)
 
-    def gram(self, column: np.ndarray, support: np.ndarray) -> np.ndarray:
+    def gram(self, p: int, support: np.ndarray) -> np.ndarray:
+        a_idx, b_idx = divmod(p, self.n)
+        column = self.m_host[self.rows, a_idx] * self.m_host[self.cols, b_idx]
         return self.correlate(column)[support]
+
+    def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
+        from nirspi_pipe.solvers.omp import project_by_transforms
+
+        return project_by_transforms(self, support, u, self.n * self.n)
 
     def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
         self.cl.enqueue_copy(self.queue, self.d_grid, np.ascontiguousarray(coeffs, np.float64))
