@@ -96,13 +96,6 @@ class OmpBackend(Protocol):
         """``Aᵀ A_S u`` (``(N,)``): the correlations of the combination ``Σ u_j a_{support_j}``."""
 
 
-def project_by_transforms(engine: Any, support: np.ndarray, u: np.ndarray, size: int) -> np.ndarray:
-    """``Aᵀ A_S u`` as one full synthesis (``engine.synthesize``) and one correlation."""
-    coeffs = np.zeros(size)
-    coeffs[support] = u
-    return np.asarray(engine.correlate(engine.synthesize(coeffs)))
-
-
 class NumpyOmpBackend:
     """Reference back end: the separable transform ``M = H Bᵀ`` as matrix products, restricted to
     the Hadamard rows ``U`` and columns ``V`` that hold a measurement (``R`` is zero elsewhere; a
@@ -345,21 +338,33 @@ def omp_hadamard(
 
 class DenseOmpBackend:
     """Explicit patterns: ``A = P (Bᵀ ⊗ Bᵀ)``, each pattern's 2D basis transform, an ``(m, N)``
-    matrix the size of the patterns themselves."""
+    matrix the size of the patterns themselves. The support's columns are copied once, as they
+    join, into a ``(k_max, m)`` block, so the per-atom products read them contiguously."""
 
-    def __init__(self, patterns: np.ndarray, b: np.ndarray) -> None:
+    def __init__(self, patterns: np.ndarray, b: np.ndarray, k_max: int) -> None:
         n = b.shape[0]
         p = np.asarray(patterns, dtype=np.float64).reshape(-1, n, n)
         self.a = np.ascontiguousarray((b @ p @ b.T).reshape(p.shape[0], n * n))
+        self.cols = np.zeros((k_max, self.a.shape[0]))
+        self.known = 0
+
+    def _admit(self, support: np.ndarray) -> None:
+        if support.size < self.known:  # a new solve
+            self.known = 0
+        for j in range(self.known, support.size):
+            self.cols[j] = self.a[:, support[j]]
+        self.known = support.size
 
     def correlate(self, residual: np.ndarray) -> np.ndarray:
         return residual @ self.a
 
     def gram(self, p: int, support: np.ndarray) -> np.ndarray:
-        return self.a[:, p] @ self.a[:, support]
+        self._admit(support)
+        return self.cols[: support.size] @ self.a[:, p]
 
     def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return (self.a[:, support] @ u) @ self.a
+        self._admit(support)
+        return (u @ self.cols[: support.size]) @ self.a
 
 
 def omp_explicit(
@@ -367,9 +372,9 @@ def omp_explicit(
 ) -> tuple[np.ndarray, dict]:
     """OMP for measurements ``y = P x`` with explicit patterns ``P`` (``(m, n²)``, any values)."""
     b = basis_matrix(basis, n)
-    engine = DenseOmpBackend(patterns, b)
-    m, size = engine.a.shape
-    k_max = int(max(0, min(max_atoms, m, size)))
+    m = len(patterns)
+    k_max = int(max(0, min(max_atoms, m, n * n)))
+    engine = DenseOmpBackend(patterns, b, k_max)
     ny = float(np.linalg.norm(y))
     info: dict = {"backend": "numpy", "basis": basis}
     if ny == 0.0 or k_max == 0:

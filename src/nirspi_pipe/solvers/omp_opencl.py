@@ -149,9 +149,10 @@ class OpenCLOmpBackend:
         return self.correlate(column)[support]
 
     def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
-        from nirspi_pipe.solvers.omp import project_by_transforms
-
-        return project_by_transforms(self, support, u, self.n * self.n)
+        """``Aᵀ A_S u``: one full synthesis and one correlation on the device."""
+        coeffs = np.zeros(self.n * self.n)
+        coeffs[support] = u
+        return self.correlate(self.synthesize(coeffs))
 
     def synthesize(self, coeffs: np.ndarray) -> np.ndarray:
         self.cl.enqueue_copy(self.queue, self.d_grid, np.ascontiguousarray(coeffs, np.float64))
