@@ -314,12 +314,25 @@ def heat_diffusion(values: np.ndarray, points: np.ndarray, knn: int, time_step: 
     ``points`` ``(p, 3)``: solves ``(D + t(D − W)) x' = D x`` (backward Euler of
     ``∂x/∂τ = −(I − D⁻¹W)x``), unconditionally stable; ``t = time_step`` is dimensionless.
     Units of ``values`` are kept."""
-    p = len(points)
-    if time_step == 0 or p < 3:
+    if time_step == 0 or len(points) < 3:
         return np.array(values, dtype=np.float64, copy=True)
+    return _heat_step(values, *_heat_graph(points, knn), time_step)
+
+
+def _heat_graph(points: np.ndarray, knn: int) -> tuple[sparse.csr_matrix, np.ndarray]:
+    """The kNN heat-kernel graph ``W`` of ``points`` ``(p, 3)`` (metres) and its degrees
+    ``D`` ``(p,)`` (dimensionless, floored at 1e-12: an isolated point stays put), which
+    :func:`heat_diffusion` uses for any ``t``: :meth:`ItofFusion._diffuse` builds them once for
+    its up to three trial steps."""
     w = _knn_graph(points, knn)
     deg = np.asarray(w.sum(axis=1)).ravel()
-    deg = np.maximum(deg, 1e-12)  # isolated point: stays put
+    return w, np.maximum(deg, 1e-12)
+
+
+def _heat_step(values: np.ndarray, w: sparse.csr_matrix, deg: np.ndarray, time_step: float) -> np.ndarray:
+    """Solve ``(D + t(D − W)) x' = D x`` for ``values`` ``(p,)`` or ``(p, c)`` on the graph of
+    :func:`_heat_graph` (``t = time_step`` > 0, dimensionless); units of ``values`` are kept."""
+    p = len(deg)
     d = sparse.diags(deg)
     a = ((1.0 + time_step) * d - time_step * w).tocsc()
     rhs = deg[:, None] * np.asarray(values, dtype=np.float64).reshape(p, -1)
@@ -599,12 +612,13 @@ class ItofFusion:
         if step == 0 or len(cloud) < 3:
             return cloud, 0.0
         r = np.linalg.norm(cloud, axis=1)
+        graph = _heat_graph(cloud, self.knn)  # the same for every trial t (what heat_diffusion builds)
 
         def apply(t: float) -> tuple[np.ndarray, float]:
             if self.diffuse == "range":
-                r2 = heat_diffusion(r, cloud, self.knn, t)
+                r2 = _heat_step(r, *graph, t)
                 return cloud / r[:, None] * r2[:, None], float(np.percentile(np.abs(r2 - r), 95))
-            c2 = heat_diffusion(cloud, cloud, self.knn, t)
+            c2 = _heat_step(cloud, *graph, t)
             return c2, float(np.percentile(np.linalg.norm(c2 - cloud, axis=1), 95))
 
         out, moved = apply(step)
