@@ -3,12 +3,14 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from nirspi_pipe.mesh.fusion import ItofFusion, _heat_graph, _heat_step, heat_diffusion
+from nirspi_pipe.mesh.fusion import ItofFusion, _heat_graph, _heat_step, _nanmedian_last, heat_diffusion
 from nirspi_pipe.mesh.powercrust import (
     _compact,
     _cross3,
@@ -196,3 +198,18 @@ def test_diffuse_builds_the_graph_once_with_the_same_result(
     out, step = fusion._diffuse(cloud, noise_m)
     ref_out, ref_step = _diffuse_reference(fusion, cloud, noise_m)
     assert _same(out, ref_out) and step == ref_step
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    hnp.arrays(
+        np.float64,
+        st.tuples(st.integers(0, 6), st.integers(1, 9)),
+        elements=st.one_of(st.floats(-1e300, 1e300), st.sampled_from([np.nan, np.nan, np.inf, -np.inf, 1.5, 1.5])),
+    )
+)
+def test_nanmedian_last_is_np_nanmedian(a: np.ndarray) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows
+        ref = np.nanmedian(a, axis=-1)
+    assert np.array_equal(_nanmedian_last(a), ref, equal_nan=True)

@@ -72,6 +72,21 @@ __all__ = [
 _MAX_POINTS = 5_000_000  # guard on Alg. A4's output (d_pitch far below the triangle size)
 
 
+def _nanmedian_last(a: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(a, axis=-1)``: per row the mean ``(lo + hi) / 2`` of the two middle sorted
+    non-NaN values (the middle one twice for an odd count), as numpy computes it, NaN for an
+    all-NaN row; the same values (tests/test_mesh_speed.py; a zero may differ in sign), without
+    numpy's masked arrays and its one RuntimeWarning per all-NaN row (0.2 ms instead of 1.5 ms
+    on the 3×3 windows of a 32² map, median of 100 calls on the 2-core box)."""
+    srt = np.sort(a, axis=-1)  # NaN sort last
+    cnt = (~np.isnan(a)).sum(axis=-1)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[..., None], axis=-1)[..., 0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[..., None], axis=-1)[..., 0]
+    with np.errstate(invalid="ignore", over="ignore"):  # inf − inf, overflow: silent, as in numpy's
+        mid = (lo + hi) / 2.0
+    return np.where(cnt > 0, mid, np.nan)
+
+
 def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.ndarray:
     """Valid-pixel mask without the spikes of a depth map ``(n, n)`` (any unit).
 
@@ -99,9 +114,7 @@ def despike(depth: np.ndarray, valid: np.ndarray, k: float, unit: float) -> np.n
     # local residual scale: a smooth but strongly curved region (an occluding contour) has large
     # residuals at every pixel; a spike stands out against its own neighbourhood's too
     ares = np.pad(np.abs(res), 1, constant_values=np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows off the mask
-        local = 1.4826 * np.nanmedian(np.lib.stride_tricks.sliding_window_view(ares, (3, 3)).reshape(n0, n1, 9), -1)
+    local = 1.4826 * _nanmedian_last(np.lib.stride_tricks.sliding_window_view(ares, (3, 3)).reshape(n0, n1, 9))
     scale = np.maximum(sigma, np.nan_to_num(local, nan=sigma))
     return valid & ~(np.abs(np.nan_to_num(res)) > k * scale)
 
