@@ -19,7 +19,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.powercrust import trim_to_samples
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["ScreenedPoisson"]
@@ -94,12 +94,13 @@ class ScreenedPoisson:
         verts = np.asarray(m.vertex_matrix(), dtype=np.float64) * 1e-3
         faces = np.asarray(m.face_matrix(), dtype=np.int64)
         info: dict[str, Any] = {"faces_closed": int(len(faces))}
+        spacing = sample_spacing(pts)  # once, for the trim and the remeshing
         if not self.closed and len(faces):
-            verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
+            verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
         if len(faces) == 0:
             warnings.warn("poisson: empty surface", stacklevel=2)
         verts, faces, rinfo = remesh_to_cloud(
-            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing
         )
         info.update(rinfo)
         info["faces"] = int(len(faces))

@@ -45,7 +45,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
 #: Grid (m) the samples are snapped to before the Delaunay/Qhull steps. Assumed: 10 nm, five orders
@@ -63,6 +63,48 @@ def _dot3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
 
 
+def _cross3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of ``(..., 3)`` arrays, written out like :func:`_dot3`: the IEEE
+    operations of ``np.cross`` (``u₁v₂ − u₂v₁``, …), so the same bits (tests/test_mesh_speed.py),
+    without its axis bookkeeping, which made it 5× slower on 8000 rows (0.40 vs 0.08 ms,
+    measured with timeit on this project's 2-core box)."""
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape), dtype=np.result_type(u, v))
+    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
+    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
+    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    return out
+
+
+def _sum_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[index[i]] += values[i]`` into ``(n, c)`` zeros, for ``values`` ``(k, c)``: the sums of
+    ``np.add.at`` (both add in the order of ``i``, so the same bits, tests/test_mesh_speed.py) by
+    one ``np.bincount`` per column, 4× faster (0.25 vs 1.04 ms for 20000 rows, timeit)."""
+    out = np.zeros((n, values.shape[1]))
+    for k in range(values.shape[1]):
+        out[:, k] = np.bincount(index, weights=values[:, k], minlength=n)
+    return out
+
+
+def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and length of each run of equal values of a sorted 1-D array: the ``return_index``
+    and ``return_counts`` of ``np.unique`` on it (tests/test_mesh_speed.py), without its sort."""
+    k = np.asarray(sorted_keys)
+    new = np.ones(len(k), dtype=bool)
+    np.not_equal(k[1:], k[:-1], out=new[1:])
+    start = np.flatnonzero(new)
+    return start, np.diff(np.append(start, len(k)))
+
+
+def _compact(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices used by ``faces`` (indices ``< n_vertices``, ascending) and the faces
+    renumbered into them: ``np.unique(faces, return_inverse=True)`` (tests/test_mesh_speed.py)
+    by marking instead of sorting."""
+    mark = np.zeros(n_vertices, dtype=bool)
+    mark[faces] = True
+    new_id = np.cumsum(mark) - 1
+    return np.flatnonzero(mark), new_id[faces]
+
+
 def circumcentres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Power centres ``(t, 3)`` of tetrahedra ``(t, 4, 3)`` with vertex weights ``(t, 4)``
     (``None`` = circumcentres), and a ``(t,)`` bool flag of the non-degenerate ones.
@@ -73,28 +115,63 @@ def circumcentres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     near-flat tetrahedra amplify it, and Qhull's hull of the poles then changed its faces
     (Haswell vs Sandybridge, ``bash .ci/reproduce-cpus.sh``).
     """
-    p0 = tets[:, 0]
-    r = 2.0 * (tets[:, 1:] - p0[:, None, :])
-    lift = _dot3(tets, tets)
+    # one (t, 4) array per coordinate: the same IEEE operations as on (t, 4, 3) rows, without
+    # numpy's inner loops of length 3 (2.5 -> 1.9 ms on a table3 cloud's 3800 Delaunay
+    # tetrahedra, median of 200 calls on the 2-core box; tests/test_mesh_speed.py: same bits)
+    x, y, z = (np.ascontiguousarray(tets[..., k]) for k in range(3))
+    rx, ry, rz = 2.0 * (x[:, 1:] - x[:, :1]), 2.0 * (y[:, 1:] - y[:, :1]), 2.0 * (z[:, 1:] - z[:, :1])
+    lift = x * x + y * y + z * z  # _dot3(tets, tets)
     if weights is not None:
         lift = lift - weights
     b = lift[:, 1:] - lift[:, :1]
-    c23, c31, c12 = np.cross(r[:, 1], r[:, 2]), np.cross(r[:, 2], r[:, 0]), np.cross(r[:, 0], r[:, 1])
-    det = _dot3(r[:, 0], c23)
-    scale = np.max(np.abs(r), axis=(1, 2)) ** 3
+    rows = [np.column_stack([rx[:, i], ry[:, i], rz[:, i]]) for i in range(3)]
+    c23, c31, c12 = _cross3(rows[1], rows[2]), _cross3(rows[2], rows[0]), _cross3(rows[0], rows[1])
+    det = _dot3(rows[0], c23)
+    scale = np.maximum.reduce([np.abs(q[:, i]) for q in (rx, ry, rz) for i in range(3)]) ** 3
     ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
     c = np.zeros((len(tets), 3))
     if ok.any():
-        num = b[ok, 0:1] * c23[ok] + b[ok, 1:2] * c31[ok] + b[ok, 2:3] * c12[ok]
-        c[ok] = num / det[ok][:, None]
+        sub = slice(None) if ok.all() else ok  # all: no copies
+        num = b[sub, 0:1] * c23[sub] + b[sub, 1:2] * c31[sub] + b[sub, 2:3] * c12[sub]
+        c[sub] = num / det[sub][:, None]
     return c, ok
 
 
 def _group_first(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per distinct key, the position of the largest value: ``(unique_keys, positions)``."""
-    order = np.lexsort((-values, keys))
-    uk, first = np.unique(keys[order], return_index=True)
-    return uk, order[first]
+    """Per distinct key, the position of the largest value (the first one on ties):
+    ``(unique_keys, positions)``, what sorting by key and decreasing value and taking each key's
+    first entry gives (tests/test_mesh_speed.py). For non-negative integer keys and values
+    without NaN by two unbuffered ``ufunc.at`` passes (0.3 ms instead of the sort's 2.1 ms on
+    the 14 000 entries of a table3 cloud's poles, median of 200); otherwise by that sort (NaN
+    ranks last)."""
+    keys = np.asarray(keys)
+    if len(keys) == 0 or keys.dtype.kind not in "iu" or keys.min() < 0 or np.isnan(values).any():
+        order = np.lexsort((-values, keys))
+        uk, first = np.unique(keys[order], return_index=True)
+        return uk, order[first]
+    n_keys = int(keys.max()) + 1
+    best = np.full(n_keys, -np.inf)
+    np.maximum.at(best, keys, values)
+    cand = np.flatnonzero(values == best[keys])  # every key has one: its largest value
+    pos = np.full(n_keys, len(keys))
+    np.minimum.at(pos, keys[cand], cand)
+    uk = np.flatnonzero(pos < len(keys))
+    return uk.astype(keys.dtype), pos[uk]
+
+
+def _order_in_runs(values: np.ndarray, run: np.ndarray, start: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """The permutation that sorts ``values`` stably within each run of consecutive positions
+    (``run``: each position's run, ``start``/``size``: the runs' of :func:`_runs`), the runs
+    staying in place: ``np.lexsort((values, run))`` (tests/test_mesh_speed.py). The runs are the
+    rows of a padded array sorted at once, 2.7× faster than ``lexsort`` on 20 000 values in runs
+    of 3–8 (timeit); ``lexsort`` when the padding would be large (a few long runs)."""
+    longest = int(size.max()) if len(size) else 0
+    if len(size) * longest > 4 * len(values) + 1024:
+        return np.lexsort((values, run))
+    pad = np.full((len(size), longest), np.inf)  # after every value but NaN; dropped below
+    pad[run, np.arange(len(values)) - start[run]] = values
+    o = np.argsort(pad, axis=1, kind="stable")
+    return (o + start[:, None])[o < size[:, None]]
 
 
 def compute_poles(samples: np.ndarray, box_factor: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,13 +200,14 @@ def compute_poles(samples: np.ndarray, box_factor: float = 3.0) -> tuple[np.ndar
     v = tri.simplices.ravel()
     sel = (v < n) & ok[tet]
     tet, v = tet[sel], v[sel]
-    dist = np.linalg.norm(cc[tet] - s[v], axis=1)
+    to_cc = cc[tet] - s[v]  # sample -> Voronoi vertex
+    dist = np.linalg.norm(to_cc, axis=1)
     owners, pos = _group_first(v, dist)
     if len(owners) != n:
         raise NirspiError("power crust: some samples have no Voronoi vertex (duplicate points?)")
     plus = cc[tet[pos]]
     dirp = plus - s
-    side = np.einsum("ij,ij->i", cc[tet] - s[v], dirp[v])
+    side = np.einsum("ij,ij->i", to_cc, dirp[v])
     neg = side < 0
     own_n, pos_n = _group_first(v[neg], dist[neg])
     minus = cc[tet[neg][pos_n]]
@@ -209,12 +287,18 @@ def _label_amenta(
 
 
 def power_crust(
-    samples: np.ndarray, labelling: str = "view", box_factor: float = 3.0, weld_factor: float = 0.25
+    samples: np.ndarray,
+    labelling: str = "view",
+    box_factor: float = 3.0,
+    weld_factor: float = 0.25,
+    spacing_m: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Power crust of ``samples`` ``(n, 3)`` (metres).
 
     Power-diagram vertices closer than ``weld_factor`` × the median sample spacing are welded,
-    and each power face (a polygon) is triangulated around its centroid.
+    and each power face (a polygon) is triangulated around its centroid. ``spacing_m``: that
+    spacing (metres, :func:`~nirspi_pipe.mesh.remesh.sample_spacing` of ``samples``) when the
+    caller has it; None computes it.
 
     Returns ``(vertices (v, 3) metres, faces (f, 3), info)``; faces are oriented from the inner
     to the outer pole (outward normals).
@@ -247,17 +331,17 @@ def power_crust(
     tets, centres = tets[ok], centres[ok]
     # the six edges of each tetrahedron, with the two other vertices (the ring around the edge)
     edge_sel = np.array([(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)])
-    e = tets[:, edge_sel]  # (t, 6, 4)
-    a, b = np.minimum(e[..., 0], e[..., 1]).ravel(), np.maximum(e[..., 0], e[..., 1]).ravel()
-    tet_id = np.repeat(np.arange(len(tets)), 6)
     if labelling == "view":
         inner = _label_view(poles, s)
     else:
-        edges = np.unique(np.column_stack([a, b]), axis=0)
-        inner = _label_amenta(poles, radii, pairs, s, edges)
-    mixed = inner[a] != inner[b]
-    a, b, tet_id = a[mixed], b[mixed], tet_id[mixed]
-    others = e.reshape(-1, 4)[mixed][:, 2:]
+        ends = tets[:, edge_sel[:, :2]].reshape(-1, 2)
+        inner = _label_amenta(poles, radii, pairs, s, np.unique(np.sort(ends, axis=1), axis=0))
+    # edge k of the 6t is edge k % 6 of tetrahedron k // 6; only those between inner and outer count
+    lab = inner[tets]
+    mixed = np.flatnonzero(lab[:, edge_sel[:, 0]] != lab[:, edge_sel[:, 1]])
+    tet_id = mixed // 6
+    e = tets[tet_id[:, None], edge_sel[mixed % 6]]  # (k, 4): edge (a, b) and its ring pair
+    a, b, others = np.minimum(e[:, 0], e[:, 1]), np.maximum(e[:, 0], e[:, 1]), e[:, 2:]
     m = len(poles)
     key = a.astype(np.int64) * m + b
     # keep the edges whose ring of tetrahedra is closed (each ring vertex seen exactly twice)
@@ -268,44 +352,42 @@ def power_crust(
     a, b, tet_id, key = a[closed], b[closed], tet_id[closed], key[closed]
     if len(key) == 0:
         raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
+    # one run per edge; a stable sort keeps each ring's order, so the sums below add in the same order
+    by_key = np.argsort(key, kind="stable")
+    a, b, tet_id, key = a[by_key], b[by_key], tet_id[by_key], key[by_key]
+    start, size = _runs(key)
+    ring = np.repeat(np.arange(len(start)), size)
     # order each ring by angle around its edge
     pa, pb = poles[a], poles[b]
     axis = pb - pa
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     ref = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = np.cross(axis, ref)
+    u = _cross3(axis, ref)
     u /= np.linalg.norm(u, axis=1, keepdims=True)
-    w = np.cross(axis, u)
+    w = _cross3(axis, u)
     # around the polygon's own centroid: the line through the two poles need not pierce it
-    _, ginv = np.unique(key, return_inverse=True)
-    gsum = np.zeros((ginv.max() + 1, 3))
-    np.add.at(gsum, ginv, centres[tet_id])
-    gmean = gsum / np.bincount(ginv)[:, None]
-    rel = centres[tet_id] - gmean[ginv]
+    ring_c = centres[tet_id]
+    rel = ring_c - (_sum_rows(ring, ring_c, len(start)) / size[:, None])[ring]
     ang = np.arctan2(np.einsum("ij,ij->i", rel, w), np.einsum("ij,ij->i", rel, u))
-    order = np.lexsort((ang, key))
-    key, tet_id, a, b = key[order], tet_id[order], a[order], b[order]
+    order = _order_in_runs(ang, ring, start, size)  # key stays sorted: np.lexsort((ang, key))
+    tet_id, a, b = tet_id[order], a[order], b[order]
     # weld power vertices closer than weld_factor x the sample spacing (co-spherical poles give
     # several tetrahedra with one power centre; near-coincident ones make sliver triangles)
-    spacing = float(np.median(cKDTree(s).query(s, k=2)[0][:, 1]))
+    spacing = float(np.median(cKDTree(s).query(s, k=2)[0][:, 1])) if spacing_m is None else float(spacing_m)
     wtol = max(weld_factor * spacing, 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12))
-    ids = np.unique(tet_id)
+    ids, id_of = _compact(tet_id, len(tets))
     close = cKDTree(centres[ids]).query_pairs(wtol, output_type="ndarray")
     graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(len(ids), len(ids)))
     n_cl, cl = connected_components(graph, directed=False)
-    vpos = np.zeros((n_cl, 3))
-    np.add.at(vpos, cl, centres[ids])
-    vpos /= np.bincount(cl, minlength=n_cl)[:, None]
-    vid = cl[np.searchsorted(ids, tet_id)]
+    vpos = _sum_rows(cl, centres[ids], n_cl) / np.bincount(cl, minlength=n_cl)[:, None]
+    vid = cl[id_of]
     # drop repeated vertices along each ring (cyclic), then polygons with < 3 vertices
-    _, start, size = np.unique(key, return_index=True, return_counts=True)
-    grp = np.repeat(np.arange(len(start)), size)
     prev = np.arange(len(key)) - 1
     prev[start] = start + size - 1
     keep = vid != vid[prev]
     keep[start[size == 1]] = True
     key, vid, a, b = key[keep], vid[keep], a[keep], b[keep]
-    _, start, size = np.unique(key, return_index=True, return_counts=True)
+    start, size = _runs(key)
     ok = size >= 3
     grp = np.repeat(np.arange(len(start)), size)
     sel = ok[grp]
@@ -314,38 +396,37 @@ def power_crust(
     nxt = np.arange(len(key)) + 1
     last = start + size - 1
     nxt[last] = start
-    cen = np.zeros((len(start), 3))
-    np.add.at(cen, grp, vpos[vid])
-    cen /= size[:, None]
+    cen = _sum_rows(grp, vpos[vid], len(start)) / size[:, None]
     verts = np.vstack([vpos, cen])
     faces = np.column_stack([n_cl + grp, vid, vid[nxt]])[sel]
     # orient outwards: normal along (outer pole − inner pole)
     ea, eb = a[sel], b[sel]
-    out_dir = np.where(inner[ea][:, None], poles[eb] - poles[ea], poles[ea] - poles[eb])
-    nrm = np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    flip = np.einsum("ij,ij->i", nrm, out_dir) < 0
+    nrm = _cross3(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
+    along = np.einsum("ij,ij->i", nrm, poles[eb] - poles[ea])  # x − y = −(y − x) exactly in IEEE
+    flip = np.where(inner[ea], along < 0, along > 0)
     faces[flip] = faces[flip][:, [0, 2, 1]]
-    used, faces = np.unique(faces, return_inverse=True)
-    faces = faces.reshape(-1, 3)
+    used, faces = _compact(faces, len(verts))
     info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(ok.sum())}
     return verts[used], faces, info
 
 
 def trim_to_samples(
-    vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, factor: float
+    vertices: np.ndarray, faces: np.ndarray, samples: np.ndarray, factor: float, spacing_m: float | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Keep the faces whose three vertices lie within ``factor`` × the median sample spacing of
-    some sample; drop unused vertices. Metres in, metres out."""
+    some sample; drop unused vertices. Metres in, metres out. ``spacing_m``: that spacing
+    (metres, :func:`~nirspi_pipe.mesh.remesh.sample_spacing` of ``samples``) when the caller has
+    it; None computes it."""
     tree = cKDTree(samples)
-    spacing = float(np.median(tree.query(samples, k=2)[0][:, 1]))
+    spacing = float(np.median(tree.query(samples, k=2)[0][:, 1])) if spacing_m is None else float(spacing_m)
     d, _ = tree.query(vertices, k=1)
     near = d <= factor * spacing
     keep = near[faces].all(axis=1)
     faces = faces[keep]
     if len(faces) == 0:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
-    used, inv = np.unique(faces, return_inverse=True)
-    return vertices[used], inv.reshape(-1, 3)
+    used, inv = _compact(faces, len(vertices))
+    return vertices[used], inv
 
 
 @dataclass(frozen=True)
@@ -397,14 +478,15 @@ class PowerCrust:
         if not np.all(np.isfinite(pts)):
             raise NirspiError("power crust: the point cloud has non-finite points")
         pts = np.round(pts / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
-        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor)
+        spacing = sample_spacing(pts)  # once: the crust's welding, the trim and the remeshing use it
+        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor, spacing)
         info["faces_closed"] = int(len(faces))
         if not self.closed:
-            verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor)
+            verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
             if len(faces) == 0:
                 warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
         verts, faces, rinfo = remesh_to_cloud(
-            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing
         )
         info.update(rinfo)
         info["faces"] = int(len(faces))

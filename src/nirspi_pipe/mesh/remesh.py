@@ -58,14 +58,15 @@ def remesh_to_cloud(
     iterations: int,
     edge_factor: float,
     max_hole_edges: int,
+    spacing_m: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """:func:`clean_and_remesh` at the cloud's own :func:`sample_spacing`, as the surface stages
-    call it on their reconstruction of ``points_m``; an empty mesh is returned unchanged."""
+    call it on their reconstruction of ``points_m``; an empty mesh is returned unchanged.
+    ``spacing_m``: that spacing (metres) when the caller has it; None computes it."""
     if len(faces) == 0:
         return vertices_m, faces, {}
-    return clean_and_remesh(
-        vertices_m, faces, sample_spacing(points_m), int(iterations), float(edge_factor), int(max_hole_edges)
-    )
+    spacing = sample_spacing(points_m) if spacing_m is None else float(spacing_m)
+    return clean_and_remesh(vertices_m, faces, spacing, int(iterations), float(edge_factor), int(max_hole_edges))
 
 
 def clean_and_remesh(

@@ -1,0 +1,215 @@
+"""The fast helpers of the 3D path give the same bits as the straightforward numpy they replace
+(power crust bookkeeping, fusion's heat filter): the speed-up must not change any mesh or cloud."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from nirspi_pipe.mesh.fusion import ItofFusion, _heat_graph, _heat_step, _nanmedian_last, heat_diffusion
+from nirspi_pipe.mesh.powercrust import (
+    _compact,
+    _cross3,
+    _group_first,
+    _order_in_runs,
+    _runs,
+    _sum_rows,
+    circumcentres,
+)
+
+# finite values with ties, signed zeros and a wide range of magnitudes
+_FLOATS = st.one_of(
+    st.sampled_from([0.0, -0.0, 1.0, -1.0, 0.5]), st.floats(-1e6, 1e6, allow_nan=False, allow_subnormal=True)
+)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal values, dtypes and shapes, with NaN equal to NaN and -0.0 distinct from +0.0."""
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@settings(max_examples=100, deadline=None)
+@given(hnp.arrays(np.float64, st.tuples(st.integers(0, 20), st.just(3)), elements=_FLOATS), st.booleans())
+def test_cross3_is_np_cross(u: np.ndarray, broadcast_row: bool) -> None:
+    v = u[::-1] * 0.75 + 0.1
+    if broadcast_row:
+        v = np.array([[1.0, 0.0, 0.0]])
+    assert _same(_cross3(u, v), np.cross(u, v))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 8), st.data())
+def test_sum_rows_is_add_at(n: int, data: st.DataObject) -> None:
+    k = data.draw(st.integers(0, 40))
+    index = data.draw(hnp.arrays(np.int64, k, elements=st.integers(0, n - 1)))
+    values = data.draw(hnp.arrays(np.float64, (k, 3), elements=_FLOATS))
+    ref = np.zeros((n, 3))
+    np.add.at(ref, index, values)
+    assert _same(_sum_rows(index, values, n), ref)
+
+
+@settings(max_examples=100, deadline=None)
+@given(hnp.arrays(np.int64, st.integers(0, 40), elements=st.integers(-5, 5)))
+def test_runs_is_unique_of_sorted(keys: np.ndarray) -> None:
+    keys = np.sort(keys)
+    start, size = _runs(keys)
+    _, ref_start, ref_size = np.unique(keys, return_index=True, return_counts=True)
+    assert np.array_equal(start, ref_start) and np.array_equal(size, ref_size)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 30), st.data())
+def test_compact_is_unique_inverse(n: int, data: st.DataObject) -> None:
+    faces = data.draw(hnp.arrays(np.int64, (data.draw(st.integers(0, 15)), 3), elements=st.integers(0, n - 1)))
+    used, inv = _compact(faces, n)
+    ref_used, ref_inv = np.unique(faces, return_inverse=True)
+    assert _same(used, ref_used) and _same(inv, ref_inv.reshape(-1, 3))
+
+
+def _group_first_reference(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    order = np.lexsort((-values, keys))
+    uk, first = np.unique(keys[order], return_index=True)
+    return uk, order[first]
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 40).flatmap(
+        lambda k: st.tuples(
+            hnp.arrays(np.int32, k, elements=st.integers(-2, 6)),
+            hnp.arrays(
+                np.float64, k, elements=st.one_of(_FLOATS, st.sampled_from([np.inf, -np.inf, np.nan, 2.0, 2.0]))
+            ),
+        )
+    )
+)
+def test_group_first_is_the_sort(kv: tuple[np.ndarray, np.ndarray]) -> None:
+    keys, values = kv
+    uk, pos = _group_first(keys, values)
+    ref_uk, ref_pos = _group_first_reference(keys, values)
+    assert _same(uk, ref_uk) and np.array_equal(pos, ref_pos)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    hnp.arrays(np.int64, st.integers(0, 12), elements=st.integers(1, 9)),
+    st.data(),
+    st.booleans(),
+)
+def test_order_in_runs_is_lexsort(sizes: np.ndarray, data: st.DataObject, one_long_run: bool) -> None:
+    if one_long_run:  # the padded array would be mostly padding: the lexsort fallback
+        sizes = np.append(sizes, 2000)
+    n = int(sizes.sum())
+    elements = st.one_of(_FLOATS, st.sampled_from([np.inf, -np.inf, np.nan, 0.25, 0.25]))
+    values = data.draw(hnp.arrays(np.float64, n, elements=elements))
+    start, size = _runs(np.repeat(np.arange(len(sizes)), sizes))
+    run = np.repeat(np.arange(len(size)), size)
+    assert np.array_equal(_order_in_runs(values, run, start, size), np.lexsort((values, run)))
+
+
+def _circumcentres_reference(tets: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Cramer's rule on the (t, 4, 3) rows with np.cross, as before the speed-up."""
+    p0 = tets[:, 0]
+    r = 2.0 * (tets[:, 1:] - p0[:, None, :])
+    lift = tets[..., 0] * tets[..., 0] + tets[..., 1] * tets[..., 1] + tets[..., 2] * tets[..., 2]
+    if weights is not None:
+        lift = lift - weights
+    b = lift[:, 1:] - lift[:, :1]
+    c23, c31, c12 = np.cross(r[:, 1], r[:, 2]), np.cross(r[:, 2], r[:, 0]), np.cross(r[:, 0], r[:, 1])
+    det = r[:, 0, 0] * c23[:, 0] + r[:, 0, 1] * c23[:, 1] + r[:, 0, 2] * c23[:, 2]
+    scale = np.max(np.abs(r), axis=(1, 2)) ** 3
+    ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
+    c = np.zeros((len(tets), 3))
+    if ok.any():
+        num = b[ok, 0:1] * c23[ok] + b[ok, 1:2] * c31[ok] + b[ok, 2:3] * c12[ok]
+        c[ok] = num / det[ok][:, None]
+    return c, ok
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.tuples(st.integers(0, 12), st.just(4), st.just(3)), elements=st.floats(-1.0, 1.0)),
+    st.booleans(),
+    st.booleans(),
+)
+def test_circumcentres_is_cramer_on_rows(tets: np.ndarray, weighted: bool, flatten_one: bool) -> None:
+    if flatten_one and len(tets):  # a degenerate (flat) tetrahedron next to regular ones
+        tets[0, 3] = tets[0, 0] + 0.5 * (tets[0, 1] - tets[0, 0]) + 0.5 * (tets[0, 2] - tets[0, 0])
+    weights = np.abs(tets[..., 0]) * 0.1 if weighted else None
+    c, ok = circumcentres(tets, weights)
+    ref_c, ref_ok = _circumcentres_reference(tets, weights)
+    assert _same(c, ref_c) and _same(ok, ref_ok)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(5, 60), st.sampled_from([1.0, 3.0, 0.01]))
+def test_heat_step_on_a_reused_graph_is_heat_diffusion(seed: int, p: int, t: float) -> None:
+    pts = np.random.default_rng(seed).normal(0.0, 0.01, (p, 3)) + [0.0, 0.0, 0.2]
+    graph = _heat_graph(pts, 8)
+    r = np.linalg.norm(pts, axis=1)
+    for values in (r, pts, r):  # the graph serves several solves unchanged
+        assert _same(_heat_step(values, *graph, t), heat_diffusion(values, pts, 8, t))
+
+
+def _diffuse_reference(fusion: ItofFusion, cloud: np.ndarray, noise_m: float) -> tuple[np.ndarray, float]:
+    """ItofFusion._diffuse as before the speed-up: heat_diffusion (a new kNN graph) per trial."""
+    step = float(fusion.time_step)
+    if step == 0 or len(cloud) < 3:
+        return cloud, 0.0
+    r = np.linalg.norm(cloud, axis=1)
+
+    def apply(t: float) -> tuple[np.ndarray, float]:
+        if fusion.diffuse == "range":
+            r2 = heat_diffusion(r, cloud, fusion.knn, t)
+            return cloud / r[:, None] * r2[:, None], float(np.percentile(np.abs(r2 - r), 95))
+        c2 = heat_diffusion(cloud, cloud, fusion.knn, t)
+        return c2, float(np.percentile(np.linalg.norm(c2 - cloud, axis=1), 95))
+
+    out, moved = apply(step)
+    target = 1.96 * noise_m
+    for _ in range(2):
+        if not fusion.adaptive_step or moved <= 1.05 * target:
+            break
+        step *= target / moved if moved > 0 else 0.0
+        if step <= 0:
+            return cloud, 0.0
+        out, moved = apply(step)
+    return out, step
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(3, 80),
+    st.sampled_from(["range", "xyz"]),
+    st.sampled_from([0.0, 1e-5, 1e-3]),
+    st.booleans(),
+)
+def test_diffuse_builds_the_graph_once_with_the_same_result(
+    seed: int, p: int, diffuse: str, noise_m: float, adaptive: bool
+) -> None:
+    cloud = np.random.default_rng(seed).normal(0.0, 0.01, (p, 3)) + [0.0, 0.0, 0.2]
+    fusion = ItofFusion(diffuse=diffuse, adaptive_step=adaptive)
+    out, step = fusion._diffuse(cloud, noise_m)
+    ref_out, ref_step = _diffuse_reference(fusion, cloud, noise_m)
+    assert _same(out, ref_out) and step == ref_step
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    hnp.arrays(
+        np.float64,
+        st.tuples(st.integers(0, 6), st.integers(1, 9)),
+        elements=st.one_of(st.floats(-1e300, 1e300), st.sampled_from([np.nan, np.nan, np.inf, -np.inf, 1.5, 1.5])),
+    )
+)
+def test_nanmedian_last_is_np_nanmedian(a: np.ndarray) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows
+        ref = np.nanmedian(a, axis=-1)
+    assert np.array_equal(_nanmedian_last(a), ref, equal_nan=True)
