@@ -127,7 +127,6 @@ class NumpyOmpBackend:
         self.na = self.nb = self.known = 0
         self.pos_a = np.zeros(k_max, dtype=np.int64)
         self.pos_b = np.zeros(k_max, dtype=np.int64)
-        self.pos = np.zeros(k_max, dtype=np.int64)  # pos_a · n + pos_b
         self.coef = np.zeros((n, n))
         self.synth = np.empty_like(self.grid)
         self.left = np.empty((n, used_cols.size))
@@ -147,7 +146,7 @@ class NumpyOmpBackend:
         a, b = divmod(p, self.n)
         left = (self.sel_a[: self.na] * self.mu_t[a]) @ self.mask  # (na, |V|)
         left *= self.mv_t[b]
-        return (left @ self.sel_b[: self.nb].T).ravel()[self.pos_a[:k] * self.nb + self.pos_b[:k]]
+        return (left @ self.sel_b[: self.nb].T)[self.pos_a[:k], self.pos_b[:k]]
 
     def _admit(self, support: np.ndarray) -> None:
         """Record the atoms of ``support`` that joined since the last call (the support only grows
@@ -164,14 +163,13 @@ class NumpyOmpBackend:
                 self.slot_b[b], self.sel_b[self.nb] = self.nb, self.mv_t[b]
                 self.nb += 1
             self.pos_a[j], self.pos_b[j] = self.slot_a[a], self.slot_b[b]
-            self.pos[j] = self.slot_a[a] * self.n + self.slot_b[b]
         self.known = support.size
 
     def project(self, support: np.ndarray, u: np.ndarray) -> np.ndarray:
         k = support.size
         self._admit(support)
         na, nb = self.na, self.nb
-        self.coef.ravel()[self.pos[:k]] = u  # overwrites every earlier support cell
+        self.coef[self.pos_a[:k], self.pos_b[:k]] = u  # overwrites every earlier support cell
         part = self.sel_a[:na].T @ self.coef[:na, :nb]  # (|U|, nb)
         synth = np.matmul(part, self.sel_b[:nb], out=self.synth)  # (|U|, |V|): A_S u, Hadamard rows × cols
         synth *= self.mask
