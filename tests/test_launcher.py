@@ -137,3 +137,23 @@ def test_another_sweeper_composes_through_hydra_and_runs_on_runners(cli) -> None
         rec = read_record(cli.cwd / "sweep" / str(num) / RECORD_NAME)
         assert rec["meta"]["status"] == "ok" and rec["meta"]["job_num"] == num
         assert rec["meta"]["overrides"][0] == f"seed={num}" and rec["config"]["seed"] == num
+
+
+def test_prewarm_loads_what_the_jobs_would_load_and_composing_does_not() -> None:
+    """Every lazy import of the prewarm resolves and really loads its modules (scikit-image's
+    subpackages load nothing until an attribute is read); importing the metrics module, as
+    composing a config does for its defaults, leaves scipy.stats out; building a metrics stage
+    loads it."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; import nirspi_pipe.metrics as m; print('scipy.stats' in sys.modules); "
+        "m.ImageMetrics(); print('scipy.stats' in sys.modules); "
+        "from nirspi_pipe.launcher import prewarm; print(prewarm([{}])); "
+        "import skimage.filters, skimage.transform; n = len(sys.modules); "
+        "skimage.transform.resize; skimage.filters.threshold_otsu; print(len(sys.modules) - n)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    # the jobs' own first use of the functions loads no module after the prewarm
+    assert out.stdout.splitlines() == ["False", "True", "[]", "0"], out.stdout

@@ -118,13 +118,25 @@ def check_overrides(args: list[str]) -> str | None:
     return _check_keys(parsed, choices)
 
 
+def _compose_or_none(overrides: list[str]) -> Any:
+    """The composed config, or None when Hydra cannot compose it (it reports that itself)."""
+    from hydra import compose, initialize_config_module
+
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            return compose(CONFIG_NAME, overrides=overrides)
+    except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
+        return None
+
+
 def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones; then
     values of the wrong type (``scene.distance_mm=abc``, also in a sweep list), in the words of a
-    wrong value."""
-    from hydra import compose, initialize_config_module
-    from omegaconf import DictConfig, OmegaConf
+    wrong value.
 
+    One composition with the group choices and the single values when it succeeds (then no
+    single-value key is unknown, and value overrides add no keys, so the keys are those of the
+    choices alone); only when it fails, a second with the choices alone to name the key."""
     values = [
         ov
         for ov in parsed
@@ -137,11 +149,18 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     keys = [ov.key_or_group for ov in values]
     if not keys:
         return None
-    try:
-        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-            cfg = compose(CONFIG_NAME, overrides=choices)
-    except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
-        return None
+    fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
+    cfg = _compose_or_none([*choices, *fixed])
+    if cfg is None:
+        base = _compose_or_none(choices)
+        return None if base is None else _unknown_key(base, keys)
+    return _unknown_key(cfg, keys) or _check_types(cfg, values)
+
+
+def _unknown_key(cfg: Any, keys: list[str]) -> str | None:
+    """The first of ``keys`` that ``cfg`` does not have, as one line naming the allowed ones."""
+    from omegaconf import DictConfig, OmegaConf
+
     for key in keys:
         top = key.split(".", 1)[0]
         if top not in cfg.keys():  # keys() keeps ??? values
@@ -157,25 +176,18 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
             where = parent or "the top level"
             known = ", ".join(sorted(str(k) for k in node if str(k) != "_target_"))
             return f"{key} is not a key of {where}; allowed keys: {known} (or +{key}=... to add one)"
-    return _check_types(values, choices)
+    return None
 
 
-def _check_types(values: list[Any], choices: list[str]) -> str | None:
-    """The value overrides composed with the group choices and the stage nodes checked against
-    their targets' annotations (:func:`nirspi_pipe.pipeline.check_types`); each value of a sweep
-    list is put in turn into the composed config. The first wrong type as one line."""
-    from hydra import compose, initialize_config_module
+def _check_types(cfg: Any, values: list[Any]) -> str | None:
+    """The stage nodes of ``cfg`` (composed with the group choices and the single values) checked
+    against their targets' annotations (:func:`nirspi_pipe.pipeline.check_types`); each value of
+    a sweep list is put in turn into it. The first wrong type as one line."""
     from omegaconf import OmegaConf
 
     from nirspi_pipe.errors import ConfigError
     from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
 
-    fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
-    try:
-        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-            cfg = compose(CONFIG_NAME, overrides=[*choices, *fixed])
-    except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
-        return None
     runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
     for ov in values:
         if not ov.is_sweep_override():
