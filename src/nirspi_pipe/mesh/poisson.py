@@ -19,7 +19,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.powercrust import trim_to_samples
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, sample_spacing
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["ScreenedPoisson"]
@@ -41,6 +41,8 @@ class ScreenedPoisson:
             (:func:`~nirspi_pipe.mesh.remesh.clean_and_remesh`); 0 = clean-up only.
         remesh_edge_factor: target edge length, × the cloud's median sample spacing.
         max_hole_edges: clean-up closes holes bounded by at most this many edges (0 = none).
+        remesher: ``auto``, ``compiled`` or ``pymeshlab``
+            (:func:`~nirspi_pipe.mesh.remesh.resolve_remesher`); ``info.surface.remesher`` says which ran.
     """
 
     depth: int = 6
@@ -52,10 +54,12 @@ class ScreenedPoisson:
     remesh_iterations: int = 0
     remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
+    remesher: str = "auto"
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
         load_meshlab()  # at build, outside the timed stage
+        object.__setattr__(self, "_remesher", resolve_remesher(self.remesher))
         if int(self.depth) != self.depth or not 4 <= self.depth <= 12:
             raise ConfigError("depth", self.depth, "an integer from 4 to 12")
         if not self.point_weight >= 0:
@@ -99,9 +103,11 @@ class ScreenedPoisson:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
         if len(faces) == 0:
             warnings.warn("poisson: empty surface", stacklevel=2)
+        remesher = self._remesher  # type: ignore[attr-defined]
         verts, faces, rinfo = remesh_to_cloud(
-            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing, remesher
         )
         info.update(rinfo)
         info["faces"] = int(len(faces))
+        info["remesher"] = remesher
         return Mesh(vertices_m=verts, faces=faces, info=info)

@@ -38,14 +38,14 @@ from __future__ import annotations
 import heapq
 import warnings
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, sample_spacing
+from nirspi_pipe.mesh.crustfaces import crust_faces, power_centres
+from nirspi_pipe.mesh.remesh import check_remesh_keys, remesh_to_cloud, resolve_remesher, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
 #: Grid (m) the samples are snapped to before the Delaunay/Qhull steps. Assumed: 10 nm, five orders
@@ -115,26 +115,9 @@ def circumcentres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     near-flat tetrahedra amplify it, and Qhull's hull of the poles then changed its faces
     (Haswell vs Sandybridge, ``bash .ci/reproduce-cpus.sh``).
     """
-    # one (t, 4) array per coordinate: the same IEEE operations as on (t, 4, 3) rows, without
-    # numpy's inner loops of length 3 (2.5 -> 1.9 ms on a table3 cloud's 3800 Delaunay
-    # tetrahedra, median of 200 calls on the 2-core box; tests/test_mesh_speed.py: same bits)
-    x, y, z = (np.ascontiguousarray(tets[..., k]) for k in range(3))
-    rx, ry, rz = 2.0 * (x[:, 1:] - x[:, :1]), 2.0 * (y[:, 1:] - y[:, :1]), 2.0 * (z[:, 1:] - z[:, :1])
-    lift = x * x + y * y + z * z  # _dot3(tets, tets)
-    if weights is not None:
-        lift = lift - weights
-    b = lift[:, 1:] - lift[:, :1]
-    rows = [np.column_stack([rx[:, i], ry[:, i], rz[:, i]]) for i in range(3)]
-    c23, c31, c12 = _cross3(rows[1], rows[2]), _cross3(rows[2], rows[0]), _cross3(rows[0], rows[1])
-    det = _dot3(rows[0], c23)
-    scale = np.maximum.reduce([np.abs(q[:, i]) for q in (rx, ry, rz) for i in range(3)]) ** 3
-    ok = np.abs(det) > 1e-12 * np.maximum(scale, 1e-300)
-    c = np.zeros((len(tets), 3))
-    if ok.any():
-        sub = slice(None) if ok.all() else ok  # all: no copies
-        num = b[sub, 0:1] * c23[sub] + b[sub, 1:2] * c31[sub] + b[sub, 2:3] * c12[sub]
-        c[sub] = num / det[sub][:, None]
-    return c, ok
+    # compiled (mesh/crustfaces.py), the same IEEE operations in the same order as the numpy
+    # version it replaced (tests/test_mesh_speed.py: same bits as Cramer's rule on the rows)
+    return power_centres(tets, weights)
 
 
 def _group_first(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -336,78 +319,31 @@ def power_crust(
     else:
         ends = tets[:, edge_sel[:, :2]].reshape(-1, 2)
         inner = _label_amenta(poles, radii, pairs, s, np.unique(np.sort(ends, axis=1), axis=0))
-    # edge k of the 6t is edge k % 6 of tetrahedron k // 6; only those between inner and outer count
-    lab = inner[tets]
-    mixed = np.flatnonzero(lab[:, edge_sel[:, 0]] != lab[:, edge_sel[:, 1]])
-    tet_id = mixed // 6
-    e = tets[tet_id[:, None], edge_sel[mixed % 6]]  # (k, 4): edge (a, b) and its ring pair
-    a, b, others = np.minimum(e[:, 0], e[:, 1]), np.maximum(e[:, 0], e[:, 1]), e[:, 2:]
-    m = len(poles)
-    key = a.astype(np.int64) * m + b
-    # keep the edges whose ring of tetrahedra is closed (each ring vertex seen exactly twice)
-    ring_key = np.concatenate([key, key]) * m + np.concatenate([others[:, 0], others[:, 1]])
-    uk, cnt = np.unique(ring_key, return_counts=True)
-    bad_edges = np.unique(uk[cnt != 2] // m)
-    closed = ~np.isin(key, bad_edges)
-    a, b, tet_id, key = a[closed], b[closed], tet_id[closed], key[closed]
-    if len(key) == 0:
-        raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
-    # one run per edge; a stable sort keeps each ring's order, so the sums below add in the same order
-    by_key = np.argsort(key, kind="stable")
-    a, b, tet_id, key = a[by_key], b[by_key], tet_id[by_key], key[by_key]
-    start, size = _runs(key)
-    ring = np.repeat(np.arange(len(start)), size)
-    # order each ring by angle around its edge
-    pa, pb = poles[a], poles[b]
-    axis = pb - pa
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    ref = np.where(np.abs(axis[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    u = _cross3(axis, ref)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    w = _cross3(axis, u)
-    # around the polygon's own centroid: the line through the two poles need not pierce it
-    ring_c = centres[tet_id]
-    rel = ring_c - (_sum_rows(ring, ring_c, len(start)) / size[:, None])[ring]
-    ang = np.arctan2(np.einsum("ij,ij->i", rel, w), np.einsum("ij,ij->i", rel, u))
-    order = _order_in_runs(ang, ring, start, size)  # key stays sorted: np.lexsort((ang, key))
-    tet_id, a, b = tet_id[order], a[order], b[order]
-    # weld power vertices closer than weld_factor x the sample spacing (co-spherical poles give
-    # several tetrahedra with one power centre; near-coincident ones make sliver triangles)
+    # the faces between inner and outer poles' cells, welded and triangulated (compiled)
     spacing = float(np.median(cKDTree(s).query(s, k=2)[0][:, 1])) if spacing_m is None else float(spacing_m)
     wtol = max(weld_factor * spacing, 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12))
-    ids, id_of = _compact(tet_id, len(tets))
-    close = cKDTree(centres[ids]).query_pairs(wtol, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(len(ids), len(ids)))
-    n_cl, cl = connected_components(graph, directed=False)
-    vpos = _sum_rows(cl, centres[ids], n_cl) / np.bincount(cl, minlength=n_cl)[:, None]
-    vid = cl[id_of]
-    # drop repeated vertices along each ring (cyclic), then polygons with < 3 vertices
-    prev = np.arange(len(key)) - 1
-    prev[start] = start + size - 1
-    keep = vid != vid[prev]
-    keep[start[size == 1]] = True
-    key, vid, a, b = key[keep], vid[keep], a[keep], b[keep]
-    start, size = _runs(key)
-    ok = size >= 3
-    grp = np.repeat(np.arange(len(start)), size)
-    sel = ok[grp]
-    # triangulate each polygon around its centroid (a hexagon gives six equilateral triangles;
-    # a fan from one vertex would give slivers)
-    nxt = np.arange(len(key)) + 1
-    last = start + size - 1
-    nxt[last] = start
-    cen = _sum_rows(grp, vpos[vid], len(start)) / size[:, None]
-    verts = np.vstack([vpos, cen])
-    faces = np.column_stack([n_cl + grp, vid, vid[nxt]])[sel]
-    # orient outwards: normal along (outer pole − inner pole)
-    ea, eb = a[sel], b[sel]
-    nrm = _cross3(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]])
-    along = np.einsum("ij,ij->i", nrm, poles[eb] - poles[ea])  # x − y = −(y − x) exactly in IEEE
-    flip = np.where(inner[ea], along < 0, along > 0)
-    faces[flip] = faces[flip][:, [0, 2, 1]]
-    used, faces = _compact(faces, len(verts))
-    info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(ok.sum())}
-    return verts[used], faces, info
+    verts, faces, n_poly = crust_faces(poles, tets, centres, inner, wtol)
+    if len(faces) == 0:
+        raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
+    m = len(poles)
+    info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(n_poly)}
+    return verts, faces, info
+
+
+@lru_cache(maxsize=1)
+def warm_up() -> bool:
+    """Run :func:`power_crust` once on a small cloud (a noisy cap of a sphere seen from the
+    origin), so that its compiled kernels are compiled or loaded from numba's on-disk cache in
+    the stage's build, never in a timed surface stage. Once per process."""
+    rng = np.random.default_rng(0)
+    u, v = np.meshgrid(np.linspace(-0.4, 0.4, 7), np.linspace(-0.4, 0.4, 7))
+    pts = np.column_stack([u.ravel(), v.ravel(), 2.0 - np.sqrt(1.0 - u.ravel() ** 2 - v.ravel() ** 2)])
+    pts += rng.normal(0.0, 1e-3, pts.shape)
+    try:
+        power_crust(pts, "view")
+    except NirspiError:
+        return False
+    return True
 
 
 def trim_to_samples(
@@ -447,6 +383,9 @@ class PowerCrust:
             (:func:`~nirspi_pipe.mesh.remesh.clean_and_remesh`); 0 = clean-up only.
         remesh_edge_factor: target edge length, × the cloud's median sample spacing.
         max_hole_edges: clean-up closes holes bounded by at most this many edges (0 = none).
+        remesher: ``auto`` (``compiled`` where numba compiles it, else ``pymeshlab``),
+            ``compiled`` (:mod:`nirspi_pipe.mesh.isotropic`) or ``pymeshlab``; the record's
+            ``info.surface.remesher`` says which ran.
     """
 
     labelling: str = "view"
@@ -456,13 +395,17 @@ class PowerCrust:
     remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
     box_factor: float = 3.0
+    remesher: str = "auto"
     # Not in the generated config schema (never a key of surface=power_crust; +surface.weld_factor=…
     # sets it): the configs, job keys and derived seeds of power-crust runs stay as they were.
     weld_factor: float = field(default=0.25, metadata={"config": False})
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
-        load_meshlab()  # at build, outside the timed stage
+        # compile (or load from numba's cache) the crust's kernels and the remesher now, at build,
+        # never inside the timed stage
+        object.__setattr__(self, "_remesher", resolve_remesher(self.remesher))
+        warm_up()
         if not 0.0 <= self.weld_factor < 1.0:
             raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
         if self.labelling not in ("view", "amenta"):
@@ -485,9 +428,11 @@ class PowerCrust:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
             if len(faces) == 0:
                 warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
+        remesher = self._remesher  # type: ignore[attr-defined]
         verts, faces, rinfo = remesh_to_cloud(
-            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing
+            verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing, remesher
         )
         info.update(rinfo)
         info["faces"] = int(len(faces))
+        info["remesher"] = remesher
         return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)

@@ -14,16 +14,55 @@
    This is what brings the equiangle skewness of a power crust (fans of slivers around each
    sample) down; the reprojection keeps the surface where it was.
 
-Remeshing is an option with a price: see docs/mesh.md (``nirspi-bench mesh3d`` prints it).
+Two implementations (the surface stages' ``remesher`` key): ``compiled``
+(:mod:`nirspi_pipe.mesh.isotropic`, numba; the default through ``auto``) and ``pymeshlab`` (the
+filters named above). Remeshing is an option with a price: see docs/mesh.md (``nirspi-bench
+mesh3d`` prints it).
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 
-__all__ = ["check_remesh_keys", "load_meshlab", "clean_and_remesh", "remesh_to_cloud", "sample_spacing"]
+__all__ = [
+    "REMESHERS",
+    "check_remesh_keys",
+    "load_meshlab",
+    "clean_and_remesh",
+    "remesh_to_cloud",
+    "resolve_remesher",
+    "sample_spacing",
+]
+
+#: Values of the surface stages' ``remesher`` key.
+REMESHERS = ("auto", "compiled", "pymeshlab")
+
+
+@lru_cache(maxsize=1)
+def _compiled_ok() -> bool:
+    from nirspi_pipe.mesh.isotropic import warm_up
+
+    return warm_up()
+
+
+def resolve_remesher(remesher: str) -> str:
+    """The implementation a surface stage's ``remesher`` key names, made ready (compiled or
+    imported) now, outside any timed stage: ``auto`` is ``compiled`` where numba compiles it (or
+    loads it from its on-disk cache), else ``pymeshlab``. One-line error for any other value."""
+    if remesher not in REMESHERS:
+        raise ConfigError("remesher", remesher, ", ".join(REMESHERS))
+    if remesher != "pymeshlab" and _compiled_ok():
+        return "compiled"
+    if remesher == "compiled":
+        raise ConfigError(
+            "remesher", remesher, "auto or pymeshlab (numba could not compile the compiled remesher here)"
+        )
+    load_meshlab()
+    return "pymeshlab"
 
 
 def check_remesh_keys(iterations: int, edge_factor: float, max_hole_edges: int) -> None:
@@ -59,13 +98,22 @@ def remesh_to_cloud(
     edge_factor: float,
     max_hole_edges: int,
     spacing_m: float | None = None,
+    remesher: str = "pymeshlab",
 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
-    """:func:`clean_and_remesh` at the cloud's own :func:`sample_spacing`, as the surface stages
-    call it on their reconstruction of ``points_m``; an empty mesh is returned unchanged.
-    ``spacing_m``: that spacing (metres) when the caller has it; None computes it."""
+    """:func:`clean_and_remesh` (``remesher="pymeshlab"``) or its compiled twin
+    :func:`~nirspi_pipe.mesh.isotropic.clean_and_remesh_compiled` (``"compiled"``; resolve
+    ``auto`` first with :func:`resolve_remesher`) at the cloud's own :func:`sample_spacing`, as
+    the surface stages call it on their reconstruction of ``points_m``; an empty mesh is returned
+    unchanged. ``spacing_m``: that spacing (metres) when the caller has it; None computes it."""
     if len(faces) == 0:
         return vertices_m, faces, {}
     spacing = sample_spacing(points_m) if spacing_m is None else float(spacing_m)
+    if remesher == "compiled":
+        from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled
+
+        return clean_and_remesh_compiled(
+            vertices_m, faces, spacing, int(iterations), float(edge_factor), int(max_hole_edges)
+        )
     return clean_and_remesh(vertices_m, faces, spacing, int(iterations), float(edge_factor), int(max_hole_edges))
 
 
