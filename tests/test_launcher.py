@@ -157,3 +157,61 @@ def test_prewarm_loads_what_the_jobs_would_load_and_composing_does_not() -> None
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     # the jobs' own first use of the functions loads no module after the prewarm
     assert out.stdout.splitlines() == ["False", "True", "[]", "0"], out.stdout
+
+
+_RUNNER_FIRST_SOLVE = r"""
+import json, os, signal, time, warnings
+warnings.simplefilter("ignore")
+from nirspi_pipe.launcher import prewarm
+from nirspi_pipe.sfs import opencl as ocl
+
+prewarm([{"sfs": {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "auto"}}])
+contexts = ocl._context.cache_info().currsize
+r, w = os.pipe()
+pid = os.fork()
+if pid == 0:  # a runner: builds its job's stages, then runs them
+    signal.alarm(60)
+    from nirspi_pipe.scene.objects import Sphere
+    from nirspi_pipe.sfs.models import LaxFriedrichsSFS
+    from nirspi_pipe.types import Camera, Image2D
+
+    cam = Camera(resolution=32)
+    img = Image2D(Sphere().render(cam).radiance)
+    LaxFriedrichsSFS(backend="numpy").solve(img, cam)  # first calls outside OpenCL
+    stage = LaxFriedrichsSFS(backend="auto")
+    ms = []
+    for _ in range(2):
+        t = time.perf_counter()
+        out = stage.solve(img, cam)
+        ms.append((time.perf_counter() - t) * 1e3)
+    os.write(w, json.dumps({"backend": out.info["backend"], "ms": ms}).encode())
+    os._exit(0)
+os.close(w)
+child = os.read(r, 4096).decode()
+print(json.dumps({"contexts": contexts, "status": os.waitpid(pid, 0)[1], "child": json.loads(child or "null")}))
+"""
+
+
+@fork_only
+def test_runner_warms_opencl_up_after_the_fork(tmp_path: Path) -> None:
+    """The prewarm makes no OpenCL context in the sweeping process: one made before ``fork``
+    leaves the child's first launch hanging (PoCL's worker threads are not forked; measured:
+    killed by the 20 s alarm, whether the parent had only built the kernel or launched it too).
+    So each runner warms up when it builds its first job's stages, and that job's SFS time holds
+    no compilation (empty kernel caches: old code 315 ms then 2 ms in the table 6 sweep)."""
+    import subprocess
+    import sys
+
+    from nirspi_pipe.sfs import opencl as ocl
+
+    if not ocl.opencl_available():
+        pytest.skip("no OpenCL device here builds float64 kernels")
+    env = dict(os.environ, POCL_CACHE_DIR=str(tmp_path / "pocl"), XDG_CACHE_HOME=str(tmp_path / "xdg"))
+    run = subprocess.run(
+        [sys.executable, "-c", _RUNNER_FIRST_SOLVE], env=env, capture_output=True, text=True, timeout=180, check=True
+    )
+    got = json.loads(run.stdout.strip().splitlines()[-1])
+    assert got["contexts"] == 0 and got["status"] == 0, got
+    assert got["child"]["backend"] == "opencl", got
+    first, second = got["child"]["ms"]
+    assert first <= 5 * second + 5, f"the runner's first SFS solve compiled: {first:.1f} ms then {second:.1f} ms"

@@ -99,8 +99,11 @@ def prewarm(configs: Sequence[dict[str, Any]]) -> list[str]:
     the pipeline, the module of every ``_target_`` the configs name, pymeshlab and pyvista when a
     surface stage is used, pyopencl when an SFS stage may use it, and the run's provenance.
     Nothing that starts threads: no OpenCL platform or context (PoCL's worker threads would not
-    exist in the forked children), so each job still builds its kernel (pyopencl's disk cache).
-    Returns the targets that could not be imported (their jobs report it)."""
+    exist in the forked children: with a context made here, even one that launched the kernel,
+    a child's first launch hangs). Each runner warms the back end up when it builds its first
+    job's SFS stage (:func:`nirspi_pipe.sfs.opencl.warm_up`: context, program from the disk
+    cache, one launch of each kernel), so the compilation counts in that job's ``build``, never
+    in its ``sfs`` time. Returns the targets that could not be imported (their jobs report it)."""
     from nirspi_pipe import cli, pipeline  # noqa: F401 - imported for their side effect
     from nirspi_pipe.configs import locate
     from nirspi_pipe.records import provenance
@@ -299,10 +302,11 @@ class _Runner:
 class _RunnerPool:
     """Runner processes forked from the prewarmed sweeping process. Each runs the jobs it is sent
     one after another, in-process, so that what a job builds once per process (the OpenCL
-    context and kernels, about 0.1 s; module caches) is built once per runner rather than once
-    per job. A runner that dies (segfault, ``SIGKILL``, out-of-memory) takes only the job it was
-    running: :meth:`wait` reports that job with the runner's wait status (a crash record
-    follows) and a fresh runner takes its place."""
+    context, kernels and their warm-up launch: about 0.1 s, 0.8 s with empty kernel caches;
+    module caches) is built once per runner rather than once per job. A runner that dies
+    (segfault, ``SIGKILL``, out-of-memory) takes only the job it was running: :meth:`wait`
+    reports that job with the runner's wait status (a crash record follows) and a fresh runner
+    takes its place."""
 
     def __init__(self, items: list[tuple[Path, int, ComposedJob]], size: int) -> None:
         self.items = items

@@ -6,17 +6,35 @@ anti-diagonal and meet at a barrier before the next diagonal, which is exactly t
 structure of the numpy path (:mod:`nirspi_pipe.sfs.sweeping`), so both do the same arithmetic in
 the same order. ``FP_CONTRACT`` is off so that no fused multiply-adds change the rounding: the two
 back ends agree to ~1e-12 pixel (tested at 1e-9).
+
+A kernel is compiled twice: when its program is built (cached on disk) and, by PoCL, at its first
+launch with a given local size (the work-group function, ~0.1–0.4 s here with a cold
+``~/.cache/pocl``). :func:`warm_up`, called when an SFS stage is built, does both: it builds the
+program and launches each kernel of the solve once on a 4×4 problem with the solve's local
+sizes, so that neither compilation falls inside a timed solve.
 """
 
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
 __all__ = ["solve_opencl", "opencl_available"]
+
+#: Work-items of the sweeping kernels (``fsm``, ``fsm2``) in a stage's solve: on a CPU device one
+#: is fastest (:func:`solve_opencl`), and :func:`warm_up` launches with it.
+LOCAL_SIZE = 1
+
+#: Work-group size of ``edges2`` (one work-item per pixel, the global size padded to a multiple;
+#: the kernel returns past ``R*C``). Fixed rather than left to the driver: PoCL picks the local
+#: size from the global size (4096 at 64², 961 at 31², ...) and compiles a work-group function
+#: for each new one at its first launch, ~45 ms inside the solve of each new image size. 64 is as
+#: fast as PoCL's own choice at 64²–256² (0.10/0.35/2.37 ms) and gives the same bits.
+EDGES_LOCAL_SIZE = 64
 
 #: Second-order upwind sweeping (``scheme: second_order``), the same arithmetic in the same order
 #: as :func:`nirspi_pipe.sfs.second_order.update`; the edge slopes are computed on the host by
@@ -313,11 +331,14 @@ def _program(model: int, scheme: int):
 
 @lru_cache(maxsize=2)
 def _program2(cos2: int):
+    """``(fsm2, edges2, local size of edges2)`` (at most :data:`EDGES_LOCAL_SIZE`)."""
     import pyopencl as cl
 
     ctx, _ = _context()
     prg = cl.Program(ctx, kernel2_source()).build(options=[f"-DCOS2={int(cos2)}"])
-    return cl.Kernel(prg, "fsm2"), cl.Kernel(prg, "edges2")
+    edges = cl.Kernel(prg, "edges2")
+    most = edges.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, ctx.devices[0])
+    return cl.Kernel(prg, "fsm2"), edges, max(1, min(EDGES_LOCAL_SIZE, int(most)))
 
 
 def kernel2_source() -> str:
@@ -342,22 +363,45 @@ def opencl_available(scheme: str = "godunov") -> bool:
     return True
 
 
-def warm_up(model: int, scheme: str, slope_average: str = "cos2") -> bool:
-    """Build (or fetch from pyopencl's on-disk cache) the exact kernel a solve with ``model`` and
-    ``scheme`` will launch, so that compilation is never part of a stage's time; True when it
-    builds. Called by the SFS stages' ``__post_init__``."""
+def warm_up(model: int, scheme: str, slope_average: str = "cos2", local_size: int = LOCAL_SIZE) -> bool:
+    """Build (or fetch from the on-disk caches) the exact kernels a solve with ``model`` and
+    ``scheme`` will launch, and launch each once on a 4×4 problem with the solve's local sizes
+    (:func:`_warm_launch`), so that compilation is never part of a stage's time; True when that
+    works, False on any failure (the caller falls back to numpy). Once per process and program.
+    Called by the SFS stages' ``__post_init__``."""
+    cos2 = slope_average if scheme == "second_order" else "cos2"  # the others ignore it
     try:
         if scheme == "second_order":
-            _program2(int(slope_average == "cos2"))
+            kernels: Any = _program2(int(cos2 == "cos2"))
         else:
-            _program(int(model), 0 if scheme == "lax_friedrichs" else 1)
+            kernels = _program(int(model), 0 if scheme == "lax_friedrichs" else 1)
+        _warm_launch(int(model), scheme, cos2, int(max(1, local_size)), kernels)
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return False
     return True
 
 
+@lru_cache(maxsize=16)
+def _warm_launch(model: int, scheme: str, slope_average: str, local_size: int, kernels: Any) -> None:
+    """Run :func:`solve_opencl` once on a 4×4 problem: the buffers, pyopencl's argument setter
+    and PoCL's per-local-size work-group function of every kernel the solve launches (``fsm``;
+    ``edges2`` and ``fsm2``) are made here. ``kernels`` (the built program's, what the solve
+    will fetch) keys the cache, so a rebuilt program is launched again. Solves the solvers refuse
+    (Godunov or second order for a perspective model) are only built: :func:`solve_opencl`
+    raises for them whatever the warm-up did."""
+    if scheme in ("godunov", "second_order") and model != 0:
+        return
+    n = 4
+    fixed = np.zeros((n, n), dtype=bool)
+    fixed[1, 1] = model != 2  # the fall-off model needs no boundary data
+    init = np.where(fixed, 0.0, 1.0 if model == 2 else BIG)
+    coords = (np.arange(n) + 0.5 - n / 2) / (2.0 * n)
+    problem = SweepProblem(np.full((n, n), 1.5), fixed, init, model, coords, coords, 2.0 * n)
+    solve_opencl(problem, scheme, max_sweeps=4, local_size=local_size, slope_average=slope_average)
+
+
 def resolve_backend(backend: str, model: int, scheme: str, slope_average: str = "cos2") -> str:
-    """``auto`` → ``opencl`` when a device builds this solve's kernel (:func:`warm_up`), else
+    """``auto`` → ``opencl`` when a device builds and runs this solve's kernels (:func:`warm_up`), else
     ``numpy``; ``numpy``/``opencl`` are returned as given (``opencl`` warmed up)."""
     if backend == "numpy":
         return backend
@@ -372,7 +416,7 @@ def solve_opencl(
     scheme: str = "lax_friedrichs",
     tol: float = 1e-4,
     max_sweeps: int = 2000,
-    local_size: int = 1,
+    local_size: int = LOCAL_SIZE,
     slope_average: str = "cos2",
 ) -> SweepResult:
     """Same contract as :func:`nirspi_pipe.sfs.sweeping.solve_numpy`, on an OpenCL device.
@@ -450,7 +494,7 @@ def _solve_second_order(
         raise ValueError(f"slope_average {slope_average!r} not in {SLOPE_AVERAGES}")
     cos2 = slope_average == "cos2"
     ctx, queue = _context()
-    kernel, edges = _program2(int(cos2))
+    kernel, edges, edges_lsz = _program2(int(cos2))
     rows, cols = problem.rhs.shape
     rhs = np.ascontiguousarray(np.minimum(problem.rhs, F_MAX), np.float64)
     mf = cl.mem_flags
@@ -460,7 +504,8 @@ def _solve_second_order(
     ev_buf = cl.Buffer(ctx, mf.READ_WRITE, rhs.nbytes)
     if cos2:  # edge slopes on the device; the per-pixel arcsin on the host (same bits as numpy)
         v_buf = cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=slope_antiderivative(rhs))
-        edges(queue, (rows * cols,), None, rhs_buf, v_buf, np.int32(rows), np.int32(cols), eh_buf, ev_buf)
+        glob = -(-rows * cols // edges_lsz) * edges_lsz  # padded: the kernel returns past R*C
+        edges(queue, (glob,), (edges_lsz,), rhs_buf, v_buf, np.int32(rows), np.int32(cols), eh_buf, ev_buf)
     bufs = [
         cl.Buffer(ctx, mf.READ_WRITE | mf.COPY_HOST_PTR, hostbuf=z),
         rhs_buf,
