@@ -297,6 +297,19 @@ def _min_angle_cos(V, a, b, c):  # type: ignore[no-untyped-def]
 
 
 @_jit
+def _face_exists(F, opp, vh, a, b, c, buf):  # type: ignore[no-untyped-def]
+    """True when some face has the vertices a, b and c."""
+    n, _ = _ring(F, opp, vh, a, buf)
+    for i in range(n):
+        g = buf[i] // 3
+        has_b = F[g, 0] == b or F[g, 1] == b or F[g, 2] == b
+        has_c = F[g, 0] == c or F[g, 1] == c or F[g, 2] == c
+        if has_b and has_c:
+            return True
+    return False
+
+
+@_jit
 def _close_holes(V, F, opp, nv, max_edges):  # type: ignore[no-untyped-def]
     """Faces closing every border loop of at most max_edges edges, by ear clipping: (new faces
     (k, 3), number of loops left open)."""
@@ -365,10 +378,10 @@ def _close_holes(V, F, opp, nv, max_edges):  # type: ignore[no-untyped-def]
             for k in range(best, cnt - 1):
                 loop[k] = loop[k + 1]
             cnt -= 1
-        if cnt == 3:
+        if cnt == 3 and not _face_exists(F, opp, vh, loop[0], loop[1], loop[2], buf):
             new[n_new, 0], new[n_new, 1], new[n_new, 2] = loop[2], loop[1], loop[0]
             n_new += 1
-        else:
+        else:  # no ear left, or the last one is a face already (a lone triangle's own border)
             n_new = start_new  # give up on this hole
             n_open += 1
     return new[:n_new].copy(), n_open

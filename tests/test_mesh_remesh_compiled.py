@@ -1,0 +1,170 @@
+"""The compiled clean-up and isotropic remesher (mesh/isotropic.py) and the compiled power-crust
+faces (mesh/crustfaces.py): manifold output on hostile face lists, the surface kept, shapes
+improved, pymeshlab's quality matched, bounded growth, and clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled, clean_mesh, remesh_clean
+from nirspi_pipe.mesh.metrics3d import equiangle_skewness
+from nirspi_pipe.mesh.powercrust import power_crust, trim_to_samples
+from nirspi_pipe.mesh.remesh import clean_and_remesh, resolve_remesher, sample_spacing
+
+
+def _edges(faces: np.ndarray) -> dict[tuple[int, int], list[tuple[int, int]]]:
+    """Undirected edge -> list of (face, direction sign) using it."""
+    out: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for fi, f in enumerate(faces):
+        for k in range(3):
+            a, b = int(f[k]), int(f[(k + 1) % 3])
+            out.setdefault((min(a, b), max(a, b)), []).append((fi, 1 if a < b else -1))
+    return out
+
+
+def assert_manifold(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Edge-manifold and consistently oriented (an edge has one face, or two that run it in opposite
+    directions), vertex-manifold (a vertex's faces form one fan), no degenerate or repeated face."""
+    f = np.asarray(faces)
+    if len(f) == 0:
+        return
+    assert f.min() >= 0 and f.max() < len(vertices)
+    assert np.all((f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2]))
+    assert len(np.unique(np.sort(f, axis=1), axis=0)) == len(f), "duplicate faces"
+    edges = _edges(f)
+    for users in edges.values():
+        assert len(users) <= 2
+        if len(users) == 2:
+            assert users[0][1] != users[1][1], "two faces run an edge the same way"
+    # one fan per vertex: the faces around v, linked through the edges at v they share
+    by_vertex: dict[int, list[int]] = {}
+    for fi, fc in enumerate(f):
+        for v in fc:
+            by_vertex.setdefault(int(v), []).append(fi)
+    for v, fs in by_vertex.items():
+        parent = {x: x for x in fs}
+
+        def find(x: int) -> int:
+            while parent[x] != x:
+                x = parent[x]
+            return x
+
+        for (a, b), users in edges.items():
+            if v in (a, b) and len(users) == 2 and users[0][0] in parent and users[1][0] in parent:
+                parent[find(users[0][0])] = find(users[1][0])
+        assert len({find(x) for x in fs}) == 1, f"vertex {v} joins several fans"
+
+
+def _cap_cloud(n: int = 14, noise: float = 2e-5, seed: int = 0) -> np.ndarray:
+    """A noisy spherical cap (radius 25 mm, 0.2 m from the camera at the origin), metres."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.linspace(-0.7, 0.7, n), np.linspace(-0.7, 0.7, n))
+    keep = u**2 + v**2 < 0.6
+    u, v = u[keep], v[keep]
+    pts = 0.025 * np.column_stack([u, v, -np.sqrt(1.0 - u**2 - v**2)]) + [0.0, 0.0, 0.2]
+    return pts + rng.normal(0.0, noise, pts.shape)
+
+
+def _crust_sheet(pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    sp = sample_spacing(pts)
+    v, f, _ = power_crust(pts, "view", 3.0, 0.25, sp)
+    v, f = trim_to_samples(v, f, pts, 1.5, sp)
+    return v, f, sp
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    n_vertices=st.integers(3, 12),
+    data=st.data(),
+)
+def test_clean_mesh_turns_any_face_list_into_a_manifold(n_vertices: int, data: st.DataObject) -> None:
+    """Hostile face lists: repeated and flipped faces, edges of three or more faces, fans touching at
+    a vertex, degenerate and zero-area faces, duplicate vertex positions."""
+    coords = data.draw(
+        st.lists(st.tuples(*[st.integers(0, 3)] * 3), min_size=n_vertices, max_size=n_vertices), label="coords"
+    )
+    faces = data.draw(
+        st.lists(st.tuples(*[st.integers(0, n_vertices - 1)] * 3), min_size=1, max_size=30), label="faces"
+    )
+    v = np.asarray(coords, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    cv, cf, _ = clean_mesh(v, f, max_hole_edges=data.draw(st.sampled_from([0, 3, 30])), min_component_faces=0)
+    assert_manifold(cv, cf)
+    # only merges and removals: every output vertex is an input position
+    assert all(any(np.array_equal(p, q) for q in v) for p in cv)
+
+
+def test_remesher_keeps_the_surface_improves_the_shapes_and_sizes_the_edges() -> None:
+    pts = _cap_cloud()
+    v, f, sp = _crust_sheet(pts)
+    before = equiangle_skewness(v, f).mean()
+    cv, cf, _ = clean_mesh(v, f)
+    ov, of = remesh_clean(cv, cf, sp, 3)
+    assert_manifold(ov, of)
+    after = equiangle_skewness(ov, of)
+    assert after.mean() < 0.6 * before and after.mean() < 0.3, (before, after.mean())
+    # the sphere: every vertex stays within a tenth of the spacing of it (relaxation is tangential)
+    r = np.linalg.norm(ov - [0.0, 0.0, 0.2], axis=1)
+    r_in = np.linalg.norm(v - [0.0, 0.0, 0.2], axis=1)
+    assert np.abs(r - 0.025).max() < np.abs(r_in - 0.025).max() + 0.1 * sp
+    lengths = np.linalg.norm(ov[of] - ov[np.roll(of, 1, axis=1)], axis=2).ravel()
+    assert np.mean((lengths > 0.5 * sp) & (lengths < 1.5 * sp)) > 0.9
+
+
+def test_compiled_remesher_matches_pymeshlab_on_a_power_crust() -> None:
+    pts = _cap_cloud(18, seed=3)
+    v, f, sp = _crust_sheet(pts)
+    pv, pf, _ = clean_and_remesh(v, f, sp, 3)
+    cv, cf, info = clean_and_remesh_compiled(v, f, sp, 3)
+    assert info["faces_after_remesh"] == len(cf) > 0.5 * len(pf)
+    assert equiangle_skewness(cv, cf).mean() <= equiangle_skewness(pv, pf).mean() + 0.02
+    from scipy.spatial import cKDTree
+
+    d_c = cKDTree(pv).query(cv)[0]  # each compiled vertex near pymeshlab's surface
+    d_p = cKDTree(cv).query(pv)[0]
+    assert np.median(d_c) < 0.5 * sp and np.median(d_p) < 0.5 * sp
+
+
+def test_remesher_is_deterministic_and_leaves_tiny_meshes_alone() -> None:
+    pts = _cap_cloud(10, seed=5)
+    v, f, sp = _crust_sheet(pts)
+    a = clean_and_remesh_compiled(v, f, sp, 3)
+    b = clean_and_remesh_compiled(v, f, sp, 3)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    one = np.array([[0, 1, 2]])
+    tri = np.eye(3)
+    assert np.array_equal(clean_and_remesh_compiled(tri, one, 0.1, 3)[1], one)
+    assert len(clean_and_remesh_compiled(np.zeros((0, 3)), np.zeros((0, 3), np.int64), 0.1, 3)[1]) == 0
+
+
+def test_holes_up_to_the_limit_are_closed_and_the_outer_border_stays_open() -> None:
+    n = 9
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    f = np.vstack([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
+    f = f[np.all(f != idx[4, 4], axis=1)]  # a hole of 6 border edges around the centre
+    cv, cf, info = clean_mesh(v, f, max_hole_edges=30)
+    assert info["faces_hole_fill"] == 4 and info["holes_not_closed"] == 0
+    border = [e for e, users in _edges(cf).items() if len(users) == 1]
+    assert len(border) == 4 * (n - 1)  # only the outer border (32 edges > 30)
+    assert_manifold(cv, cf)
+
+
+def test_remesher_refuses_an_explosion_with_a_clear_error() -> None:
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    f = np.array([[0, 1, 3], [0, 3, 2]])
+    with pytest.raises(NirspiError, match="remesh_edge_factor"):
+        remesh_clean(v, f, 1e-4, 1)  # 1 m² at 0.1 mm edges: ~10⁸ faces
+
+
+def test_remesher_key_is_checked() -> None:
+    with pytest.raises(ConfigError, match="auto, compiled, pymeshlab"):
+        resolve_remesher("meshlab")
+    assert resolve_remesher("auto") == "compiled"
+    assert resolve_remesher("pymeshlab") == "pymeshlab"
