@@ -160,7 +160,7 @@ def test_remesher_refuses_an_explosion_with_a_clear_error() -> None:
     v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
     f = np.array([[0, 1, 3], [0, 3, 2]])
     with pytest.raises(NirspiError, match="remesh_edge_factor"):
-        remesh_clean(v, f, 1e-4, 1)  # 1 m² at 0.1 mm edges: ~10⁸ faces
+        remesh_clean(v, f, 1e-4, 1)  # 1 m² at 0.1 mm edges: ~10⁸ faces, above MAX_FACES
 
 
 def test_remesher_key_is_checked() -> None:
@@ -168,3 +168,30 @@ def test_remesher_key_is_checked() -> None:
         resolve_remesher("meshlab")
     assert resolve_remesher("auto") == "compiled"
     assert resolve_remesher("pymeshlab") == "pymeshlab"
+
+
+def test_compiled_kernels_fuse_no_multiply_add(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Same bits on CPUs with and without FMA: without fast-math, LLVM must not contract a*b + c
+    into a fused multiply-add (the machine code of every compiled kernel is searched; the cache is
+    empty so numba compiles afresh and keeps the assembly)."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import re, numpy as np\n"
+        "import nirspi_pipe.mesh.isotropic as iso, nirspi_pipe.mesh.crustfaces as cf, nirspi_pipe.mesh.powercrust as pc\n"
+        "assert iso.warm_up() and pc.warm_up()\n"
+        "n = hits = 0\n"
+        "for m in (iso, cf):\n"
+        "    for k in dir(m):\n"
+        "        d = getattr(m, k)\n"
+        "        for sig in getattr(d, 'signatures', []):\n"
+        "            n += 1\n"
+        "            hits += len(re.findall(r'\\b(v?fn?m(add|sub)\\w*|fml[as])\\b', d.inspect_asm(sig)))\n"
+        "print(n, hits)\n"
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=600, capture_output=True, text=True)
+    n, hits = map(int, out.stdout.split())
+    assert n >= 20 and hits == 0, out.stdout

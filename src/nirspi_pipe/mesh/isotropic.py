@@ -3,8 +3,9 @@
 The same two steps as :func:`nirspi_pipe.mesh.remesh.clean_and_remesh` (pymeshlab), for the small
 meshes of the 3D path (a few thousand faces), where pymeshlab's per-call set-up dominates: its
 remeshing filter alone costs 5.8 ms at 0 iterations and ~37 ms at 3 on the Table 6 clouds
-(``nirspi-bench mesh3d --remesher pymeshlab``). Here the whole clean-up and remeshing of one such
-mesh takes a few milliseconds.
+(measured in one process on the 16 meshes of ``nirspi-run -m +experiment=table6
+illumination.klux=5 seed=0``). The clean-up and remeshing below took 2.8 + 6.0 ms (medians) on the
+same meshes; ``nirspi-bench mesh3d`` prints both, measured in the same run.
 
 1. **Clean-up** (numpy, then numba on a corner table):
 
@@ -38,9 +39,10 @@ mesh takes a few milliseconds.
    and no reprojection onto the input surface: on the Table 6 clouds, pymeshlab's reprojection
    moved the chamfer distance by 0.05 mm (5.70 vs 5.75 mm, docs/mesh.md).
 
-Everything runs in a fixed order on float64 without fast-math, so the same input gives the same
-bits on every CPU (numba compiles for the host CPU but does not fuse or reorder floating-point
-operations without ``fastmath``). Compiled code is cached on disk (numba's ``cache=True``);
+Everything runs in a fixed order on float64 without fast-math: numba compiles for the host CPU,
+but without ``fastmath`` LLVM may neither reorder floating-point operations nor fuse a multiply
+and an add (tests/test_mesh_remesh_compiled.py finds no fused multiply-add instruction in the
+compiled kernels), so the same input gives the same bits on CPUs with and without FMA or AVX-512. Compiled code is cached on disk (numba's ``cache=True``);
 :func:`warm_up` compiles or loads it when a surface stage is built, so compilation is never part
 of a stage's time.
 """
@@ -53,12 +55,14 @@ from nirspi_pipe.errors import NirspiError
 
 __all__ = ["clean_and_remesh_compiled", "warm_up", "clean_mesh", "MAX_FACES"]
 
-#: Largest mesh (faces, before or after remeshing) this module will build. Assumed: 5 million,
-#: about 600 MB of working arrays, far above the 3D path's meshes (~2 000 faces at 32²) and
-#: below the 24 GiB of the project's machines; beyond it the input is refused with a one-line error.
-MAX_FACES = 5_000_000
+#: Largest mesh (faces, before or after remeshing) this module will build. Assumed: 2 million, a
+#: thousand times the 3D path's meshes (~2 000 faces at 32²). The remesher's working arrays take
+#: 81 bytes per face of room (faces 24, their opposite half-edges 24, vertices 24 + 8 + 1), and
+#: the room never exceeds twice this limit: at most ~330 MB. Beyond it the input is refused
+#: with a one-line error.
+MAX_FACES = 2_000_000
 
-ROUNDS = 1  # collapse and flip passes per iteration (Botsch & Kobbelt: one)
+_PASSES = 1  # collapse and flip passes per iteration (Botsch & Kobbelt: one)
 _MAX_VALENCE = 4096  # bound on a vertex's ring walk: a corrupted table cannot loop forever
 
 try:  # numba ships with miepython (a core dependency); the surface stages fall back to pymeshlab
@@ -72,8 +76,8 @@ def _jit(fn):  # type: ignore[no-untyped-def]
 
 
 def _jit_inline(fn):  # type: ignore[no-untyped-def]
-    """For the one-line corner-table helpers: inlined into their callers (a call each was ~30 %
-    of the remeshing time)."""
+    """For the one-line corner-table helpers: inlined into their callers (numba otherwise calls
+    them; the remeshing of the Table 6 meshes went from 6.7 to 6.0 ms, one measurement)."""
     return njit(cache=True, nogil=True, inline="always")(fn) if njit is not None else fn
 
 
@@ -402,6 +406,8 @@ def clean_mesh(
         raise NirspiError(f"mesh clean-up: {len(f)} faces, more than the {MAX_FACES} this remesher takes")
     if f.min() < 0 or f.max() >= len(v):
         raise NirspiError(f"mesh clean-up: face indices outside 0..{len(v) - 1}")
+    if not np.all(np.isfinite(v)):
+        raise NirspiError("mesh clean-up: non-finite vertex coordinates")
     # merge vertices with equal coordinates (a stable lexicographic sort, then runs)
     order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
     sv = v[order]
@@ -902,6 +908,8 @@ def remesh_clean(
         return v, f
     p = v[f]
     area = 0.5 * float(np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+    if not (np.isfinite(area) and target > 0 and np.isfinite(target)):
+        raise NirspiError(f"remeshing: needs finite vertices and an edge length > 0, got length {target!r}")
     # an equilateral triangle of edge 4/5 target is the smallest a finished mesh has on average;
     # splitting before collapsing can transiently need more: grow and retry on overflow
     estimate = int(area / (np.sqrt(3.0) / 4.0 * (0.8 * target) ** 2))
@@ -910,15 +918,18 @@ def remesh_clean(
             f"remeshing: about {estimate} faces at edge length {target:.3g} for a surface of area {area:.3g}; "
             f"more than {MAX_FACES} (raise remesh_edge_factor)"
         )
-    f_cap = 2 * (len(f) + estimate) + 1024
-    for _ in range(4):
-        V, F, nv, nf, overflow = _remesh(v, f, float(target), int(iterations), len(v) + f_cap, f_cap, ROUNDS)
+    room = 2 * MAX_FACES + 1024
+    f_cap = min(2 * (len(f) + estimate) + 1024, room)
+    while True:
+        V, F, nv, nf, overflow = _remesh(v, f, float(target), int(iterations), len(v) + f_cap, f_cap, _PASSES)
         if not overflow:
             return _compact(V, F, nv, nf)
-        f_cap *= 4
-        if f_cap > 4 * MAX_FACES:
+        if f_cap >= room:
             break
-    raise NirspiError(f"remeshing: the mesh grew past {MAX_FACES} faces at edge length {target:.3g}")
+        f_cap = min(4 * f_cap, room)
+    raise NirspiError(
+        f"remeshing: the mesh grew past {room} faces of room at edge length {target:.3g} (raise remesh_edge_factor)"
+    )
 
 
 def clean_and_remesh_compiled(
