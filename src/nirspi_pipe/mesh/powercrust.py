@@ -379,6 +379,12 @@ class PowerCrust:
             the samples' extent.
         weld_factor: power-diagram vertices closer than this × the median sample spacing are
             merged (removes the slivers of near-degenerate power faces); 0 = exact coincidences only.
+            When the mesh is remeshed, at least half the remesher's target edge, and at most half
+            the sample spacing (``0.5 × min(remesh_edge_factor, 1)``; coarser welding would merge
+            across the crust's own polygons): the remesher collapses every edge shorter than 0.8 of
+            its target anyway, one by one with its checks, and welding them first is cheaper (on the
+            16 Table 6 clouds: surface stage 34.9 → 31.7 ms, mean skewness 0.193 → 0.192, chamfer
+            5.64 mm both, Hausdorff 35.88 → 35.70 mm; docs/mesh.md).
         remesh_iterations: rounds of isotropic remeshing after clean-up
             (:func:`~nirspi_pipe.mesh.remesh.clean_and_remesh`); 0 = clean-up only.
         remesh_edge_factor: target edge length, × the cloud's median sample spacing.
@@ -422,7 +428,10 @@ class PowerCrust:
             raise NirspiError("power crust: the point cloud has non-finite points")
         pts = np.round(pts / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
         spacing = sample_spacing(pts)  # once: the crust's welding, the trim and the remeshing use it
-        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, self.weld_factor, spacing)
+        weld = self.weld_factor
+        if self.remesh_iterations > 0:
+            weld = max(weld, 0.5 * min(self.remesh_edge_factor, 1.0))
+        verts, faces, info = power_crust(pts, self.labelling, self.box_factor, weld, spacing)
         info["faces_closed"] = int(len(faces))
         if not self.closed:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
