@@ -718,6 +718,16 @@ def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):  # 
     return count
 
 
+@_jit_inline
+def _shape(V, a, b, c):  # type: ignore[no-untyped-def]
+    """4√3·area / (sum of squared edge lengths): 1 for an equilateral triangle, 0 for a degenerate one."""
+    u0, u1, u2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
+    w0, w1, w2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
+    x, y, z = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+    e = (u0 * u0 + u1 * u1 + u2 * u2) + (w0 * w0 + w1 * w1 + w2 * w2) + _len2(V, b, c)
+    return 2.0 * np.sqrt(3.0) * np.sqrt(x * x + y * y + z * z) / e if e > 0.0 else 0.0
+
+
 @_jit
 def _valences(F, bnd, nf, nv):  # type: ignore[no-untyped-def]
     """Number of neighbours of each vertex: its faces, plus one on a border."""
@@ -770,6 +780,11 @@ def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):  # type: ignore[no-
             d1 = nrm[0] * sx + nrm[1] * sy + nrm[2] * sz
             d2 = nrm2[0] * sx + nrm2[1] * sy + nrm2[2] * sz
             if d1 <= 0.0 or d2 <= 0.0 or d1 * d1 < 0.25 * n1 * s2 or d2 * d2 < 0.25 * n2 * s2:
+                continue
+            # nor may the worse of the two faces lose more than half its shape quality (a
+            # valence-driven flip across a flat, skinny quad would make a needle)
+            q_old = min(_shape(V, a, b, c), _shape(V, b, a, d))
+            if min(_shape(V, c, a, d), _shape(V, d, b, c)) < 0.5 * q_old:
                 continue
             if _connected(F, opp, vh, c, d, buf):
                 continue
