@@ -96,8 +96,9 @@ _LAZY_IMPORTS = (
 
 def prewarm(configs: Sequence[dict[str, Any]]) -> list[str]:
     """Import, once in the sweeping process, what every forked job would otherwise import again:
-    the pipeline, the module of every ``_target_`` the configs name, pymeshlab and pyvista when a
-    surface stage is used, pyopencl when an SFS stage may use it, and the run's provenance.
+    the pipeline, the module of every ``_target_`` the configs name, pymeshlab, pyvista and the
+    compiled power-crust and remesher kernels (numba) when a surface stage is used, pyopencl when
+    an SFS stage may use it, and the run's provenance.
     Nothing that starts threads: no OpenCL platform or context (PoCL's worker threads would not
     exist in the forked children: with a context made here, even one that launched the kernel,
     a child's first launch hangs). Each runner warms the back end up when it builds its first
@@ -130,9 +131,15 @@ def prewarm(configs: Sequence[dict[str, Any]]) -> list[str]:
         except Exception:  # noqa: BLE001 - an optional module: the job that needs it reports it
             missing.append(name)
     if any(config.get("surface") for config in configs):
-        from nirspi_pipe.mesh.remesh import load_meshlab
+        from nirspi_pipe.mesh.powercrust import warm_up
+        from nirspi_pipe.mesh.remesh import load_meshlab, resolve_remesher
 
         load_meshlab()
+        # numba's compiled power-crust and remesher kernels (no threads: safe to fork): loaded from
+        # numba's disk cache here once, or compiled once (~20 s) when the cache is cold, rather than
+        # by every runner at the same time
+        warm_up()
+        resolve_remesher("auto")
         import pyvista  # noqa: F401 - mesh.ply is written through it (0.5 s to import)
     if any(str((config.get("sfs") or {}).get("backend", "")) in ("auto", "opencl") for config in configs):
         import pyopencl  # noqa: F401 - imported only: no platform or context, which start threads

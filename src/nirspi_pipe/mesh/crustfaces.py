@@ -16,9 +16,10 @@ a power-crust face, the polygon of the power centres of the tetrahedra around th
    triangulated around its centroid (a hexagon gives six equilateral triangles where a fan from
    one vertex would give slivers) and oriented from the inner pole to the outer one.
 
-This replaced ~30 numpy passes over 10⁴-element arrays (about 10 ms per Table 6 cloud) with one
-compiled pass of about 1 ms (``nirspi-bench mesh3d``). Fixed order, float64, no fast-math: the
-same input gives the same bits on every CPU.
+This replaced about thirty numpy passes over the rings' arrays with one compiled pass and gives
+the same triangles (checked on the 16 Table 6 clouds when it was written; ``nirspi-bench mesh3d``
+times the surface stage it is part of). Fixed order, float64, no fast-math: the same input gives
+the same bits on every CPU (tests/test_mesh_remesh_compiled.py finds no fused multiply-add).
 """
 
 from __future__ import annotations

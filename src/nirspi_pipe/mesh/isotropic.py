@@ -1,11 +1,11 @@
 """Mesh clean-up and isotropic remeshing, compiled with numba (``remesher: compiled``).
 
 The same two steps as :func:`nirspi_pipe.mesh.remesh.clean_and_remesh` (pymeshlab), for the small
-meshes of the 3D path (a few thousand faces), where pymeshlab's per-call set-up dominates: its
-remeshing filter alone costs 5.8 ms at 0 iterations and ~37 ms at 3 on the Table 6 clouds
-(measured in one process on the 16 meshes of ``nirspi-run -m +experiment=table6
-illumination.klux=5 seed=0``). The clean-up and remeshing below took 2.8 + 6.0 ms (medians) on the
-same meshes; ``nirspi-bench mesh3d`` prints both, measured in the same run.
+meshes of the 3D path (a few thousand faces). On the power crusts of the 16 jobs of ``nirspi-run -m
++experiment=table6 illumination.klux=5 seed=0``, welded as the stage welds them, pymeshlab's clean-up
+and remeshing took 31.9 ms per mesh and the compiled ones below 1.7 + 4.4 ms (medians,
+``experiments/mesh/remesher_timing.py``); ``nirspi-bench mesh3d`` prints both, measured in the
+same run.
 
 1. **Clean-up** (numpy, then numba on a corner table):
 
@@ -36,8 +36,8 @@ same meshes; ``nirspi-bench mesh3d`` prints both, measured in the same run.
      second order. Border vertices stay fixed.
 
    ``L`` is the target edge length. Unlike pymeshlab's filter there is no feature-edge detection
-   and no reprojection onto the input surface: on the Table 6 clouds, pymeshlab's reprojection
-   moved the chamfer distance by 0.05 mm (5.70 vs 5.75 mm, docs/mesh.md).
+   and no reprojection onto the input surface (the Table 6 jobs' chamfer distance to the true
+   surface: 5.64 mm with this remesher, 5.70 mm with pymeshlab's; docs/mesh.md).
 
 Everything runs in a fixed order on float64 without fast-math: numba compiles for the host CPU,
 but without ``fastmath`` LLVM may neither reorder floating-point operations nor fuse a multiply
@@ -77,7 +77,7 @@ def _jit(fn):  # type: ignore[no-untyped-def]
 
 def _jit_inline(fn):  # type: ignore[no-untyped-def]
     """For the one-line corner-table helpers: inlined into their callers (numba otherwise calls
-    them; the remeshing of the Table 6 meshes went from 6.7 to 6.0 ms, one measurement)."""
+    them as functions)."""
     return njit(cache=True, nogil=True, inline="always")(fn) if njit is not None else fn
 
 
