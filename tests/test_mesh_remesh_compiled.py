@@ -224,7 +224,9 @@ def test_remesher_output_is_a_manifold_on_irregular_grids_with_holes(
     f = np.delete(f, [i for i in drop if i < len(f)], axis=0)
     if len(f) == 0:
         return
-    ov, of, _ = clean_and_remesh_compiled(v, f, target, 3, 1.0, 30, 1)
+    # holes of up to 3 edges (a dropped face) are closed; the grid's own border (8 edges or more)
+    # stays open: closed over, a flat sheet becomes a zero-volume pillow, which remeshing shrinks
+    ov, of, _ = clean_and_remesh_compiled(v, f, target, 3, 1.0, 3, 1)
     assert np.all(np.isfinite(ov))
     assert_manifold(ov, of)
     lo, hi = v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9

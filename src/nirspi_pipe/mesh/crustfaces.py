@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nirspi_pipe.mesh.isotropic import _jit, _live
+from nirspi_pipe.mesh.isotropic import _find, _jit, _live
 
 __all__ = ["crust_faces", "power_centres"]
 
@@ -107,14 +107,6 @@ def _stable_order(key, m):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _uf_find(parent, i):  # type: ignore[no-untyped-def]
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
-@_jit
 def _weld(P, wtol):  # type: ignore[no-untyped-def]
     """Cluster of each point of P (n, 3): connected components of the pairs within wtol,
     numbered in order of their smallest member; and the clusters' mean positions."""
@@ -131,14 +123,14 @@ def _weld(P, wtol):  # type: ignore[no-untyped-def]
                 break
             dy, dz = P[q, 1] - P[p, 1], P[q, 2] - P[p, 2]
             if dx * dx + dy * dy + dz * dz <= w2:
-                a, b = _uf_find(parent, p), _uf_find(parent, q)
+                a, b = _find(parent, p), _find(parent, q)
                 if a != b:
                     parent[max(a, b)] = min(a, b)
     label = np.full(n, -1, np.int64)
     cl = np.empty(n, np.int64)
     n_cl = 0
     for i in range(n):
-        r = _uf_find(parent, i)
+        r = _find(parent, i)
         if label[r] < 0:
             label[r] = n_cl
             n_cl += 1

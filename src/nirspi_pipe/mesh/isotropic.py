@@ -588,6 +588,18 @@ def _live_out(F, v, h1, h2, h3, h4, buf, na, buf2, nb):  # type: ignore[no-untyp
     return -1
 
 
+@_jit_inline
+def _stitch(opp, h):  # type: ignore[no-untyped-def]
+    """Before h's face goes: its other two edges' outer half-edges become each other's opposites
+    (or a border, where one has none). Returns them: (across next(h), across prev(h))."""
+    x1, x2 = opp[_nxt(h)], opp[_prv(h)]
+    if x1 >= 0:
+        opp[x1] = x2
+    if x2 >= 0:
+        opp[x2] = x1
+    return x1, x2
+
+
 @_jit
 def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):  # type: ignore[no-untyped-def]
     """Collapse edges shorter than sqrt(lo2) (module docstring); returns the number collapsed."""
@@ -683,19 +695,8 @@ def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):  # 
                 g = buf[i] // 3
                 F[g, buf[i] % 3] = b
             f0 = h // 3
-            hn, hp = _nxt(h), _prv(h)
-            x1, x2 = opp[hn], opp[hp]
-            if x1 >= 0:
-                opp[x1] = x2
-            if x2 >= 0:
-                opp[x2] = x1
-            if o >= 0:
-                on, op = _nxt(o), _prv(o)
-                y1, y2 = opp[on], opp[op]
-                if y1 >= 0:
-                    opp[y1] = y2
-                if y2 >= 0:
-                    opp[y2] = y1
+            x1, x2 = _stitch(opp, h)
+            y1, y2 = _stitch(opp, o) if o >= 0 else (-1, -1)
             for g in (f0, -1 if o < 0 else o // 3):
                 if g < 0:
                     continue
