@@ -10,16 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from nirspi_pipe.mesh.crustfaces import _stable_order, _weld
 from nirspi_pipe.mesh.fusion import _heat_graph, _heat_step, _nanmedian_last, heat_diffusion
-from nirspi_pipe.mesh.powercrust import (
-    _compact,
-    _cross3,
-    _group_first,
-    _order_in_runs,
-    _runs,
-    _sum_rows,
-    circumcentres,
-)
+from nirspi_pipe.mesh.powercrust import _compact, _group_first, circumcentres
 
 # finite values with ties, signed zeros and a wide range of magnitudes
 _FLOATS = st.one_of(
@@ -31,35 +24,6 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
     """Equal values, dtypes and shapes, with NaN equal to NaN and -0.0 distinct from +0.0."""
     a, b = np.asarray(a), np.asarray(b)
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
-
-
-@settings(max_examples=100, deadline=None)
-@given(hnp.arrays(np.float64, st.tuples(st.integers(0, 20), st.just(3)), elements=_FLOATS), st.booleans())
-def test_cross3_is_np_cross(u: np.ndarray, broadcast_row: bool) -> None:
-    v = u[::-1] * 0.75 + 0.1
-    if broadcast_row:
-        v = np.array([[1.0, 0.0, 0.0]])
-    assert _same(_cross3(u, v), np.cross(u, v))
-
-
-@settings(max_examples=100, deadline=None)
-@given(st.integers(1, 8), st.data())
-def test_sum_rows_is_add_at(n: int, data: st.DataObject) -> None:
-    k = data.draw(st.integers(0, 40))
-    index = data.draw(hnp.arrays(np.int64, k, elements=st.integers(0, n - 1)))
-    values = data.draw(hnp.arrays(np.float64, (k, 3), elements=_FLOATS))
-    ref = np.zeros((n, 3))
-    np.add.at(ref, index, values)
-    assert _same(_sum_rows(index, values, n), ref)
-
-
-@settings(max_examples=100, deadline=None)
-@given(hnp.arrays(np.int64, st.integers(0, 40), elements=st.integers(-5, 5)))
-def test_runs_is_unique_of_sorted(keys: np.ndarray) -> None:
-    keys = np.sort(keys)
-    start, size = _runs(keys)
-    _, ref_start, ref_size = np.unique(keys, return_index=True, return_counts=True)
-    assert np.array_equal(start, ref_start) and np.array_equal(size, ref_size)
 
 
 @settings(max_examples=100, deadline=None)
@@ -93,23 +57,6 @@ def test_group_first_is_the_sort(kv: tuple[np.ndarray, np.ndarray]) -> None:
     uk, pos = _group_first(keys, values)
     ref_uk, ref_pos = _group_first_reference(keys, values)
     assert _same(uk, ref_uk) and np.array_equal(pos, ref_pos)
-
-
-@settings(max_examples=150, deadline=None)
-@given(
-    hnp.arrays(np.int64, st.integers(0, 12), elements=st.integers(1, 9)),
-    st.data(),
-    st.booleans(),
-)
-def test_order_in_runs_is_lexsort(sizes: np.ndarray, data: st.DataObject, one_long_run: bool) -> None:
-    if one_long_run:  # the padded array would be mostly padding: the lexsort fallback
-        sizes = np.append(sizes, 2000)
-    n = int(sizes.sum())
-    elements = st.one_of(_FLOATS, st.sampled_from([np.inf, -np.inf, np.nan, 0.25, 0.25]))
-    values = data.draw(hnp.arrays(np.float64, n, elements=elements))
-    start, size = _runs(np.repeat(np.arange(len(sizes)), sizes))
-    run = np.repeat(np.arange(len(size)), size)
-    assert np.array_equal(_order_in_runs(values, run, start, size), np.lexsort((values, run)))
 
 
 def _circumcentres_reference(tets: np.ndarray, weights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -170,3 +117,38 @@ def test_nanmedian_last_is_np_nanmedian(a: np.ndarray) -> None:
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows
         ref = np.nanmedian(a, axis=-1)
     assert np.array_equal(_nanmedian_last(a), ref, equal_nan=True)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 12), st.lists(st.tuples(st.integers(0, 11), st.integers(0, 11)), max_size=60))
+def test_stable_order_is_a_stable_argsort(m: int, pairs: list[tuple[int, int]]) -> None:
+    """The power crust groups its mixed edges by key ``a*m + b`` with a counting sort: the same
+    permutation as numpy's stable argsort (equal keys keep their order)."""
+    key = np.array([(a % m) * m + (b % m) for a, b in pairs], dtype=np.int64)
+    assert np.array_equal(_stable_order(key, m), np.argsort(key, kind="stable"))
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    hnp.arrays(np.float64, st.tuples(st.integers(1, 40), st.just(3)), elements=st.floats(-1.0, 1.0)),
+    st.floats(0.01, 0.8),
+)
+def test_weld_is_the_components_of_the_close_pairs(points: np.ndarray, tol: float) -> None:
+    """Welding = connected components of the pairs within ``tol`` (what cKDTree.query_pairs and
+    scipy's connected_components give, as the numpy crust did), each cluster at its members' mean."""
+    from hypothesis import assume
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+    from scipy.spatial.distance import pdist
+
+    # a distance within rounding of tol may fall either side (squared vs rooted comparison)
+    assume(not np.any(np.abs(pdist(points) - tol) < 1e-12))
+    cl, pos = _weld(np.ascontiguousarray(points), tol)
+    close = cKDTree(points).query_pairs(tol, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(close)), (close[:, 0], close[:, 1])), shape=(len(points),) * 2)
+    _, ref = connected_components(graph, directed=False)
+    # the same partition (labels may be numbered differently)
+    assert len(set(zip(cl.tolist(), ref.tolist()))) == len(set(cl.tolist())) == len(set(ref.tolist()))
+    for c in range(len(pos)):
+        assert np.allclose(pos[c], points[cl == c].mean(axis=0), rtol=0, atol=1e-15)

@@ -63,38 +63,6 @@ def _dot3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
 
 
-def _cross3(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of ``(..., 3)`` arrays, written out like :func:`_dot3`: the IEEE
-    operations of ``np.cross`` (``u₁v₂ − u₂v₁``, …), so the same bits (tests/test_mesh_speed.py),
-    without its axis bookkeeping, which made it 5× slower on 8000 rows (0.40 vs 0.08 ms,
-    measured with timeit on this project's 2-core box)."""
-    out = np.empty(np.broadcast_shapes(u.shape, v.shape), dtype=np.result_type(u, v))
-    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
-    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
-    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-    return out
-
-
-def _sum_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """``out[index[i]] += values[i]`` into ``(n, c)`` zeros, for ``values`` ``(k, c)``: the sums of
-    ``np.add.at`` (both add in the order of ``i``, so the same bits, tests/test_mesh_speed.py) by
-    one ``np.bincount`` per column, 4× faster (0.25 vs 1.04 ms for 20000 rows, timeit)."""
-    out = np.zeros((n, values.shape[1]))
-    for k in range(values.shape[1]):
-        out[:, k] = np.bincount(index, weights=values[:, k], minlength=n)
-    return out
-
-
-def _runs(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Start and length of each run of equal values of a sorted 1-D array: the ``return_index``
-    and ``return_counts`` of ``np.unique`` on it (tests/test_mesh_speed.py), without its sort."""
-    k = np.asarray(sorted_keys)
-    new = np.ones(len(k), dtype=bool)
-    np.not_equal(k[1:], k[:-1], out=new[1:])
-    start = np.flatnonzero(new)
-    return start, np.diff(np.append(start, len(k)))
-
-
 def _compact(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """The vertices used by ``faces`` (indices ``< n_vertices``, ascending) and the faces
     renumbered into them: ``np.unique(faces, return_inverse=True)`` (tests/test_mesh_speed.py)
@@ -140,21 +108,6 @@ def _group_first(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.n
     np.minimum.at(pos, keys[cand], cand)
     uk = np.flatnonzero(pos < len(keys))
     return uk.astype(keys.dtype), pos[uk]
-
-
-def _order_in_runs(values: np.ndarray, run: np.ndarray, start: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """The permutation that sorts ``values`` stably within each run of consecutive positions
-    (``run``: each position's run, ``start``/``size``: the runs' of :func:`_runs`), the runs
-    staying in place: ``np.lexsort((values, run))`` (tests/test_mesh_speed.py). The runs are the
-    rows of a padded array sorted at once, 2.7× faster than ``lexsort`` on 20 000 values in runs
-    of 3–8 (timeit); ``lexsort`` when the padding would be large (a few long runs)."""
-    longest = int(size.max()) if len(size) else 0
-    if len(size) * longest > 4 * len(values) + 1024:
-        return np.lexsort((values, run))
-    pad = np.full((len(size), longest), np.inf)  # after every value but NaN; dropped below
-    pad[run, np.arange(len(values)) - start[run]] = values
-    o = np.argsort(pad, axis=1, kind="stable")
-    return (o + start[:, None])[o < size[:, None]]
 
 
 def compute_poles(samples: np.ndarray, box_factor: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
