@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nirspi_pipe.mesh.isotropic import _find, _jit, _live
+from nirspi_pipe.mesh.isotropic import _find, _jit, _live, _ranks
 
 __all__ = ["crust_faces", "power_centres"]
 
@@ -247,12 +247,7 @@ def _crust(poles, tets, centres, inner, wtol, edges):  # type: ignore[no-untyped
     used = np.zeros(t, np.bool_)
     for q in range(n_t):
         used[ring_t[q]] = True
-    id_of = np.full(t, -1, np.int64)
-    n_id = 0
-    for q in range(t):
-        if used[q]:
-            id_of[q] = n_id
-            n_id += 1
+    id_of, n_id = _ranks(used)
     P = np.empty((n_id, 3))
     for q in range(t):
         if used[q]:

@@ -878,6 +878,18 @@ def _remesh(V0, F0, target, iterations, v_cap, f_cap, rounds):  # type: ignore[n
 
 
 @_jit
+def _ranks(used):  # type: ignore[no-untyped-def]
+    """Each marked index's rank among the marked ones (-1 for the others), and their count."""
+    rank = np.full(used.shape[0], -1, np.int64)
+    n = 0
+    for i in range(used.shape[0]):
+        if used[i]:
+            rank[i] = n
+            n += 1
+    return rank, n
+
+
+@_jit
 def _live(F, nv):  # type: ignore[no-untyped-def]
     """The live faces of F (first index >= 0) renumbered into the vertices they use, and those
     vertices' old indices (ascending)."""
@@ -888,12 +900,7 @@ def _live(F, nv):  # type: ignore[no-untyped-def]
             n_f += 1
             for k in range(3):
                 used[F[f, k]] = True
-    new_id = np.full(nv, -1, np.int64)
-    n = 0
-    for v in range(nv):
-        if used[v]:
-            new_id[v] = n
-            n += 1
+    new_id, n = _ranks(used)
     keep = np.empty(n, np.int64)
     for v in range(nv):
         if used[v]:
