@@ -24,6 +24,14 @@ class StandinSFS:
         return degraded_depth(Sphere().render(camera), np.random.default_rng(self.seed))
 
 
+@pytest.fixture(autouse=True)
+def _standin_allowed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stand-in is a test class: put it on the target allow-list (nirspi_pipe.targets) here."""
+    from nirspi_pipe import targets
+
+    monkeypatch.setattr(targets, "PROJECT_TARGETS", targets.PROJECT_TARGETS | {f"{__name__}.StandinSFS"})
+
+
 def _cfg(*overrides: str):
     from hydra import compose, initialize_config_module
 

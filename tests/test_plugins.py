@@ -187,6 +187,16 @@ class DoubledSolver:
         return Image2D(self.factor * img, info={{"plugin": "throwaway", "factor": self.factor}})
 
 
+@dataclass(frozen=True)
+class Unregistered:
+    """A class of the plugin that it does not register: no config may build it."""
+
+    path: str = ""
+
+    def __post_init__(self) -> None:
+        open(self.path, "w").close()
+
+
 @dataclass
 class StoredConf:
     _target_: str = "{mod}.DoubledSolver"
@@ -224,6 +234,9 @@ def test_throwaway_plugin_pip_installed_runs_through_nirspi_run(tmp_path: Path) 
             [project.entry-points."nirspi_pipe.plugins"]
             {name} = "{mod}:register"
             {name}_broken = "{mod}_broken"
+
+            [project.entry-points."nirspi_pipe.targets"]
+            DoubledSolver = "{mod}:DoubledSolver"
 
             [tool.setuptools]
             package-dir = {{"" = "pkg"}}
@@ -286,6 +299,24 @@ def test_throwaway_plugin_pip_installed_runs_through_nirspi_run(tmp_path: Path) 
 
         bad = subprocess.run([exe, f"solver={name}_nope"], capture_output=True, text=True, env=env, timeout=120)
         assert bad.returncode == 2 and f"{name}, {name}_stored" in bad.stderr
+
+        # a class of the plugin that it did not register is refused by name, and never built
+        marker = tmp_path / "MARK"
+        evil = subprocess.run(
+            [
+                exe,
+                f"solver._target_={mod}.Unregistered",
+                f"+solver.path={marker}",
+                f"hydra.run.dir={tmp_path / 'evil'}",
+            ],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        assert evil.returncode == 2 and not marker.exists(), evil.stderr
+        assert f"solver._target_='{mod}.Unregistered' is not allowed" in evil.stderr
+        assert f"{mod}.DoubledSolver" in evil.stderr  # the registered one is named as allowed
     finally:
         subprocess.run([*pip, "uninstall", "-y", "-q", dist], capture_output=True, text=True)
     gone = subprocess.run([exe, "--plugins"], capture_output=True, text=True, env=env, timeout=120)

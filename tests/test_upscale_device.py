@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_module
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.pipeline import build
+from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.data import HELDOUT_SAMPLES, TRAIN_SAMPLES
 from nirspi_pipe.upscale.evaluate import score_heldout, summarise
 from nirspi_pipe.upscale.fsrcnn import FSRCNN, load_weights, resolve_weights, shipped_weights
@@ -88,15 +89,28 @@ def test_unknown_weights_name_is_one_clear_error(tmp_path: Path, monkeypatch: py
         load_weights(2, DEVICE_WEIGHTS)  # a shipped ×4 file asked for ×2
 
 
-def test_a_file_in_the_working_directory_wins_over_a_shipped_name(
+def test_a_shipped_name_is_never_taken_from_the_working_directory(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """Issue 24: a file in the working directory under a shipped name does not shadow the
+    package's weights; ``./name`` asks for it explicitly. The record names the file and hash."""
+    import hashlib
+
     monkeypatch.chdir(tmp_path)
     (tmp_path / DEVICE_WEIGHTS).write_bytes(resolve_weights(3).read_bytes())  # a ×3 file under the ×4 name
-    assert resolve_weights(4, DEVICE_WEIGHTS) == Path(DEVICE_WEIGHTS)
+    packaged = resolve_weights(4, DEVICE_WEIGHTS)
+    assert packaged.parent == resolve_weights(4).parent and packaged != tmp_path / DEVICE_WEIGHTS
+    assert load_weights(4, DEVICE_WEIGHTS).scale == 4  # the package's ×4, not the ×3 impostor
+    explicit = f"./{DEVICE_WEIGHTS}"
+    assert resolve_weights(4, explicit) == Path(explicit)
     with pytest.raises(ConfigError, match="×3"):
-        load_weights(4, DEVICE_WEIGHTS)
-    assert np.isfinite(load_weights(3, DEVICE_WEIGHTS).deconv_w).all()
+        load_weights(4, explicit)
+    assert np.isfinite(load_weights(3, explicit).deconv_w).all()
+    info = FSRCNN(scale=4, weights=DEVICE_WEIGHTS).upscale(Image2D(np.full((8, 8), 0.5))).info
+    assert info["weights_file"] == f"package:{DEVICE_WEIGHTS}"
+    assert info["weights_sha256"] == hashlib.sha256(packaged.read_bytes()).hexdigest()
+    info = FSRCNN(scale=3, weights=explicit).upscale(Image2D(np.full((8, 8), 0.5))).info
+    assert info["weights_file"] == str((tmp_path / DEVICE_WEIGHTS).resolve())
 
 
 @pytest.mark.slow

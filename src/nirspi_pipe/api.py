@@ -134,7 +134,7 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     from nirspi_pipe.cli import CONFIG_MODULE, CONFIG_NAME
     from nirspi_pipe.plugins import activate
     from nirspi_pipe.sweeper import register_hydra_plugins
-    from nirspi_pipe.validate import check_overrides
+    from nirspi_pipe.validate import check_config, check_overrides
 
     overrides = [str(o) for o in overrides]
     flags = [o for o in overrides if o.startswith("-")]
@@ -142,9 +142,10 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
         raise BadOverrides(f"{flags[0]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     activate()  # installed plugins' config folders join the search path
     problem = check_overrides(overrides)
+    register_hydra_plugins()
+    problem = problem or check_config(overrides)  # allowed targets, known keys
     if problem:
         raise BadOverrides(problem)
-    register_hydra_plugins()
     if GlobalHydra.instance().is_initialized():
         raise NirspiError("nirspi_pipe.run cannot be called inside a running Hydra app; call run_pipeline(cfg)")
     try:

@@ -30,6 +30,8 @@ __all__ = ["run", "collect", "execute_job"]
 log = logging.getLogger("nirspi_pipe")
 
 _EXIT_CONFIG = 2
+#: Hydra flags after which nothing is built (help, completion, info): no composition is checked.
+_NO_RUN_FLAGS = frozenset({"--help", "-h", "--hydra-help", "--version", "-sc", "--shell-completion", "--info", "-i"})
 
 
 def _one_line(exc: BaseException) -> str:
@@ -213,7 +215,7 @@ def run(argv: list[str] | None = None) -> None:
 
     from nirspi_pipe.helptext import register_resolvers
     from nirspi_pipe.sweeper import register_hydra_plugins
-    from nirspi_pipe.validate import check_overrides, rewrite_nulls
+    from nirspi_pipe.validate import check_config, check_overrides, rewrite_nulls
 
     args = list(sys.argv[1:] if argv is None else argv)
     if "--plugins" in args:
@@ -222,10 +224,12 @@ def run(argv: list[str] | None = None) -> None:
     _activate_plugins()
     args, problem = rewrite_nulls(args)
     problem = problem or check_overrides(args)
+    register_hydra_plugins()
+    if not problem and not _NO_RUN_FLAGS.intersection(a.partition("=")[0] for a in args):
+        problem = check_config(args)  # allowed targets, known keys: before Hydra builds anything
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)
-    register_hydra_plugins()
     register_resolvers()  # ${nirspi_help:...} in the --help template
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(_hydra_task)
     sys.argv = [sys.argv[0], *args]

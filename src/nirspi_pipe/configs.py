@@ -39,6 +39,8 @@ from hydra.plugins.config_source import ConfigLoadError, ConfigResult, ConfigSou
 from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import OmegaConf
 
+from nirspi_pipe.targets import locate, resolve
+
 __all__ = [
     "CONFIG_MODULE",
     "CONFIG_NAME",
@@ -103,9 +105,10 @@ def schema_defaults(target: Any) -> dict[str, Any]:
     """The config node of a ``_target_`` (a class or function, or its dotted path): every
     parameter with its Python default (``???`` when it has none), in signature order. Parameters
     whose default a config cannot spell, and dataclass fields marked
-    ``metadata={"config": False}``, are left out. Raises ``ImportError`` when the target does not
-    import."""
-    obj = locate(target) if isinstance(target, str) else target
+    ``metadata={"config": False}``, are left out. Raises :class:`~nirspi_pipe.errors.ConfigError`
+    when a dotted name is not on the allow-list (:mod:`nirspi_pipe.targets`; nothing is imported),
+    ``ImportError`` when an allowed one does not import."""
+    obj = resolve(target, "_target_") if isinstance(target, str) else target  # allowed, then imported
     if obj is None:
         raise ImportError(f"_target_ {target} does not import")
     items: list[tuple[str, Any]] = []
@@ -129,25 +132,6 @@ def schema_defaults(target: Any) -> dict[str, Any]:
         except _NotPlain:
             continue
     return out
-
-
-def locate(target: str) -> Any:
-    """The object a dotted path (``package.module.Name``) names, or None."""
-    import importlib
-
-    parts = target.split(".")
-    for i in range(len(parts) - 1, 0, -1):
-        try:
-            obj: Any = importlib.import_module(".".join(parts[:i]))
-        except ImportError:
-            continue
-        try:
-            for attr in parts[i:]:
-                obj = getattr(obj, attr)
-        except AttributeError:
-            return None
-        return obj
-    return None
 
 
 def schema_reference(group: str, option: str) -> str:
@@ -396,25 +380,26 @@ def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
     Raises :class:`~nirspi_pipe.device.recording.RecordingError` naming ``order`` when it is not
     an option. Handed to the recorded source by the runner."""
     from hydra import compose
-    from hydra.utils import instantiate
 
     from nirspi_pipe.device.recording import RecordingError
+    from nirspi_pipe.pipeline import build
 
     allowed = group_options("scan")
     if order not in allowed:
         raise RecordingError("order", f"{order!r} is not a scan option; allowed: {', '.join(allowed)}")
     with _loader():
         cfg = compose(CONFIG_NAME, overrides=[f"scan={order}", f"scan.ratio={float(ratio)!r}"])
-    return np.asarray(instantiate(cfg.scan).select(n), dtype=np.int64)
+    return np.asarray(build(cfg.scan, "scan").select(n), dtype=np.int64)
 
 
 def render_scene(scene: str, resolution: int, overrides: list[str] | None = None) -> np.ndarray:
     """Relative radiance ``(n, n)`` of the ``scene=<scene>`` option at ``resolution`` (for the
     device emulator's command line)."""
     from hydra import compose
-    from hydra.utils import instantiate
+
+    from nirspi_pipe.pipeline import build
 
     with _loader():
         cfg = compose(CONFIG_NAME, overrides=[f"scene={scene}", f"camera.resolution={resolution}", *(overrides or [])])
-    camera = instantiate(cfg.camera)
-    return instantiate(cfg.scene).render(camera).radiance
+    camera = build(cfg.camera, "camera")
+    return build(cfg.scene, "scene").render(camera).radiance

@@ -17,9 +17,9 @@ from typing import Any, TypeVar
 import numpy as np
 from omegaconf import DictConfig
 
-from nirspi_pipe.configs import locate
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
+from nirspi_pipe.targets import check_targets, locate, resolve
 from nirspi_pipe.types import Camera
 
 __all__ = ["STAGE_GROUPS", "RunOutput", "build", "build_stages", "check_types", "run_pipeline"]
@@ -104,7 +104,7 @@ def _instantiate(node: Any, path: str) -> Any:
     if target is None:
         return kwargs
     try:
-        fn = locate(str(target))
+        fn = resolve(target, f"{path}._target_")  # the allow-list (nirspi_pipe.targets), then the import
         if fn is None:
             raise ImportError(f"Error locating target '{target}': no such module or attribute")
         args = [
@@ -132,6 +132,7 @@ def build(node: Any, key: str) -> Any:
     from omegaconf import Container, OmegaConf
 
     plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node
+    check_targets(plain, key)  # every target of the node is allowed, before anything is imported
     check_types(plain, key)
     try:
         return _instantiate(plain, key)
@@ -214,7 +215,7 @@ def check_types(node: Any, key: str) -> None:
         target = sub.get("_target_")
         if not isinstance(target, str):
             return
-        fn = locate(target)
+        fn = resolve(target, f"{path}._target_")  # allowed before it is imported
         if fn is None:
             return
         try:
@@ -247,10 +248,8 @@ def _accepted_keys(node: Any) -> str:
     """Comma-separated constructor parameters of a node's ``_target_`` (for error messages)."""
     import inspect
 
-    from hydra.utils import get_method
-
     try:
-        params = inspect.signature(get_method(str(node.get("_target_")))).parameters
+        params = inspect.signature(locate(str(node.get("_target_")))).parameters
     except Exception:  # noqa: BLE001 - best effort for a message
         return "see the group's config file"
     return ", ".join(p for p in params if p not in ("self", "args", "kwargs"))

@@ -7,7 +7,16 @@ from typing import Any
 
 from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 
-__all__ = ["check_overrides", "rewrite_nulls", "group_options", "config_groups", "REQUIRED_GROUPS", "OFF_OPTION"]
+__all__ = [
+    "check_config",
+    "check_plain_keys",
+    "check_overrides",
+    "rewrite_nulls",
+    "group_options",
+    "config_groups",
+    "REQUIRED_GROUPS",
+    "OFF_OPTION",
+]
 
 #: Stage groups a run cannot do without: ``solver=null`` is refused with one line.
 REQUIRED_GROUPS = ("source", "scan", "solver")
@@ -97,7 +106,8 @@ def check_overrides(args: list[str]) -> str | None:
     from hydra.errors import HydraException
 
     overrides = _override_args(args)
-    if not overrides or any(o.startswith("hydra.searchpath") for o in overrides):
+    extra_dirs = any(a.partition("=")[0] in ("-cd", "--config-dir") for a in args)
+    if not overrides or extra_dirs or any(o.startswith("hydra.searchpath") for o in overrides):
         return None  # no overrides, or a search path we do not see: Hydra judges
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
@@ -118,13 +128,14 @@ def check_overrides(args: list[str]) -> str | None:
     return _check_keys(parsed, choices)
 
 
-def _compose_or_none(overrides: list[str]) -> Any:
-    """The composed config, or None when Hydra cannot compose it (it reports that itself)."""
+def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra: bool = False) -> Any:
+    """The composed config (with Hydra's node when ``hydra``), or None when Hydra cannot compose
+    it (it reports that itself)."""
     from hydra import compose, initialize_config_module
 
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-            return compose(CONFIG_NAME, overrides=overrides)
+            return compose(config_name or CONFIG_NAME, overrides=overrides, return_hydra_config=hydra)
     except Exception:  # noqa: BLE001 - Hydra reports composition problems itself
         return None
 
@@ -209,3 +220,213 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
             except ConfigError as exc:
                 return str(exc)
     return None
+
+
+#: Top-level keys of a job's config that are not config groups (conf/config.yaml).
+PLAIN_KEYS = ("camera", "seed", "tables", "output")
+#: ``output``'s keys, each true or false (conf/config.yaml).
+OUTPUT_KEYS = ("arrays", "images", "quiet")
+#: Hydra flags that load something other than configs: ``--experimental-rerun`` unpickles a file
+#: (code), ``--config-path`` replaces the primary config with one nothing here checks.
+_REFUSED_FLAGS = {
+    "--experimental-rerun": "it unpickles a file, and unpickling runs code",
+    "-cp": "use -cd/--config-dir (added to the search path) instead",
+    "--config-path": "use -cd/--config-dir (added to the search path) instead",
+}
+
+
+def _flag_values(args: list[str]) -> dict[str, str]:
+    """``{flag: value}`` of the Hydra flags that take one (``-cn NAME``, ``--config-dir=DIR``)."""
+    out: dict[str, str] = {}
+    for i, arg in enumerate(args):
+        flag, eq, value = arg.partition("=")
+        if flag in _FLAGS_WITH_VALUE:
+            out[flag] = value if eq else (args[i + 1] if i + 1 < len(args) else "")
+    return out
+
+
+def _table_names() -> tuple[str, ...]:
+    """The paper tables a config may list under ``tables`` (modules of nirspi_pipe.tables)."""
+    import pkgutil
+
+    import nirspi_pipe.tables
+
+    return tuple(
+        sorted(m.name for m in pkgutil.iter_modules(nirspi_pipe.tables.__path__) if not m.name.startswith("_"))
+    )
+
+
+def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str | None:
+    """Top-level keys, ``output`` and ``tables`` of a composed job config (a plain dict, without
+    the ``hydra`` node): a key that is neither a config group nor one of :data:`PLAIN_KEYS`, an
+    unknown ``output`` key, a non-boolean ``output`` value or an unknown table, as one line.
+    (Stage nodes are checked against their classes when built: :func:`nirspi_pipe.pipeline.build`.)"""
+    tops = {g.split("/")[0] for g in (all_groups() if groups is None else groups)} | set(PLAIN_KEYS)
+    for key in config:
+        if str(key) not in tops and str(key) != "hydra":
+            import difflib
+
+            near = difflib.get_close_matches(str(key), sorted(tops), n=1)
+            hint = f"did you mean {near[0]}? " if near else ""
+            return f"{key}: {key} is not a key or group; {hint}allowed: {', '.join(sorted(tops))}"
+    output = config.get("output")
+    if output is not None and not isinstance(output, dict):
+        return f"output={output!r} is not allowed; allowed: a node with keys {', '.join(OUTPUT_KEYS)}"
+    for key, value in (output or {}).items():
+        if key not in OUTPUT_KEYS:
+            return f"output.{key} is not a key of output; allowed keys: {', '.join(OUTPUT_KEYS)}"
+        if not isinstance(value, bool):
+            return f"output.{key}={value!r} is not allowed; allowed: true or false"
+    tables = config.get("tables")
+    names = _table_names()
+    if tables is not None and not isinstance(tables, list):
+        return f"tables={tables!r} is not allowed; allowed: a list of {', '.join(names)}"
+    for name in tables or []:
+        if name not in names:
+            return f"tables: {name!r} is not a table; allowed: {', '.join(names)}"
+    return None
+
+
+def _sweep_target_values(parsed: list[Any]) -> str | None:
+    """Overrides (sweeps included) that set a ``_target_`` or a node holding one, checked
+    against the allow-list without composing (a sweep's values are composed job by job)."""
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.targets import check_target, check_targets
+
+    for ov in parsed:
+        if ov.is_delete():
+            continue
+        key = ov.key_or_group.split("@", 1)[0]
+        values = list(ov.sweep_iterator()) if ov.is_sweep_override() else [ov.value()]
+        try:
+            for value in values:
+                if key == "_target_" or key.endswith("._target_"):
+                    check_target(value, key)
+                else:
+                    check_targets(value, key)
+        except ConfigError as exc:
+            return str(exc)
+    return None
+
+
+def check_config(args: list[str]) -> str | None:
+    """What ``nirspi-run ARGS`` would build, checked before Hydra builds anything (its callbacks,
+    launcher, sweeper, logging) and before any job: the whole config is composed as Hydra will
+    compose it (search path, ``-cd``, ``-cn`` and experiment files included; a sweep's lists
+    checked value by value) and every ``_target_`` in it must be on the allow-list
+    (:mod:`nirspi_pipe.targets`); top-level keys, ``output`` and ``tables`` must be known
+    (:func:`check_plain_keys`). Returns one line, or None. A config that does not compose is
+    left to Hydra (which then builds nothing)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.targets import check_targets
+
+    for arg in args:
+        flag = arg.partition("=")[0]
+        if flag in _REFUSED_FLAGS:
+            return f"{flag} is not allowed: {_REFUSED_FLAGS[flag]}"
+    overrides = _override_args(args)
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+    except HydraException:
+        return None  # Hydra reports the syntax error
+    problem = _sweep_target_values(parsed)
+    if problem:
+        return problem
+    flags = _flag_values(args)
+    fixed = [o for o, ov in zip(overrides, parsed, strict=True) if not ov.is_sweep_override()]
+    extra_dir = flags.get("-cd") or flags.get("--config-dir")
+    if extra_dir:
+        from pathlib import Path
+
+        searchpath = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath" and not ov.is_sweep_override()]
+        given = searchpath[-1].value() if searchpath else None
+        base = list(given) if isinstance(given, list) else _primary_searchpath()
+        fixed = [o for o in fixed if not o.startswith("hydra.searchpath=")]
+        fixed.append(f"hydra.searchpath=[{','.join([*map(str, base), Path(extra_dir).resolve().as_uri()])}]")
+    cfg = _compose_or_none(fixed, config_name=flags.get("-cn") or flags.get("--config-name"), hydra=True)
+    if cfg is None:
+        return None
+    plain: dict[str, Any] = {}
+    for part in (OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), OmegaConf.masked_copy(cfg, ["hydra"])):
+        try:  # the job's part resolves; Hydra's may hold values only a running app has (job.num)
+            plain.update(OmegaConf.to_container(part, resolve=True))  # type: ignore[arg-type]
+        except Exception:  # noqa: BLE001 - then check it unresolved
+            plain.update(OmegaConf.to_container(part, resolve=False))  # type: ignore[arg-type]
+    try:
+        check_targets(plain)
+        params = (plain.get("hydra", {}).get("sweeper") or {}).get("params") or {}
+        problem = _sweep_target_values(
+            OverridesParser.create().parse_overrides(
+                [f"{k}={v}" for k, v in params.items() if str(k).endswith("_target_")]
+            )
+        )
+    except ConfigError as exc:
+        return str(exc)
+    except HydraException:
+        problem = None
+    if problem:
+        return problem
+    sweeps = [ov for ov in parsed if ov.is_sweep_override() and not ov.key_or_group.startswith("hydra")]
+    for ov in sweeps:  # a sweep's keys: the composed config did not see them
+        job = {k: v for k, v in plain.items() if k != "hydra"}
+        for value in ov.sweep_iterator():
+            one = OmegaConf.create(job)
+            try:
+                OmegaConf.update(one, ov.key_or_group.split("@", 1)[0], value, merge=False, force_add=True)
+            except Exception:  # noqa: BLE001 - Hydra reports what it cannot set
+                continue
+            problem = check_plain_keys(OmegaConf.to_container(one, resolve=False))
+            if problem:
+                return problem
+    job = {k: v for k, v in plain.items() if k != "hydra"}
+    return check_plain_keys(job) or _check_stage_nodes(job)
+
+
+def _check_stage_nodes(job: dict[str, Any]) -> str | None:
+    """Every node with a ``_target_`` in the stage groups (allowed: checked above) has only keys
+    its class takes, with the annotated types: ``+scene.bogus=1`` stops before any job, not in
+    every job. A class taking ``**kwargs`` accepts any key."""
+    import inspect
+
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.pipeline import EFFECT_GROUPS, STAGE_GROUPS, check_types
+    from nirspi_pipe.targets import find_targets, locate
+
+    for group in ("camera", *STAGE_GROUPS):
+        node = job.get(group)
+        if not isinstance(node, dict):
+            continue
+        for key, target in find_targets(node, group):
+            path = key[: -len("._target_")]
+            sub: Any = node
+            for part in path.split(".")[1:]:
+                sub = sub[int(part)] if isinstance(sub, list) else sub[part]
+            try:
+                params = inspect.signature(locate(str(target))).parameters
+            except (TypeError, ValueError):
+                continue
+            if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+                continue
+            for name in sub:
+                if not str(name).startswith("_") and name not in params:
+                    where = path
+                    for effect in EFFECT_GROUPS:  # source.effects.fog.x is what the user typed as fog.x
+                        if path == f"source.effects.{effect}" or path.startswith(f"source.effects.{effect}."):
+                            where = effect + path[len(f"source.effects.{effect}") :]
+                    accepted = ", ".join(p for p in params if p not in ("self", "args", "kwargs"))
+                    return f"{where}.{name} is not a key; allowed keys: {accepted or '(none)'}"
+        try:
+            check_types(node, group)
+        except ConfigError as exc:
+            return str(exc)
+    return None
+
+
+def _primary_searchpath() -> list[str]:
+    """``hydra.searchpath`` of the primary config (conf/config.yaml)."""
+    cfg = _compose_or_none([], hydra=True)
+    return [] if cfg is None else [str(p) for p in cfg.hydra.searchpath]

@@ -52,6 +52,7 @@ from __future__ import annotations
 import numpy as np
 
 from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.mesh import jitcache
 
 __all__ = ["clean_and_remesh_compiled", "warm_up", "clean_mesh", "MAX_FACES"]
 
@@ -72,13 +73,14 @@ except ImportError:  # pragma: no cover - exercised only where numba is absent
 
 
 def _jit(fn):  # type: ignore[no-untyped-def]
-    return njit(cache=True, nogil=True)(fn) if njit is not None else fn
+    """Compiled, cached in the private folder of :mod:`nirspi_pipe.mesh.jitcache`."""
+    return jitcache.jit(fn) if njit is not None else fn
 
 
 def _jit_inline(fn):  # type: ignore[no-untyped-def]
     """For the one-line corner-table helpers: inlined into their callers (numba otherwise calls
     them as functions)."""
-    return njit(cache=True, nogil=True, inline="always")(fn) if njit is not None else fn
+    return jitcache.jit(fn, inline="always") if njit is not None else fn
 
 
 # ---------------------------------------------------------------------------------------------
@@ -992,8 +994,8 @@ def warm_up() -> bool:
     a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
     f = np.vstack([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
     f = f[np.all(f != idx[2, 2], axis=1)]  # a hole around one vertex
-    try:
-        out_v, out_f, _ = clean_and_remesh_compiled(v, f, 1.0, 1, 0.8, 30, 1)
+    try:  # a cache that does not load is rebuilt once, with a warning naming it (jitcache)
+        out_v, out_f, _ = jitcache.rebuild_on_failure(lambda: clean_and_remesh_compiled(v, f, 1.0, 1, 0.8, 30, 1))
     except Exception:  # noqa: BLE001 - any failure means "not available": the caller falls back
         return False
     return len(out_f) > 0

@@ -292,8 +292,10 @@ def warm_up() -> bool:
     u, v = np.meshgrid(np.linspace(-0.4, 0.4, 7), np.linspace(-0.4, 0.4, 7))
     pts = np.column_stack([u.ravel(), v.ravel(), 2.0 - np.sqrt(1.0 - u.ravel() ** 2 - v.ravel() ** 2)])
     pts += rng.normal(0.0, 1e-3, pts.shape)
-    try:
-        power_crust(pts, "view")
+    from nirspi_pipe.mesh.jitcache import rebuild_on_failure
+
+    try:  # a numba cache that does not load is rebuilt once, with a warning naming it
+        rebuild_on_failure(lambda: power_crust(pts, "view"))
     except NirspiError:
         return False
     return True

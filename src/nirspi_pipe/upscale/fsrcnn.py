@@ -273,15 +273,22 @@ def shipped_weights() -> tuple[str, ...]:
 
 def resolve_weights(scale: int, path: str | Path | None = None) -> Path:
     """The weights file for ``scale``: the packaged ``fsrcnn_x{scale}.npz`` when ``path`` is None;
-    a bare file name that is not a file in the working directory but one of
-    :func:`shipped_weights` (e.g. ``fsrcnn_x4_led8.npz``) is the packaged file; anything else is
-    a path."""
+    the name of a shipped file (:func:`shipped_weights`, e.g. ``fsrcnn_x4_led8.npz``) is always the
+    packaged file, never a file of that name in the working directory; anything else is a path
+    (``./fsrcnn_x4_led8.npz`` names the working directory's file explicitly)."""
     if path is None:
         return packaged_weights_path(scale)
-    file = Path(path).expanduser()
-    if str(path) == file.name and not file.is_file() and file.name in shipped_weights():
-        return packaged_weights_path(scale).with_name(file.name)
-    return file
+    if str(path) in shipped_weights():
+        return packaged_weights_path(scale).with_name(str(path))
+    return Path(path).expanduser()
+
+
+@lru_cache(maxsize=8)
+def weights_sha256(path: str) -> str:
+    """SHA-256 of a weights file (hex), for the record."""
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
@@ -340,11 +347,15 @@ class FSRCNN:
             y = np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
         y = finish(y, self.clip)
         d, s, m = net.shape
+        file = resolve_weights(int(self.scale), self.weights).resolve()
+        packaged = file.parent == packaged_weights_path(int(self.scale)).resolve().parent
         info = {
             "model": "fsrcnn",
             "scale": int(self.scale),
             "shape": list(y.shape),
             "weights": Path(self.weights).name if self.weights else f"fsrcnn_x{self.scale}.npz",
+            "weights_file": f"package:{file.name}" if packaged else str(file),
+            "weights_sha256": weights_sha256(str(file)),
             "d": d,
             "s": s,
             "m": m,
