@@ -382,7 +382,7 @@ def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
     from hydra import compose
 
     from nirspi_pipe.device.recording import RecordingError
-    from nirspi_pipe.pipeline import build
+    from nirspi_pipe.instantiate import build
 
     allowed = group_options("scan")
     if order not in allowed:
@@ -397,7 +397,7 @@ def render_scene(scene: str, resolution: int, overrides: list[str] | None = None
     device emulator's command line)."""
     from hydra import compose
 
-    from nirspi_pipe.pipeline import build
+    from nirspi_pipe.instantiate import build
 
     with _loader():
         cfg = compose(CONFIG_NAME, overrides=[f"scene={scene}", f"camera.resolution={resolution}", *(overrides or [])])

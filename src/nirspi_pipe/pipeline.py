@@ -18,11 +18,19 @@ import numpy as np
 from omegaconf import DictConfig
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types
 from nirspi_pipe.stages import Products
-from nirspi_pipe.targets import check_targets, locate, resolve
 from nirspi_pipe.types import Camera
 
-__all__ = ["STAGE_GROUPS", "RunOutput", "build", "build_stages", "check_types", "run_pipeline"]
+__all__ = [
+    "EFFECT_GROUPS",
+    "STAGE_GROUPS",
+    "RunOutput",
+    "build",
+    "build_stages",
+    "check_types",
+    "run_pipeline",
+]
 
 #: Config groups in pipeline order. ``camera`` is a plain node, not a group.
 STAGE_GROUPS = (
@@ -54,205 +62,6 @@ class RunOutput:
     derived: dict[str, float]
     info: dict[str, dict[str, Any]]
     warnings: list[str] = field(default_factory=list)
-
-
-#: Config groups that are built inside another node (``source.effects.fog: ${fog}``): an error
-#: there is reported under the group the user typed (``fog.beta_per_m``).
-EFFECT_GROUPS = ("fog", "illumination", "detector")
-_EFFECT_PARENT = "source.effects."
-
-
-def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
-    """Where to report an error of node ``full_key`` built as part of group ``key``: the path the
-    user types, and whether it is absolute (an effect group inside ``source.effects``)."""
-    if not full_key:
-        return key, False
-    if full_key.startswith(_EFFECT_PARENT) and full_key[len(_EFFECT_PARENT) :].split(".")[0] in EFFECT_GROUPS:
-        return full_key[len(_EFFECT_PARENT) :], True
-    return (full_key, False) if full_key.startswith(key + ".") else (key, False)
-
-
-class _BuildFailure(Exception):
-    """A stage constructor raised while building the node at ``path`` (the innermost one)."""
-
-    def __init__(self, inner: BaseException, path: str, node: dict[str, Any]) -> None:
-        super().__init__(str(inner))
-        self.inner, self.path, self.node = inner, path, node
-
-
-#: Keys of a ``_target_`` node that are not constructor arguments (Hydra's ``instantiate`` keys).
-_RESERVED = ("_target_", "_recursive_", "_partial_", "_convert_", "_args_")
-
-
-def _instantiate(node: Any, path: str) -> Any:
-    """``hydra.utils.instantiate(node, _convert_="all")`` for a resolved plain container: every
-    dict with a ``_target_`` becomes ``target(**children)`` (``_recursive_: false`` passes the
-    children as they are, ``_partial_: true`` gives a ``functools.partial``), other dicts and lists
-    stay plain. Written out because Hydra's ``instantiate`` cost 57-62 ms per job on the
-    paper's table3 config (it copies and re-resolves the node in OmegaConf), against under 1 ms
-    here, timing both on the ten stage nodes of one composed job (a sweep ran beside it); a paper sweep builds
-    432 jobs. ``tests/test_config.py`` builds every shipped option through it."""
-    if isinstance(node, list):
-        return [_instantiate(v, f"{path}.{i}") for i, v in enumerate(node)]
-    if not isinstance(node, dict):
-        return node
-    recursive = node.get("_recursive_", True) is not False
-    kwargs = {
-        str(k): (_instantiate(v, f"{path}.{k}") if recursive else v) for k, v in node.items() if k not in _RESERVED
-    }
-    target = node.get("_target_")
-    if target is None:
-        return kwargs
-    try:
-        fn = resolve(target, f"{path}._target_")  # the allow-list (nirspi_pipe.targets), then the import
-        if fn is None:
-            raise ImportError(f"Error locating target '{target}': no such module or attribute")
-        args = [
-            (_instantiate(v, f"{path}._args_.{i}") if recursive else v) for i, v in enumerate(node.get("_args_", []))
-        ]
-        if node.get("_partial_", False):
-            import functools
-
-            return functools.partial(fn, *args, **kwargs)
-        return fn(*args, **kwargs)
-    except _BuildFailure:
-        raise
-    except Exception as exc:  # noqa: BLE001 - translated by build()
-        raise _BuildFailure(exc, path, node) from exc
-
-
-def build(node: Any, key: str) -> Any:
-    """Instantiate one config node (``_target_``) recursively, turning errors into one-line
-    messages. ``node`` is a config node or its resolved plain container.
-
-    A :class:`ConfigError` raised by the stage is re-raised with its key prefixed by the node it
-    came from, so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …`` (and
-    ``fog.beta_per_m=…`` for the fog model that ``source.effects`` builds).
-    """
-    from omegaconf import Container, OmegaConf
-
-    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node
-    check_targets(plain, key)  # every target of the node is allowed, before anything is imported
-    check_types(plain, key)
-    try:
-        return _instantiate(plain, key)
-    except _BuildFailure as failure:
-        inner = failure.inner
-        where, absolute = _user_key(failure.path, key)
-        if isinstance(inner, ConfigError):
-            err = inner.under(where)
-            raise (
-                ConfigError(err.key, err.value, err.allowed, err.unknown_key, absolute=True) if absolute else err
-            ) from None
-        if isinstance(inner, TypeError) and "unexpected keyword argument" in str(inner):
-            bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
-            raise ConfigError(f"{where}.{bad}", None, _accepted_keys(failure.node), unknown_key=True) from None
-        raise inner from None
-
-
-_KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a string"}
-
-
-def _scalar_kinds(hint: Any) -> tuple[type, ...] | None:
-    """The scalar types a field annotation accepts (None also when Optional), or None when the
-    annotation is not a plain scalar (tuples, mappings, models: the stage checks those)."""
-    import types
-    import typing
-
-    args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
-    kinds = tuple(a for a in args if a in _KINDS or a is type(None))
-    return kinds if kinds and len(kinds) == len(args) else None
-
-
-def _type_ok(value: Any, kinds: tuple[type, ...]) -> bool:
-    if value is None:
-        return type(None) in kinds
-    if isinstance(value, bool):
-        return bool in kinds
-    if isinstance(value, (int, float)):
-        return float in kinds or (int in kinds and float(value).is_integer())
-    return isinstance(value, str) and str in kinds
-
-
-def _allowed_for(cls: Any, params: dict[str, Any], name: str, kinds: tuple[type, ...]) -> str:
-    """The ``allowed`` text the stage itself gives for ``name``: its ``__post_init__`` is asked
-    with a value of the right type that no range accepts (NaN), so a wrong type and a wrong
-    value read the same."""
-    fallback = " or ".join(_KINDS[k] for k in kinds if k in _KINDS) + (", or null" if type(None) in kinds else "")
-    if float not in kinds and int not in kinds:
-        return fallback
-    try:
-        cls(**{**params, name: float("nan")})
-    except ConfigError as exc:
-        if exc.key == name:
-            return exc.allowed
-    except Exception:  # noqa: BLE001 - only a message is asked for
-        pass
-    return fallback
-
-
-def check_types(node: Any, key: str) -> None:
-    """Scalar fields of every ``_target_`` dataclass in ``node`` (a config node or its resolved
-    plain container) have their annotated type; a string for a number
-    (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming the key and the stage's
-    allowed values. The dataclass annotations are the source of types."""
-    import dataclasses
-    import inspect
-    import typing
-
-    from omegaconf import Container, OmegaConf
-
-    def walk(sub: Any, path: str) -> None:
-        if isinstance(sub, list):
-            for i, item in enumerate(sub):
-                walk(item, f"{path}.{i}")
-            return
-        if not isinstance(sub, dict):
-            return
-        for k, v in sub.items():
-            if not str(k).startswith("_"):
-                walk(v, f"{path}.{k!s}")
-        target = sub.get("_target_")
-        if not isinstance(target, str):
-            return
-        fn = resolve(target, f"{path}._target_")  # allowed before it is imported
-        if fn is None:
-            return
-        try:
-            hints = typing.get_type_hints(fn)
-            if dataclasses.is_dataclass(fn):
-                names = [f.name for f in dataclasses.fields(fn) if f.init]
-            else:
-                names = [p for p in inspect.signature(fn).parameters if p in hints]
-        except Exception:  # noqa: BLE001 - unresolvable annotations: instantiation reports problems
-            return
-        for name in names:
-            if name not in sub:
-                continue
-            kinds = _scalar_kinds(hints.get(name))
-            if kinds is None or _type_ok(sub[name], kinds):
-                continue
-            params = {str(k): v for k, v in sub.items() if not str(k).startswith("_")}
-            where, _ = _user_key(f"{path}.{name}", key)
-            raise ConfigError(where, sub[name], _allowed_for(fn, params, name, kinds), absolute=True)
-
-    try:
-        walk(OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node, key)
-    except ConfigError:
-        raise
-    except Exception:  # noqa: BLE001 - the check is a courtesy; instantiation reports the rest
-        return
-
-
-def _accepted_keys(node: Any) -> str:
-    """Comma-separated constructor parameters of a node's ``_target_`` (for error messages)."""
-    import inspect
-
-    try:
-        params = inspect.signature(locate(str(node.get("_target_")))).parameters
-    except Exception:  # noqa: BLE001 - best effort for a message
-        return "see the group's config file"
-    return ", ".join(p for p in params if p not in ("self", "args", "kwargs"))
 
 
 def build_stages(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
