@@ -80,7 +80,8 @@ def test_multirun_two_jobs_and_results_table(cli) -> None:
 
 def test_failed_job_is_recorded_and_others_complete(cli) -> None:
     res = cli("nirspi-run", "-m", "scene.reflectance=0.5,1.5,0.2", "camera.resolution=16", "hydra.sweep.dir=sweep")
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 1, res.stderr  # the others complete, and the sweep says one failed
+    assert "1 of 3 jobs did not finish ok (1 failed: 1x scene.reflectance=1.5" in res.stderr
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert list(df["status"]) == ["ok", "failed", "ok"]
     failed = df[df["status"] == "failed"].iloc[0]
