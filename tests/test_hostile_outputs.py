@@ -65,6 +65,29 @@ def test_a_linked_folder_is_refused_and_a_linked_file_is_replaced(tmp_path: Path
     assert not (real / "summary.png").exists() and victim.read_text() == "keep"
 
 
+def test_the_tables_never_write_through_a_link(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The paper tables write their files in place (pandas, matplotlib): a linked file in
+    ``tables/`` is removed first (its target kept), and a ``tables`` folder that is a link is
+    refused in one line, with no table built."""
+    from nirspi_pipe.results import build_tables
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep")
+    sweep = tmp_path / "sweep"
+    (sweep / "tables").mkdir(parents=True)
+    (sweep / "tables" / "table2.csv").symlink_to(victim)
+    build_tables(pd.DataFrame({"status": ["ok"]}), sweep, ["table2"])  # fails on this frame: after the links
+    assert victim.read_text() == "keep" and not (sweep / "tables" / "table2.csv").is_symlink()
+
+    other = tmp_path / "other"
+    other.mkdir()
+    shutil.rmtree(sweep / "tables")
+    (sweep / "tables").symlink_to(other)
+    assert build_tables(pd.DataFrame({"status": ["ok"]}), sweep, ["table2"]) == []
+    assert list(other.iterdir()) == []
+    assert "no table built: tables folder" in capsys.readouterr().err
+
+
 def test_the_job_lock_never_follows_a_link(tmp_path: Path) -> None:
     """The lock file was opened with O_CREAT and truncated: a ``.lock`` linked to a file would
     have emptied it. Now the link is replaced; a job folder that is a link is refused."""

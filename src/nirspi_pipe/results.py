@@ -179,8 +179,17 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
     """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
     logged and skipped, so it never costs the sweep's other results. Returns those built."""
+    from nirspi_pipe.records import OutputError, drop_links, refuse_link
     from nirspi_pipe.tables import build_table
 
+    folder = sweep / "tables"  # the tables write in place: never through a link (docs/hostile.md)
+    try:
+        refuse_link(folder, "tables folder")
+        if folder.is_dir():
+            drop_links(folder, tuple(p.name for p in folder.iterdir() if p.is_symlink()))
+    except OutputError as exc:
+        print(f"nirspi-run: error: no table built: {exc}", file=sys.stderr, flush=True)
+        return []
     built = []
     for name in names:
         try:
