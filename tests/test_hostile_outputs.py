@@ -370,3 +370,50 @@ def test_timeout_s_is_checked() -> None:
     for bad in (0, -1, float("nan"), float("inf"), True, "10"):
         with pytest.raises(ConfigError, match="hydra.launcher.timeout_s"):
             NirspiLauncherBase(timeout_s=bad)  # type: ignore[arg-type]
+
+
+@pytest.fixture
+def full_disk(tmp_path: Path):  # type: ignore[no-untyped-def]
+    """A 256 KiB tmpfs filled to the last byte (root only, where mounting is allowed; else skipped)."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = shutil.which("mount")
+    if mount is None or os.geteuid() != 0:
+        pytest.skip("mounting a small tmpfs needs root")
+    done = subprocess.run([mount, "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)], capture_output=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode(errors='replace').strip()}")
+    try:
+        with open(disk / "filler", "wb", buffering=0) as fh:  # unbuffered: nothing left to flush
+            for size in (4096, 1):
+                try:
+                    while True:
+                        fh.write(b"\0" * size)
+                except OSError as exc:
+                    assert exc.errno == errno.ENOSPC
+        assert shutil.disk_usage(disk).free == 0
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+@pytest.mark.slow
+def test_a_really_full_disk_is_one_line(full_disk: Path) -> None:
+    """A real full file system (no injection): a single run and a sweep each end with one line
+    naming the file that could not be written, exit 1, no traceback (Hydra's own ``.hydra/``
+    writes used to give one before nirspi-pipe's code ran: ``hydra.output_subdir`` is now null)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "NIRSPI_TRACEBACK")}
+    env["MPLBACKEND"] = "Agg"
+    for args, name in (
+        ([*_SMALL, "hydra.run.dir=run"], "run/record.json"),
+        (["-m", "seed=0,1", *_SMALL, "hydra.sweep.dir=sweep"], "sweep/multirun.yaml"),
+    ):
+        res = subprocess.run(
+            [script("nirspi-run"), *args], cwd=full_disk, env=env, capture_output=True, text=True, timeout=300
+        )
+        assert res.returncode == 1, res.stderr
+        lines = _lines(res.stderr)
+        assert len(lines) == 1 and "Traceback" not in res.stdout, res.stdout + res.stderr
+        assert lines[0].startswith("nirspi-run: error: cannot write ") and lines[0].endswith(
+            f"{name}: no space left on device"
+        ), lines
