@@ -80,7 +80,8 @@ def test_multirun_two_jobs_and_results_table(cli) -> None:
 
 def test_failed_job_is_recorded_and_others_complete(cli) -> None:
     res = cli("nirspi-run", "-m", "scene.reflectance=0.5,1.5,0.2", "camera.resolution=16", "hydra.sweep.dir=sweep")
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 1, res.stderr  # the others complete, and the sweep says one failed
+    assert "1 of 3 jobs did not finish ok (1 failed: 1x scene.reflectance=1.5" in res.stderr
     df = pd.read_parquet(cli.cwd / "sweep" / "results.parquet")
     assert list(df["status"]) == ["ok", "failed", "ok"]
     failed = df[df["status"] == "failed"].iloc[0]
@@ -135,7 +136,8 @@ def test_sweep_resumes_and_keys_folders_by_config_hash(cli) -> None:
         "hydra.sweep.dir=sweep",
     ]
     first = cli(*args)
-    assert first.returncode == 0, first.stderr
+    assert first.returncode == 1, first.stderr  # reflectance 1.5 fails: the sweep says so
+    assert "2 of 4 jobs did not finish ok (2 failed" in first.stderr
     assert "4 to run" in first.stdout
     sweep = cli.cwd / "sweep"
     df = pd.read_parquet(sweep / "results.parquet")
@@ -145,7 +147,7 @@ def test_sweep_resumes_and_keys_folders_by_config_hash(cli) -> None:
     }
     assert len(ok_mtimes) == 2
     again = cli(*args)
-    assert again.returncode == 0, again.stderr
+    assert again.returncode == 1, again.stderr  # the failed jobs ran again, and failed again
     assert "2 to run, 2 skipped (already complete)" in again.stdout
     for p, t in ok_mtimes.items():  # complete jobs were not recomputed
         assert p.stat().st_mtime == t

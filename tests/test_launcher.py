@@ -54,6 +54,42 @@ def test_crashing_jobs_take_only_themselves_down(tmp_path: Path, monkeypatch: py
     assert not any(p.name.startswith(".") and p.suffix == ".tmp" for p in tmp_path.rglob("*"))
 
 
+def _hanging_execute(config, out_dir, choices, overrides, job_num, attempt=None):  # type: ignore[no-untyped-def]
+    """A job that hangs when ``config["how"] == "hang"`` (blocked 10 minutes), else a quick ok one."""
+    import time
+
+    if config["how"] == "hang":
+        time.sleep(600)
+    return _fake_execute(config, out_dir, choices, overrides, job_num, attempt)
+
+
+@fork_only
+def test_a_hanging_job_is_killed_at_its_deadline(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A job still running ``timeout_s`` after it was sent is killed with its runner: a failed
+    record naming the deadline (``JobTimeout``); the jobs after it run on a fresh runner, and the
+    sweep ends soon after the deadline rather than after the hang."""
+    import time
+
+    import nirspi_pipe.launcher as launcher
+
+    monkeypatch.setattr(launcher, "_execute", _hanging_execute)
+    hows = ["ok", "hang", "ok", "ok", "ok"]
+    items = [(tmp_path / f"job{i}", i, ComposedJob({"how": how}, {}, [f"how={how}"])) for i, how in enumerate(hows)]
+    t0 = time.perf_counter()
+    returns = launcher.NirspiLauncherBase(n_jobs=1, timeout_s=2)._run(items, tmp_path, None, False)
+    elapsed = time.perf_counter() - t0
+    assert 2 <= elapsed < 60, elapsed  # the hang would have taken 600 s
+    metas = [read_record(out_dir / RECORD_NAME)["meta"] for out_dir, _num, _job in items]
+    assert [r.return_value["meta"] for r in returns] == metas
+    assert [m["status"] for m in metas] == ["ok", "failed", "ok", "ok", "ok"]
+    late = metas[1]
+    assert late["error"] == "job killed after its deadline of 2 s (hydra.launcher.timeout_s)"
+    assert late["error_type"] == "JobTimeout" and late["timeout_s"] == 2 and late["signal"] == 9
+    assert late["overrides"] == ["how=hang"] and late["job_num"] == 1
+    # one runner at a time: the one before the hang, then a fresh one for the rest
+    assert metas[0]["pid"] != metas[2]["pid"] and metas[2]["pid"] == metas[3]["pid"] == metas[4]["pid"]
+
+
 @fork_only
 def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A job whose folder another process holds is run after the others, once the lock is free."""

@@ -13,6 +13,7 @@ the config options each adds, and those that failed to load (see docs/plugins.md
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as _dt
 import logging
 import os
@@ -65,8 +66,9 @@ def execute_job(
 
     from nirspi_pipe.finite import drop_nonfinite
     from nirspi_pipe.pipeline import run_pipeline
-    from nirspi_pipe.records import OutputError, atomic_write, new_record, write_record
+    from nirspi_pipe.records import OutputError, atomic_write, drop_links, new_record, refuse_link, write_record
 
+    refuse_link(out_dir)  # nothing is written through a link (docs/hostile.md)
     config: Any = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     record = new_record(config, choices, overrides, job_num, attempt, seed=_seed_or_none(cfg), started=started)
@@ -80,9 +82,12 @@ def execute_job(
         record["meta"]["error_type"] = "ConfigError" if isinstance(exc, ConfigError) else type(exc).__name__
         try:
             atomic_write(out_dir / "error.txt", traceback.format_exc())
-        except OutputError:
-            pass  # the record below says what failed; it raises if the folder is unwritable
+        except OutputError:  # the record below says what failed; it raises if the folder is unwritable
+            with contextlib.suppress(OSError):  # an older run's traceback does not belong to this record
+                (out_dir / "error.txt").unlink(missing_ok=True)
     else:
+        with contextlib.suppress(OSError):  # an older run's traceback does not belong to this record
+            (out_dir / "error.txt").unlink(missing_ok=True)
         record.update(
             metrics=output.metrics,
             timings_ms=output.timings_ms,
@@ -94,6 +99,7 @@ def execute_job(
     record["meta"]["wall_s"] = time.perf_counter() - t0
     if output is not None:
         try:
+            drop_links(out_dir, ("summary.png", "mesh.ply", "mesh.png"))  # written in place, not renamed
             _write_products(cfg, out_dir, output)
             if (cfg.get("output", {}) or {}).get("images", True):
                 _write_summary_png(out_dir, output, record)
@@ -198,10 +204,12 @@ def _hydra_task(cfg: Any) -> None:
     if hc.mode == RunMode.RUN:
         if failed:
             config_error = record["meta"].get("error_type") == "ConfigError"
-            hint = "" if config_error else f" (traceback: {out_dir / 'error.txt'})"
+            error_txt = out_dir / "error.txt"  # execute_job leaves one only when it wrote this run's
+            written = error_txt.is_file()
+            hint = f" (traceback: {error_txt})" if written and not config_error else ""
             print(f"nirspi-run: error: {record['meta']['error']}{hint}", file=sys.stderr)
-            if os.environ.get("NIRSPI_TRACEBACK"):
-                print((out_dir / "error.txt").read_text(), file=sys.stderr)
+            if os.environ.get("NIRSPI_TRACEBACK") and written:
+                print(error_txt.read_text(), file=sys.stderr)
             raise SystemExit(_EXIT_CONFIG if config_error else 1)
         if not quiet:
             print(_summary(record, out_dir))

@@ -46,6 +46,7 @@ from nirspi_pipe.records import (
 __all__ = [
     "ATTEMPTS_NAME",
     "CHILD_FAILED_STATUS",
+    "OUTPUT_FAILED_STATUS",
     "ClaimedJob",
     "crash_message",
     "execute_attempt",
@@ -57,6 +58,11 @@ log = logging.getLogger(__name__)
 
 ATTEMPTS_NAME = "attempts.json"
 _CHILD_FAILED = 70  # exit code of a child whose job runner itself raised (EX_SOFTWARE)
+_OUTPUT_FAILED = 74  # exit code of a child that could not write its outputs (EX_IOERR, sysexits.h)
+
+#: Jobs of this process's sweep that failed without a record (:func:`unwritten_failure`): the
+#: results callback counts them when no row of ``results.parquet`` shows them.
+unwritten_jobs: list[tuple[Path, str]] = []
 
 
 def read_attempts(folder: Path) -> dict[str, Any]:
@@ -109,7 +115,25 @@ def crash_message(status: int) -> tuple[str, dict[str, Any]]:
         hint = hints.get(sig, "")
         return f"job process killed by {name} ({sig}){hint}", {"signal": sig, "exit_code": -sig}
     code = os.WEXITSTATUS(status) if os.WIFEXITED(status) else status
+    if code == _OUTPUT_FAILED:
+        return (
+            "job could not write its record (disk full or unwritable folder; the file is named in the error above)",
+            {"exit_code": code, "signal": None},
+        )
     return (f"job process exited with code {code} before writing its record", {"exit_code": code, "signal": None})
+
+
+def deadline_message(timeout_s: float) -> str:
+    """The error of a job killed at its deadline (``hydra.launcher.timeout_s``)."""
+    return f"job killed after its deadline of {timeout_s:g} s (hydra.launcher.timeout_s)"
+
+
+def unwritten_failure(out_dir: Path, overrides: list[str], job_num: int | None, exc: OutputError) -> dict[str, Any]:
+    """The record of a job that could not even be started because its folder cannot be written
+    (disk full, a symbolic link): returned (the caller logs its error), not written."""
+    unwritten_jobs.append((Path(out_dir), str(exc)))
+    meta = {"status": "failed", "error": str(exc), "error_type": "OutputError", "overrides": overrides}
+    return {"meta": {**meta, "job_num": job_num, "job_key": Path(out_dir).name}}
 
 
 def _done_ok(folder: Path, sweep_file: Path | None, resume: bool) -> dict[str, Any] | None:
@@ -142,7 +166,10 @@ def run_sweep_job(
     """Run ``execute(cfg, out_dir, choices, overrides, job_num, attempt=n)`` (which writes the
     job's record) as described in the module docstring. Never raises for a failing or crashing
     job; returns the record written (or, when even that could not be written, the one meant)."""
-    job = ClaimedJob.claim(cfg, out_dir, choices, overrides, job_num, sweep_file, resume, wait=True)
+    try:
+        job = ClaimedJob.claim(cfg, out_dir, choices, overrides, job_num, sweep_file, resume, wait=True)
+    except OutputError as exc:  # disk full, a folder that is a link: this job fails, the others go on
+        return unwritten_failure(out_dir, overrides, job_num, exc)
     assert job is not None  # noqa: S101 - wait=True always takes the lock
     if job.done is not None:
         return job.finish(None)
@@ -165,6 +192,8 @@ def run_sweep_job(
 
 #: Wait status of a child whose job runner itself raised (exit code :data:`_CHILD_FAILED`).
 CHILD_FAILED_STATUS = _CHILD_FAILED << 8
+#: Wait status of a child that could not write its record (exit code :data:`_OUTPUT_FAILED`).
+OUTPUT_FAILED_STATUS = _OUTPUT_FAILED << 8
 
 
 def execute_attempt(
@@ -178,9 +207,13 @@ def execute_attempt(
 ) -> int:
     """Run attempt ``attempt`` of a claimed job in this process (a forked child, or a runner of
     the ``nirspi`` launcher); the wait status a child doing it would give: 0, or
-    :data:`CHILD_FAILED_STATUS` when ``execute`` raised (traceback on stderr)."""
+    :data:`CHILD_FAILED_STATUS` when ``execute`` raised (traceback on stderr), or
+    :data:`OUTPUT_FAILED_STATUS` when it could not write the record (one line, no traceback)."""
     try:
         execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+    except OutputError as exc:  # disk full, unwritable folder: one line naming the file
+        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+        return OUTPUT_FAILED_STATUS
     except Exception:  # noqa: BLE001 - reported as the crash of this job; a runner goes on
         traceback.print_exc()
         return CHILD_FAILED_STATUS
@@ -254,7 +287,8 @@ class ClaimedJob:
         if pid == 0:  # pragma: no cover - the child (coverage does not follow forks)
             code = 0
             try:
-                code = 0 if self.run_here(execute) == 0 else _CHILD_FAILED
+                status = self.run_here(execute)
+                code = 0 if status == 0 else os.WEXITSTATUS(status)
             except BaseException:  # noqa: BLE001 - the child must never return into the worker
                 traceback.print_exc()
                 code = _CHILD_FAILED
@@ -266,10 +300,11 @@ class ClaimedJob:
                     os._exit(code)
         return pid
 
-    def finish(self, status: int | None) -> dict[str, Any]:
+    def finish(self, status: int | None, deadline_s: float | None = None) -> dict[str, Any]:
         """The job's record once the process that ran it ended it with wait status ``status``
         (None: nothing ran, ``done`` is the record); writes a crash record when that process
-        wrote none of this attempt. Releases the lock."""
+        wrote none of this attempt. ``deadline_s``: the process was killed at this deadline
+        (:func:`deadline_message`). Releases the lock."""
         try:
             if status is None:
                 assert self.done is not None  # noqa: S101 - nothing ran: claim() found it done
@@ -279,7 +314,15 @@ class ClaimedJob:
                 return rec
             f = self.fields
             return _record_crash(
-                self.out_dir, status, rec, f["cfg"], f["choices"], f["overrides"], f["job_num"], self.attempt
+                self.out_dir,
+                status,
+                rec,
+                f["cfg"],
+                f["choices"],
+                f["overrides"],
+                f["job_num"],
+                self.attempt,
+                deadline_s,
             )
         finally:
             self.lock.release()
@@ -302,21 +345,27 @@ def _record_crash(
     overrides: list[str],
     job_num: int | None,
     attempt: int,
+    deadline_s: float | None = None,
 ) -> dict[str, Any]:
     from omegaconf import OmegaConf
 
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":
         return rec  # the child recorded its own failure, then exited non-zero: keep its words
+    error_type = "JobCrash"
+    if deadline_s is not None:
+        message, error_type = deadline_message(deadline_s), "JobTimeout"
+        fields["timeout_s"] = deadline_s
     config: dict[str, Any]
     try:
         container = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
         config = {str(k): v for k, v in container.items()} if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}
-    record = new_record(config, choices, overrides, job_num, attempt, error=message, error_type="JobCrash", **fields)
+    record = new_record(config, choices, overrides, job_num, attempt, error=message, error_type=error_type, **fields)
     try:
         write_record(out_dir, record)
     except OutputError as exc:
-        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+        if status != OUTPUT_FAILED_STATUS:  # else the job has just said it, in the same words
+            print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
     return record

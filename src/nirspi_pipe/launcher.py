@@ -7,7 +7,9 @@ for whichever ends first. A job therefore costs no second Hydra composition (0.4
 ``python -m cProfile`` of ``hydra.compose`` on the paper's configs), no worker start-up and no
 pickling. Each child is the crash-isolated child every launcher uses (:mod:`nirspi_pipe.jobs`):
 the folder's lock, the attempt count, and a ``failed`` record naming the signal when it
-segfaults or is killed; the other jobs go on.
+segfaults or is killed; the other jobs go on. A job still running ``timeout_s`` seconds after it
+was sent (``hydra.launcher.timeout_s``, 1800 by default) is killed with its runner and becomes a
+``failed`` row naming the deadline; a fresh runner takes the next job.
 
 What it leaves out, compared with ``hydra/launcher=joblib``: no per-job ``.hydra/`` folder or
 ``<job>.log`` (``record.json`` holds the resolved config, the group choices and the overrides),
@@ -21,6 +23,7 @@ Where ``os.fork`` does not exist (Windows) the jobs run one after another in the
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
@@ -45,6 +48,10 @@ log = logging.getLogger(__name__)
 
 #: Seconds between two progress lines (the last one is always printed).
 PROGRESS_INTERVAL_S = 2.0
+
+#: Default deadline of one job, ``hydra.launcher.timeout_s``: 30 minutes, issue 24's suggestion of a
+#: generous default; half the SLURM launcher's per-job ``timeout_min: 60`` (conf/hydra/launcher/slurm.yaml).
+DEFAULT_TIMEOUT_S = 1800.0
 
 
 def _execute(
@@ -151,12 +158,20 @@ class NirspiLauncherBase(Launcher):
 
     Args:
         n_jobs: jobs at once; -1 (default) one per core (``os.cpu_count()``).
+        timeout_s: deadline of each job in seconds (:data:`DEFAULT_TIMEOUT_S`); None: none.
     """
 
-    def __init__(self, n_jobs: int = -1) -> None:
+    def __init__(self, n_jobs: int = -1, timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
         if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or not (n_jobs == -1 or n_jobs >= 1):
             raise ConfigError("hydra.launcher.n_jobs", n_jobs, "-1 (one per core) or an integer >= 1", absolute=True)
+        if timeout_s is not None and (
+            isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not (0 < timeout_s < float("inf"))
+        ):
+            raise ConfigError(
+                "hydra.launcher.timeout_s", timeout_s, "a number of seconds > 0, or null (no deadline)", absolute=True
+            )
         self.n_jobs = n_jobs
+        self.timeout_s = None if timeout_s is None else float(timeout_s)
         self.hydra_context: Any = None
         self.task_function: Any = None
         self.config: Any = None
@@ -197,7 +212,10 @@ class NirspiLauncherBase(Launcher):
     def _run(
         self, items: list[tuple[Path, int, ComposedJob]], sweep_dir: Path, sweep_file: Path | None, resume: bool
     ) -> list[JobReturn]:
-        from nirspi_pipe.jobs import ClaimedJob, run_sweep_job
+        from nirspi_pipe.jobs import ClaimedJob, run_sweep_job, unwritten_failure
+        from nirspi_pipe.records import OutputError, refuse_link
+
+        refuse_link(sweep_dir, "sweep folder")
 
         sweep_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
@@ -215,11 +233,16 @@ class NirspiLauncherBase(Launcher):
                 log.error("job %s failed: %s", items[i][0].name, rec.get("meta", {}).get("error"))
             progress.add(status == "ok", time.time() - started)
 
-        def claim(i: int, wait: bool) -> ClaimedJob | None:
+        def claim(i: int, wait: bool) -> ClaimedJob | None | dict[str, Any]:
+            """The claimed job, None (locked elsewhere), or the failed record of a job whose
+            folder cannot be written (disk full, a symbolic link): the other jobs go on."""
             out_dir, num, job = items[i]
-            return ClaimedJob.claim(
-                job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume, wait=wait
-            )
+            try:
+                return ClaimedJob.claim(
+                    job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume, wait=wait
+                )
+            except OutputError as exc:
+                return unwritten_failure(out_dir, job.task_overrides, num, exc)
 
         if not hasattr(os, "fork"):  # pragma: no cover - Windows: in-process, one at a time
             for i, (out_dir, num, job) in enumerate(items):
@@ -233,7 +256,7 @@ class NirspiLauncherBase(Launcher):
         limits = threadpool_limits(limits=max(1, (os.cpu_count() or 1) // self.workers))
         gc.freeze()  # the runners' garbage collector then leaves the parent's objects (and pages) alone
         log.info("prewarmed in %.2f s; %d jobs, %d at a time", time.perf_counter() - t0, len(items), self.workers)
-        pool = _RunnerPool(items, min(self.workers, len(items)))
+        pool = _RunnerPool(items, min(self.workers, len(items)), self.timeout_s)
         pending = deque(range(len(items)))
         deferred: list[int] = []  # another process holds the folder's lock: waited for at the end
         try:
@@ -249,15 +272,17 @@ class NirspiLauncherBase(Launcher):
                         i = deferred.pop(0)
                         claimed = claim(i, wait=True)
                     assert claimed is not None  # noqa: S101 - wait=True always claims
-                    if claimed.done is not None:
+                    if isinstance(claimed, dict):
+                        finished(i, claimed)
+                    elif claimed.done is not None:
                         finished(i, claimed.finish(None))
                     else:
                         pool.dispatch(i, claimed)
                 if pool.busy:
-                    for i, claimed, status in pool.wait():
-                        finished(i, claimed.finish(status))
+                    for i, claimed, status, late in pool.wait():
+                        finished(i, claimed.finish(status, self.timeout_s if late else None))
         except BaseException:
-            for _i, claimed, status in pool.kill():
+            for _i, claimed, status, _late in pool.kill():
                 claimed.finish(status)
             raise
         finally:
@@ -313,12 +338,15 @@ class _RunnerPool:
     module caches) is built once per runner rather than once per job. A runner that dies
     (segfault, ``SIGKILL``, out-of-memory) takes only the job it was running: :meth:`wait`
     reports that job with the runner's wait status (a crash record follows) and a fresh runner
-    takes its place."""
+    takes its place. A job still running ``timeout_s`` after it was sent is killed with its runner
+    (``SIGKILL``) and reported late; a fresh runner takes its place too."""
 
-    def __init__(self, items: list[tuple[Path, int, ComposedJob]], size: int) -> None:
+    def __init__(self, items: list[tuple[Path, int, ComposedJob]], size: int, timeout_s: float | None = None) -> None:
         self.items = items
+        self.timeout_s = timeout_s
         self.idle: list[_Runner] = [self._spawn() for _ in range(size)]
-        self.running: dict[Any, tuple[_Runner, int, Any]] = {}  # conn -> (runner, index, claimed job)
+        # conn -> (runner, index, claimed job, deadline on time.monotonic())
+        self.running: dict[Any, tuple[_Runner, int, Any, float]] = {}
 
     @property
     def busy(self) -> bool:
@@ -356,16 +384,19 @@ class _RunnerPool:
             _reap(runner.pid)
             runner = self._spawn()
             runner.conn.send((i, claimed.attempt))
-        self.running[runner.conn] = (runner, i, claimed)
+        deadline = time.monotonic() + self.timeout_s if self.timeout_s is not None else float("inf")
+        self.running[runner.conn] = (runner, i, claimed, deadline)
 
-    def wait(self) -> list[tuple[int, Any, int]]:
-        """Block until at least one runner answers or dies; ``(index, claimed job, wait status)``
-        of each job that ended."""
+    def wait(self) -> list[tuple[int, Any, int, bool]]:
+        """Block until at least one runner answers or dies, or a job passes its deadline;
+        ``(index, claimed job, wait status, killed at the deadline)`` of each job that ended."""
         from multiprocessing.connection import wait
 
         ended = []
-        for ready in wait(list(self.running)):
-            runner, i, claimed = self.running.pop(ready)
+        first = min(deadline for *_, deadline in self.running.values())
+        timeout = None if first == float("inf") else max(0.0, first - time.monotonic())
+        for ready in wait(list(self.running), timeout=timeout):
+            runner, i, claimed, _deadline = self.running.pop(ready)
             conn = runner.conn
             try:
                 _j, status = conn.recv()
@@ -374,18 +405,28 @@ class _RunnerPool:
                 status = _reap(runner.pid)
                 conn.close()
                 self.idle.append(self._spawn())
-            ended.append((i, claimed, status))
+            ended.append((i, claimed, status, False))
+        now = time.monotonic()
+        for conn, (runner, i, claimed, deadline) in list(self.running.items()):
+            if deadline <= now:  # past its deadline: kill the runner, a fresh one takes its place
+                del self.running[conn]
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(runner.pid, signal.SIGKILL)
+                status = _reap(runner.pid)
+                conn.close()
+                self.idle.append(self._spawn())
+                ended.append((i, claimed, status, True))
         return ended
 
-    def kill(self) -> list[tuple[int, Any, int]]:
+    def kill(self) -> list[tuple[int, Any, int, bool]]:
         """Stop the runners with jobs in flight (an interrupt); those jobs with their wait status."""
         ended = []
-        for conn, (runner, i, claimed) in list(self.running.items()):
+        for conn, (runner, i, claimed, _deadline) in list(self.running.items()):
             try:
                 os.kill(runner.pid, signal.SIGTERM)
             except ProcessLookupError:
                 pass
-            ended.append((i, claimed, _reap(runner.pid)))
+            ended.append((i, claimed, _reap(runner.pid), False))
             conn.close()
         self.running.clear()
         return ended

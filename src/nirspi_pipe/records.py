@@ -52,6 +52,8 @@ __all__ = [
     "job_key_of",
     "new_record",
     "provenance",
+    "refuse_link",
+    "drop_links",
     "read_record",
     "source_hash",
     "write_arrays",
@@ -109,15 +111,49 @@ def _write_failure(path: Path, exc: OSError) -> OutputError:
     return OutputError(f"cannot write {path}: {reason}")
 
 
+def refuse_link(folder: Path, what: str = "output folder") -> None:
+    """Raise :class:`OutputError` (one line naming it and its target) when ``folder`` is a
+    symbolic link: nothing is ever written through a link (docs/hostile.md). Only ``folder``
+    itself is checked, not the folders above it."""
+    folder = Path(folder)
+    if folder.is_symlink():
+        try:
+            target = os.readlink(folder)
+        except OSError:
+            target = "?"
+        from nirspi_pipe.safeio import sanitize_text
+
+        raise OutputError(
+            f"{what} {sanitize_text(folder, 300)} is a symbolic link (to {sanitize_text(target, 300)}); refused: "
+            "nothing is written through links (remove the link, or choose another folder)"
+        )
+
+
+def drop_links(folder: Path, names: tuple[str, ...]) -> None:
+    """Remove each file ``folder/name`` that is a symbolic link (the link, never its target), so
+    that writers that open the path itself (matplotlib's ``savefig``, pyvista) write a new file
+    there, as :func:`atomic_write`'s rename does."""
+    for name in names:
+        path = Path(folder) / name
+        if path.is_symlink():
+            try:
+                path.unlink()
+            except OSError as exc:
+                raise _write_failure(path, exc) from None
+
+
 def atomic_write(path: Path, data: bytes | str) -> Path:
     """Write ``data`` to ``path`` atomically: into a uniquely named temporary file in the same
     folder (``tempfile.mkstemp``), flushed to disk, then renamed over ``path``. Concurrent writers
     never share a temporary file, and readers see the old or the new file, never a torn one.
 
     Raises :class:`OutputError` (one line naming ``path``) when the folder is unwritable or the
-    disk is full; the temporary file is removed, and ``path`` keeps its previous content.
+    disk is full; the temporary file is removed, and ``path`` keeps its previous content. A folder
+    that is a symbolic link is refused (:func:`refuse_link`); a ``path`` that is one is replaced
+    by the rename (the link, never its target).
     """
     path = Path(path)
+    refuse_link(path.parent, "folder")
     payload = data.encode() if isinstance(data, str) else bytes(data)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -158,8 +194,12 @@ class JobLock:
             import fcntl
         except ImportError:  # pragma: no cover - Windows
             return True
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        refuse_link(self.path.parent, "job folder")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = self._open()
+        except OSError as exc:  # disk full, unwritable folder: one line naming the lock file
+            raise _write_failure(self.path, exc) from None
         while True:
             try:
                 fcntl.lockf(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -177,6 +217,18 @@ class JobLock:
                 os.ftruncate(fd, 0)
                 os.write(fd, f"{socket.gethostname()} {os.getpid()}\n".encode())
             return True
+
+    def _open(self) -> int:
+        """The lock file's descriptor, never through a link: a ``.lock`` that is a symbolic link
+        is removed (the link, not its target) and created anew."""
+        flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+        try:
+            return os.open(self.path, flags, 0o644)
+        except OSError as exc:
+            if exc.errno != errno.ELOOP:
+                raise
+        self.path.unlink()
+        return os.open(self.path, flags, 0o644)
 
     def release(self) -> None:
         if self._fd is not None:

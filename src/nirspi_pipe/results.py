@@ -157,6 +157,9 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
             continue
         seen.add(path)
         job = str(path.parent.relative_to(sweep))
+        if path.parent.is_symlink():  # never read through a link (docs/hostile.md)
+            records.append((job, {"meta": {"status": "failed", "error": "job folder is a symbolic link; refused"}}))
+            continue
         try:
             records.append((job, read_record(path)))
         except FileNotFoundError:
@@ -176,8 +179,17 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
     """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
     logged and skipped, so it never costs the sweep's other results. Returns those built."""
+    from nirspi_pipe.records import OutputError, drop_links, refuse_link
     from nirspi_pipe.tables import build_table
 
+    folder = sweep / "tables"  # the tables write in place: never through a link (docs/hostile.md)
+    try:
+        refuse_link(folder, "tables folder")
+        if folder.is_dir():
+            drop_links(folder, tuple(p.name for p in folder.iterdir() if p.is_symlink()))
+    except OutputError as exc:
+        print(f"nirspi-run: error: no table built: {exc}", file=sys.stderr, flush=True)
+        return []
     built = []
     for name in names:
         try:
@@ -242,6 +254,46 @@ def unwritable(folder: Path) -> str | None:
     return None
 
 
+def _refuse_link(folder: Path, what: str) -> None:
+    """One line and exit 1 when ``folder`` is a symbolic link (docs/hostile.md)."""
+    from nirspi_pipe.records import OutputError, refuse_link
+
+    try:
+        refuse_link(folder, what)
+    except OutputError as exc:
+        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+        raise SystemExit(1) from None
+
+
+def sweep_problem(frame: pd.DataFrame, sweep: Path) -> str | None:
+    """Why a finished sweep must exit non-zero, in one line: how many jobs are not ``ok``, by
+    status, with their most frequent errors; jobs that failed without a record and without a row
+    (:data:`nirspi_pipe.jobs.unwritten_jobs`); the launcher's failures
+    (:data:`nirspi_pipe.sweeper.launcher_failures`). None when every job is ok."""
+    from nirspi_pipe.jobs import unwritten_jobs
+    from nirspi_pipe.safeio import sanitize_text
+    from nirspi_pipe.sweeper import launcher_failures
+
+    bad = frame[frame["status"] != "ok"] if len(frame) else frame
+    rows = set(bad["job"]) if len(bad) else set()
+    unseen = [(d, e) for d, e in unwritten_jobs if d.parent != Path(sweep) or d.name not in rows]
+    if not len(bad) and not launcher_failures and not unseen:
+        return None
+    parts = []
+    if len(bad):
+        listed = ", ".join(f"{v} {k}" for k, v in sorted(bad["status"].value_counts().to_dict().items()))
+        errors = bad["error"].fillna("no error recorded").value_counts() if "error" in bad.columns else pd.Series()
+        why = "; ".join(f"{n}x {sanitize_text(e, 160)}" for e, n in errors.head(2).items())
+        more = f"; {len(errors) - 2} other errors" if len(errors) > 2 else ""
+        parts.append(f"{len(bad)} of {len(frame)} jobs did not finish ok ({listed}: {why}{more})")
+    if unseen:
+        parts.append(f"{len(unseen)} jobs failed without a record ({sanitize_text(unseen[0][1], 200)})")
+    if launcher_failures:
+        reasons = list(dict.fromkeys(launcher_failures))
+        parts.append(f"the launcher failed {len(launcher_failures)} time(s): {'; '.join(reasons)}")
+    return "; ".join(parts)
+
+
 try:  # the callback base class is Hydra's; keep import errors out of the pure functions above
     from hydra.experimental.callback import Callback
 except ImportError:  # pragma: no cover
@@ -258,6 +310,7 @@ class CollectResults(Callback):  # type: ignore[misc]
             run_dir = Path(str(config.hydra.run.dir))
         except Exception:  # noqa: BLE001 - Hydra will say what is wrong with it
             return
+        _refuse_link(run_dir, "output folder (hydra.run.dir)")
         problem = unwritable(run_dir)
         if problem:
             print(f"nirspi-run: error: cannot write {run_dir}: {problem}", file=sys.stderr, flush=True)
@@ -267,6 +320,12 @@ class CollectResults(Callback):  # type: ignore[misc]
         from nirspi_pipe.sweeper import register_hydra_plugins
 
         register_hydra_plugins()
+        from nirspi_pipe.jobs import unwritten_jobs
+        from nirspi_pipe.sweeper import launcher_failures
+
+        unwritten_jobs.clear()  # this sweep's, in this process
+        launcher_failures.clear()
+        _refuse_link(Path(str(config.hydra.sweep.dir)), "sweep folder (hydra.sweep.dir)")  # before anything is written
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(config.hydra.sweep.dir)
@@ -283,3 +342,9 @@ class CollectResults(Callback):  # type: ignore[misc]
         counts = frame["status"].value_counts().to_dict() if len(frame) else {}
         summary = ", ".join(f"{v} {k}" for k, v in sorted(counts.items())) or "no records"
         print(f"nirspi-run: {len(frame)} jobs ({summary}) -> {sweep / 'results.parquet'}")
+        problem = sweep_problem(frame, sweep)
+        allow = config.hydra.sweeper.get("allow_failures")  # the nirspi sweeper's; others have none
+        if problem and not allow:
+            hint = "; hydra.sweeper.allow_failures=true exits 0" if allow is not None else ""
+            print(f"nirspi-run: error: {problem}{hint}", file=sys.stderr, flush=True)
+            raise SystemExit(1)

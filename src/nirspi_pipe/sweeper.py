@@ -19,7 +19,13 @@ It expands the sweep like Hydra's ``basic`` sweeper (command-line sweeps plus
 Each launched job runs through :func:`nirspi_pipe.jobs.run_sweep_job` (a lock per job folder, an
 attempt counter, and a forked child so that a segfault or a kill is a failed row). Should the
 launcher itself fail (a joblib worker killed from outside), the jobs without a record are
-launched again, at most ``max_attempts`` rounds.
+launched again, at most ``max_attempts`` rounds (fewer when a round wrote no record: the
+launcher could not start). A job folder that is a symbolic link is refused (not launched; a failed
+row naming the link), and nothing is written through it.
+
+After the sweep the results callback (:class:`nirspi_pipe.results.CollectResults`) exits non-zero
+when any job failed or is missing, naming how many and why (:data:`launcher_failures` holds why the
+launcher failed), unless ``hydra.sweeper.allow_failures=true``.
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ from nirspi_pipe.records import (
     config_hash,
     job_key_of,
     read_record,
+    refuse_link,
     write_record,
 )
 
@@ -73,6 +80,10 @@ log = logging.getLogger(__name__)
 
 SWEEP_FILE = "sweep.json"
 _KEY = re.compile(r"^[0-9a-f]{16}$")
+
+#: Why the launcher failed in the last sweep of this process (one line each, in order); the
+#: results callback names them when the sweep exits non-zero.
+launcher_failures: list[str] = []
 
 
 def _resolved(job_cfg: Any) -> dict[str, Any]:
@@ -336,7 +347,7 @@ def progress_line(sweep_dir: Path) -> str | None:
             continue
     total = int(info.get("to_run", len(info["jobs"])))
     skipped = sum(bool(j.get("skipped")) and not j.get("duplicate") for j in info["jobs"])
-    not_run = sum(bool(j.get("gave_up") or j.get("uncomposable")) for j in info["jobs"])
+    not_run = sum(bool(j.get("gave_up") or j.get("uncomposable") or j.get("refused")) for j in info["jobs"])
     return format_progress(done, failed, total, skipped, not_run, max(0.0, time.time() - started))
 
 
@@ -370,6 +381,7 @@ class NirspiSweeperBase(Sweeper):
         resume: bool = True,
         experiments: list[str] | None = None,
         max_attempts: int = 3,
+        allow_failures: bool = False,
     ) -> None:
         self.max_batch_size = max_batch_size
         self.params = dict(params or {})
@@ -378,6 +390,9 @@ class NirspiSweeperBase(Sweeper):
         if not isinstance(max_attempts, int) or max_attempts < 1:
             raise ValueError(f"hydra.sweeper.max_attempts={max_attempts!r} is not allowed; allowed: an integer >= 1")
         self.max_attempts = max_attempts
+        if not isinstance(allow_failures, bool):
+            raise ValueError(f"hydra.sweeper.allow_failures={allow_failures!r} is not allowed; allowed: true or false")
+        self.allow_failures = allow_failures  # read by the results callback (CollectResults)
         self.hydra_context: Any = None
         self.config: Any = None
         self.launcher: Any = None
@@ -570,6 +585,7 @@ class NirspiSweeperBase(Sweeper):
         assert self.config is not None and self.launcher is not None
         assert self.hydra_context is not None
         sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        launcher_failures.clear()
         try:
             return self._sweep(sweep_dir, arguments)
         except OutputError as exc:  # unwritable sweep folder, disk full: one line, no traceback
@@ -601,7 +617,7 @@ class NirspiSweeperBase(Sweeper):
         jobs: list[dict[str, Any]] = []
         to_launch: list[tuple[str, list[str]]] = []
         seen: set[str] = set()
-        n_bad = 0
+        n_bad = n_links = 0
         for overrides, key in zip(grid, keys, strict=True):
             job: dict[str, Any] = {"overrides": overrides}
             if isinstance(key, Exception):
@@ -612,6 +628,14 @@ class NirspiSweeperBase(Sweeper):
                     message = self._compose_failure(overrides, failure)
                     log.error("%s", message)
                     _record_uncomposable(sweep_dir / key, overrides, message, _error_type(failure))
+            elif (sweep_dir / key).is_symlink():  # never written through, never read through
+                job.update(key=key, skipped=False, launched=False, refused=True)
+                if key not in seen:
+                    n_links += 1
+                    try:
+                        refuse_link(sweep_dir / key, "job folder")
+                    except OutputError as exc:
+                        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
             else:
                 status = _record_status(sweep_dir / key)
                 skipped = self.resume and status == "ok"
@@ -652,6 +676,7 @@ class NirspiSweeperBase(Sweeper):
             + (f", {n_skip} skipped (already complete)" if n_skip else "")
             + (f", {n_dup} identical to another job (run once)" if n_dup else "")
             + (f", {n_bad} do not compose (failed)" if n_bad else "")
+            + (f", {n_links} refused (job folder is a symbolic link)" if n_links else "")
             + (
                 f", {n_gave_up} failed {self.max_attempts} times and are not retried (hydra.sweeper.max_attempts)"
                 if n_gave_up
@@ -672,18 +697,21 @@ class NirspiSweeperBase(Sweeper):
         watcher.start()
         try:
             pending = to_launch
-            for _round in range(self.max_attempts):
+            for round_ in range(self.max_attempts):
                 if not self._launch(pending, returns):
                     break
                 # the launcher failed (e.g. a joblib worker killed from outside): launch again the
-                # jobs that wrote no record in this sweep and may still be attempted
-                pending = [
-                    (key, ov)
-                    for key, ov in pending
-                    if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)
-                    and attempts_with_this_code(sweep_dir / key) < self.max_attempts
+                # jobs that wrote no record in this sweep and may still be attempted, unless this
+                # round wrote no record at all (the launcher could not start: it would fail again)
+                left = [
+                    (key, ov) for key, ov in pending if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)
                 ]
-                if not pending:
+                if len(left) == len(pending):
+                    break
+                pending = [
+                    (key, ov) for key, ov in left if attempts_with_this_code(sweep_dir / key) < self.max_attempts
+                ]
+                if not pending or round_ + 1 == self.max_attempts:
                     break
                 print(f"nirspi-run: launching the {len(pending)} jobs without a record again", flush=True)
         finally:
@@ -699,11 +727,9 @@ class NirspiSweeperBase(Sweeper):
                 returns.append(self.launcher.launch(batch, initial_job_idx=start))
             except Exception as exc:  # noqa: BLE001 - the records say which jobs finished
                 first = str(exc).strip().splitlines()
-                print(
-                    f"nirspi-run: warning: the launcher failed: {type(exc).__name__}: {first[0] if first else ''}",
-                    file=sys.stderr,
-                    flush=True,
-                )
+                why = f"{type(exc).__name__}: {first[0] if first else ''}"
+                launcher_failures.append(why)
+                print(f"nirspi-run: warning: the launcher failed: {why}", file=sys.stderr, flush=True)
                 return True
         return False
 
