@@ -221,7 +221,7 @@ def run(argv: list[str] | None = None) -> None:
         return
     _activate_plugins()
     args, problem = rewrite_nulls(args)
-    problem = problem or check_overrides(args)
+    problem = problem or check_overrides(args) or _config_file_problem(args)
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)
@@ -230,6 +230,26 @@ def run(argv: list[str] | None = None) -> None:
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(_hydra_task)
     sys.argv = [sys.argv[0], *args]
     main()
+
+
+def _config_file_problem(args: list[str]) -> str | None:
+    """One line naming the file when a config file the overrides load is not plain YAML (a
+    ``!!python/...`` tag, a syntax error), which Hydra would report as a traceback; None otherwise
+    (every other composition problem is Hydra's to report). Composes once, sweeps left out."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from nirspi_pipe.errors import yaml_problem
+
+    candidates = [a for a in args if "=" in a and not a.startswith("-")]
+    try:
+        parsed = OverridesParser.create().parse_overrides(candidates)
+        single = [text for text, ov in zip(candidates, parsed, strict=True) if not ov.is_sweep_override()]
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            compose(CONFIG_NAME, overrides=single)
+    except Exception as exc:  # noqa: BLE001 - only a YAML error is ours to report here
+        return yaml_problem(exc)
+    return None
 
 
 def _activate_plugins() -> None:
