@@ -231,3 +231,32 @@ def test_remesher_output_is_a_manifold_on_irregular_grids_with_holes(
     assert_manifold(ov, of)
     lo, hi = v.min(axis=0) - 1e-9, v.max(axis=0) + 1e-9
     assert np.all((ov >= lo - abs(bump)) & (ov <= hi + abs(bump)))
+
+
+def test_pymeshlab_path_refuses_non_finite_coordinates_before_calling_it(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """pymeshlab crashes the process (SIGSEGV, exit -11) remeshing a grid with one vertex at inf;
+    the call is refused first with one line. Run in a child so that a crash fails the test only."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numpy as np, sys\n"
+        "from nirspi_pipe.mesh.remesh import clean_and_remesh\n"
+        "n = 9\n"
+        "x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float))\n"
+        "v = np.column_stack([x.ravel(), y.ravel(), np.zeros(n * n)]) * 1e-3\n"
+        "i = np.arange(n * n).reshape(n, n)\n"
+        "a, b, c, d = i[:-1, :-1].ravel(), i[:-1, 1:].ravel(), i[1:, :-1].ravel(), i[1:, 1:].ravel()\n"
+        "f = np.vstack([np.column_stack([a, b, d]), np.column_stack([a, d, c])])\n"
+        "v[40] = float(sys.argv[1])\n"
+        "try:\n"
+        "    clean_and_remesh(v, f, 1e-3, 3)\n"
+        "except Exception as exc:\n"
+        "    print(type(exc).__name__, exc)\n"
+    )
+    for value in ("inf", "-inf", "nan"):
+        out = subprocess.run([sys.executable, "-c", code, value], capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, (value, out.returncode, out.stderr[-500:])
+        assert out.stdout.splitlines() == [
+            "NirspiError mesh clean-up (pymeshlab): 1 vertices with non-finite coordinates; allowed: finite ones"
+        ], out.stdout

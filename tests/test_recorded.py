@@ -406,3 +406,25 @@ def test_match_hadamard_property(log_n: int, frac: float, levels, split: bool, c
         assert match.hadamard and sorted(match.indices.tolist()) == sorted(k.tolist())
     else:
         assert not match.hadamard and match.kind == "binary"
+
+
+@pytest.mark.parametrize("with_image", [True, False])
+def test_a_recorded_run_draws_summary_png(tmp_path: Path, with_image: bool) -> None:
+    """A recording's ground truth has no distance (NaN): summary.png is drawn in pixels instead of
+    millimetres on the object's plane (it used to be skipped: "Axis limits cannot be NaN or Inf")."""
+    import matplotlib.image as mpimg
+
+    n = 16
+    img = sphere(n)
+    k = np.arange(n * n)
+    pats = split_interleaved(hadamard_rows(n, k), dtype=np.float64)
+    path = save_recording(
+        tmp_path / "rec.npz", measurements=pats @ img.ravel(), patterns=pats, image=img if with_image else None
+    )
+    cfg = config("source=recorded", f"source.path={path}", "camera.resolution=16")
+    out_dir = tmp_path / "job"
+    rec = execute_job(cfg, out_dir, {"source": "recorded"}, [])
+    assert rec["meta"]["status"] == "ok", rec["meta"]
+    assert not [w for w in rec["meta"]["warnings"] if "summary.png" in w], rec["meta"]["warnings"]
+    picture = mpimg.imread(str(out_dir / "summary.png"))
+    assert picture.shape[0] > 200 and picture.shape[1] > 600  # three panels side by side

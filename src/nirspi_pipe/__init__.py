@@ -16,11 +16,12 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = ["BadOverrides", "RunFailed", "RunResult", "__version__", "compose", "load_results", "run"]
+__all__ = ["BadOverrides", "BadResults", "RunFailed", "RunResult", "__version__", "compose", "load_results", "run"]
 
 if TYPE_CHECKING:
     from nirspi_pipe.api import (
         BadOverrides,
+        BadResults,
         RunFailed,
         RunResult,
         compose,

@@ -28,11 +28,15 @@ if TYPE_CHECKING:  # keep `import nirspi_pipe` cheap: numpy/pandas/hydra load on
 
     from nirspi_pipe.stages import Products
 
-__all__ = ["BadOverrides", "RunFailed", "RunResult", "compose", "load_results", "run"]
+__all__ = ["BadOverrides", "BadResults", "RunFailed", "RunResult", "compose", "load_results", "run"]
 
 
 class BadOverrides(NirspiError, ValueError):
     """Overrides that do not compose (unknown option, bad syntax, a command-line flag)."""
+
+
+class BadResults(NirspiError, ValueError):
+    """A results file that cannot be read as a table (the message names it)."""
 
 
 class RunFailed(NirspiError):
@@ -122,6 +126,35 @@ def _frozen(mapping: Mapping[str, Any]) -> Mapping[str, Any]:
     return MappingProxyType(dict(mapping))
 
 
+def _override_list(overrides: Any) -> list[str]:
+    """``overrides`` as a list of strings, or :class:`BadOverrides` naming the argument: a single
+    string (``"a=1"``, whose characters would be taken one by one), a mapping or anything but
+    strings in a list is refused, with the list it should have been when that is clear."""
+    from nirspi_pipe.safeio import short_repr
+
+    allowed = "a list of 'key=value' strings"
+    if isinstance(overrides, (str, bytes)):
+        text = overrides.decode(errors="replace") if isinstance(overrides, bytes) else overrides
+        raise BadOverrides(
+            f"overrides={short_repr(overrides, 80)} is a single string; allowed: {allowed}, "
+            f"e.g. {short_repr(text.split(), 80)}"
+        )
+    if isinstance(overrides, Mapping):
+        example = [f"{k}={v}" for k, v in list(overrides.items())[:4]]
+        raise BadOverrides(
+            f"overrides={short_repr(overrides, 80)} is a mapping; allowed: {allowed}, e.g. {short_repr(example, 80)}"
+        )
+    if not hasattr(overrides, "__iter__"):
+        raise BadOverrides(f"overrides={short_repr(overrides, 80)} is not a list; allowed: {allowed}")
+    items = list(overrides)
+    for i, item in enumerate(items):
+        if not isinstance(item, str):
+            raise BadOverrides(
+                f"overrides[{i}]={short_repr(item, 80)} is not a string; allowed: {allowed}, e.g. 'seed=1'"
+            )
+    return items
+
+
 def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     """The composed config of ``overrides`` (an OmegaConf ``DictConfig`` without the ``hydra``
     node, as a ``nirspi-run`` job sees it) and the group choices. Raises :class:`BadOverrides`
@@ -136,14 +169,14 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     from nirspi_pipe.sweeper import register_hydra_plugins
     from nirspi_pipe.validate import check_config, check_overrides
 
-    overrides = [str(o) for o in overrides]
+    overrides = _override_list(overrides)
     flags = [o for o in overrides if o.startswith("-")]
     if flags:
         raise BadOverrides(f"{flags[0]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     activate()  # installed plugins' config folders join the search path
     problem = check_overrides(overrides)
     register_hydra_plugins()
-    problem = problem or check_config(overrides)  # allowed targets, known keys
+    problem = problem or check_config(overrides)  # YAML files, allowed targets, known keys
     if problem:
         raise BadOverrides(problem)
     if GlobalHydra.instance().is_initialized():
@@ -176,6 +209,7 @@ def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) 
             naming the key and the allowed values.
         RunFailed: with ``output_dir``, the run failed (its traceback is in ``error.txt``).
     """
+    overrides = _override_list(overrides)  # once: a generator is read once
     cfg, choices = compose(overrides)
     if output_dir is not None:
         from nirspi_pipe.cli import execute_job
@@ -196,7 +230,7 @@ def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) 
     return RunResult(
         config=_frozen(OmegaConf.to_container(cfg, resolve=True)),  # type: ignore[arg-type]
         choices=_frozen(choices),
-        overrides=tuple(str(o) for o in overrides),
+        overrides=tuple(overrides),
         seed=int(out.info["run"]["seed"]),
         metrics=_frozen(out.metrics),
         timings_ms=_frozen(out.timings_ms),
@@ -216,19 +250,34 @@ def load_results(path: str | Path, *, refresh: bool = False) -> pd.DataFrame:
     folder's ``results.parquet`` is read when present; without it, or with ``refresh``, the
     table is rebuilt from the jobs' ``record.json`` files (nothing is written).
     """
-    import pandas as pd
 
     from nirspi_pipe.results import collect
 
     p = Path(path)
     if p.is_file():
-        if p.suffix == ".parquet":
-            return pd.read_parquet(p)
-        if p.suffix == ".csv":
-            return pd.read_csv(p)
-        raise ValueError(f"{p}: not a results file; allowed: a sweep folder, results.parquet or results.csv")
+        if p.suffix not in (".parquet", ".csv"):
+            raise ValueError(f"{p}: not a results file; allowed: a sweep folder, results.parquet or results.csv")
+        return _read_table(p)
     if not p.is_dir():
         raise FileNotFoundError(f"{p}: no such sweep folder or results file")
     if (p / "results.parquet").is_file() and not refresh:
-        return pd.read_parquet(p / "results.parquet")
+        return _read_table(p / "results.parquet")
     return collect(p, write=False)
+
+
+def _read_table(p: Path) -> pd.DataFrame:
+    """A ``.parquet`` or ``.csv`` table; :class:`BadResults` naming the file when it is not one
+    (an empty CSV, as a sweep without records writes it, is an empty table)."""
+    import pandas as pd
+
+    try:
+        return pd.read_parquet(p) if p.suffix == ".parquet" else pd.read_csv(p)
+    except pd.errors.EmptyDataError:
+        return pd.DataFrame()
+    except (ValueError, OSError, UnicodeDecodeError, pd.errors.ParserError) as exc:  # ArrowInvalid is a ValueError
+        text = " ".join(str(exc).split())[:200] or type(exc).__name__
+        kind = "Parquet" if p.suffix == ".parquet" else "CSV"
+        raise BadResults(
+            f"{p}: not a readable results table ({kind}: {text}); allowed: the results.parquet or results.csv "
+            "that nirspi-run or nirspi-collect wrote"
+        ) from None

@@ -234,7 +234,7 @@ def run(argv: list[str] | None = None) -> None:
     problem = problem or check_overrides(args)
     register_hydra_plugins()
     if not problem and not _NO_RUN_FLAGS.intersection(a.partition("=")[0] for a in args):
-        problem = check_config(args)  # allowed targets, known keys: before Hydra builds anything
+        problem = check_config(args)  # YAML, allowed targets, known keys: before Hydra builds anything
     if problem:
         print(f"nirspi-run: error: {problem}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["NirspiError", "ConfigError"]
+__all__ = ["NirspiError", "ConfigError", "yaml_problem"]
 
 
 class NirspiError(Exception):
@@ -32,3 +32,27 @@ class ConfigError(NirspiError, ValueError):
         if not prefix or self.absolute or self.key.startswith(prefix + "."):
             return self
         return ConfigError(f"{prefix}.{self.key}", self.value, self.allowed, self.unknown_key)
+
+
+def yaml_problem(exc: BaseException) -> str | None:
+    """One line naming the config file and line when ``exc`` (or what it wraps) is a YAML error
+    from reading a config file, else None. Config files are read with a safe loader (OmegaConf's),
+    so a ``!!python/...`` tag never builds anything; it is reported as a tag that is not allowed."""
+    import yaml
+
+    seen: set[int] = set()
+    err: BaseException | None = exc
+    while err is not None and not isinstance(err, yaml.YAMLError) and id(err) not in seen:
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    if not isinstance(err, yaml.YAMLError):
+        return None
+    mark = getattr(err, "problem_mark", None) or getattr(err, "context_mark", None)
+    where = f"config file {mark.name}, line {mark.line + 1}" if mark is not None else "a config file"
+    problem = " ".join(str(getattr(err, "problem", None) or err).split())
+    marker = "tag:yaml.org,2002:"
+    if "constructor for the tag" in problem and "'" in problem:
+        tag = problem.split("'")[1]
+        tag = "!!" + tag[len(marker) :] if tag.startswith(marker) else tag
+        return f"{where}: the YAML tag {tag!r} is not allowed; allowed: plain YAML values (a config never builds Python objects)"
+    return f"{where}: not valid YAML: {problem}"

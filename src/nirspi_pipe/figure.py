@@ -27,7 +27,8 @@ SUMMARY_NAME = "summary.png"
 def _extent_mm(products: Products, n: int) -> tuple[list[float], str]:
     """Image extent on the scene plane (mm) and the axis label; pixels when there is no scene."""
     truth = products.truth
-    if truth is None:
+    # a recording's ground truth has no distance (NaN): its plane is unknown, so pixels
+    if truth is None or not (math.isfinite(truth.distance_m) and truth.distance_m > 0):
         return [0.0, float(n), float(n), 0.0], "pixel"
     half = truth.distance_m * math.tan(math.radians(truth.camera.fov_deg) / 2) * 1e3
     return [-half, half, -half, half], f"x (mm, on the plane at {truth.distance_m * 1e3:.0f} mm)"

@@ -316,7 +316,8 @@ def check_config(args: list[str]) -> str | None:
     checked value by value) and every ``_target_`` in it must be on the allow-list
     (:mod:`nirspi_pipe.targets`); top-level keys, ``output`` and ``tables`` must be known
     (:func:`check_plain_keys`). Returns one line, or None. A config that does not compose is
-    left to Hydra (which then builds nothing)."""
+    left to Hydra (which then builds nothing), unless a config file in it is not plain YAML (a
+    ``!!python/...`` tag, a syntax error): that is one line naming the file."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
@@ -347,11 +348,22 @@ def check_config(args: list[str]) -> str | None:
         base = list(given) if isinstance(given, list) else _primary_searchpath()
         fixed = [o for o in fixed if not o.startswith("hydra.searchpath=")]
         fixed.append(f"hydra.searchpath=[{','.join([*map(str, base), Path(extra_dir).resolve().as_uri()])}]")
-    cfg = _compose_or_none(fixed, config_name=flags.get("-cn") or flags.get("--config-name"), hydra=True)
-    if cfg is None:
-        return None
+    from hydra import compose, initialize_config_module
+
+    from nirspi_pipe.errors import yaml_problem
+
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            cfg = compose(
+                flags.get("-cn") or flags.get("--config-name") or CONFIG_NAME, fixed, return_hydra_config=True
+            )
+    except Exception as exc:  # noqa: BLE001 - a file that is not plain YAML is ours to name; the rest Hydra's
+        return yaml_problem(exc)
     plain: dict[str, Any] = {}
-    for part in (OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]), OmegaConf.masked_copy(cfg, ["hydra"])):
+    for part in (
+        OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"]),
+        OmegaConf.masked_copy(cfg, ["hydra"]),
+    ):
         try:  # the job's part resolves; Hydra's may hold values only a running app has (job.num)
             plain.update(OmegaConf.to_container(part, resolve=True))  # type: ignore[arg-type]
         except Exception:  # noqa: BLE001 - then check it unresolved

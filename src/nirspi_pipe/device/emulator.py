@@ -211,6 +211,51 @@ class Emulator:
         return True
 
 
+def _check_arguments(ns: argparse.Namespace) -> str | None:
+    """The first argument out of range, as one line naming it and the allowed values, or None."""
+    import math
+
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.types import Camera
+
+    if not 0 <= ns.port <= 65535:
+        return f"--port={ns.port} is not allowed; allowed: a TCP port from 0 (a free one) to 65535"
+    try:
+        Camera(resolution=ns.resolution)  # the camera's own rule: a power of two from 2 to 4096
+    except ConfigError as exc:
+        return f"--resolution={ns.resolution} is not allowed; allowed: {exc.allowed}"
+    if not (math.isfinite(ns.gain) and ns.gain > 0):
+        return f"--gain={ns.gain} is not allowed; allowed: a finite number > 0 (what source=stream accepts)"
+    if not math.isfinite(ns.background):
+        return f"--background={ns.background} is not allowed; allowed: a finite number"
+    if not (math.isfinite(ns.noise_rel) and ns.noise_rel >= 0):
+        return f"--noise-rel={ns.noise_rel} is not allowed; allowed: a finite number >= 0 (0: no noise)"
+    if ns.seed < 0:
+        return f"--seed={ns.seed} is not allowed; allowed: an integer >= 0"
+    if not 1 <= ns.connections <= 1000:
+        return f"--connections={ns.connections} is not allowed; allowed: an integer from 1 to 1000"
+    if not (math.isfinite(ns.lifetime_s) and 0 < ns.lifetime_s <= 3600):
+        return f"--lifetime-s={ns.lifetime_s} is not allowed; allowed: seconds in (0, 3600]"
+    return None
+
+
+def _cause_line(exc: BaseException) -> str:
+    """The error's first line, and the first line of its cause when the error wraps one (Hydra's
+    ``Error in call to target …:`` says the cause on the next line)."""
+
+    from nirspi_pipe.errors import ConfigError
+
+    def first(e: BaseException) -> str:
+        lines = str(e).strip().splitlines()
+        return lines[0].strip() if lines else type(e).__name__
+
+    cause = exc.__cause__
+    if isinstance(cause, ConfigError):  # name the full key (scene.distance_mm) Hydra was building
+        full = [ln.split(":", 1)[1].strip() for ln in str(exc).splitlines() if ln.startswith("full_key:")]
+        return str(cause.under(full[0]) if full else cause)
+    return first(exc) if cause is None else f"{first(exc).rstrip(':')}: {first(cause)}"
+
+
 def main(argv: list[str] | None = None) -> None:
     """``nirspi-device-emulator``: serve a simulated scene on 127.0.0.1 (prints the port)."""
     p = argparse.ArgumentParser(prog="nirspi-device-emulator", description=__doc__.split("\n\n")[0])
@@ -233,17 +278,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--lifetime-s", type=float, default=60.0, help="exit after this many seconds anyway")
     p.add_argument("--fault", choices=FAULTS, default="none", help="inject a protocol error (tests)")
     ns = p.parse_args(argv)
-    if not 1 <= ns.connections <= 1000 or not 0 < ns.lifetime_s <= 3600:
-        p.error("--connections must be 1-1000 and --lifetime-s in (0, 3600]")
+    problem = _check_arguments(ns)
+    if problem:
+        print(f"nirspi-device-emulator: error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
     try:
         from nirspi_pipe.configs import render_scene  # the command line composes; the emulator does not
 
         radiance = render_scene(ns.scene, ns.resolution, ns.scene_override)
     except Exception as exc:  # noqa: BLE001 - one line for the user
-        print(
-            f"nirspi-device-emulator: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-            file=sys.stderr,
-        )
+        print(f"nirspi-device-emulator: error: {_cause_line(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
     emu = Emulator(
         radiance,

@@ -26,7 +26,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.errors import ConfigError, NirspiError
 
 __all__ = [
     "REMESHERS",
@@ -146,6 +146,18 @@ def clean_and_remesh(
     info: dict[str, float] = {"faces_before_remesh": int(len(f))}
     if len(f) < 4 or not spacing_m > 0:
         return v, f, info
+    # refused before pymeshlab sees them: it crashes the process on an infinite coordinate
+    if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
+        raise NirspiError(
+            f"mesh clean-up (pymeshlab): vertices {v.shape} and faces {f.shape}; allowed: (v, 3) and (f, 3)"
+        )
+    if not np.all(np.isfinite(v)):
+        bad = int(np.count_nonzero(~np.all(np.isfinite(v), axis=1)))
+        raise NirspiError(
+            f"mesh clean-up (pymeshlab): {bad} vertices with non-finite coordinates; allowed: finite ones"
+        )
+    if f.min() < 0 or f.max() >= len(v):
+        raise NirspiError(f"mesh clean-up (pymeshlab): face indices outside 0..{len(v) - 1}")
     ms = pymeshlab.MeshSet()
     # millimetres inside: pymeshlab's absolute tolerances assume model-sized units
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v * 1e3, face_matrix=f.astype(np.int32)))
