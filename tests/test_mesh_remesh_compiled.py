@@ -233,6 +233,94 @@ def test_remesher_output_is_a_manifold_on_irregular_grids_with_holes(
     assert np.all((ov >= lo - abs(bump)) & (ov <= hi + abs(bump)))
 
 
+def _uv_sphere(n_around: int = 16, n_rings: int = 11, radius: float = 0.025) -> tuple[np.ndarray, np.ndarray]:
+    """A closed UV sphere (poles and ``n_rings`` rings of ``n_around`` vertices), faces outward."""
+    theta = np.linspace(0.0, np.pi, n_rings + 2)[1:-1]
+    phi = np.linspace(0.0, 2.0 * np.pi, n_around, endpoint=False)
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    ring = np.column_stack([(np.sin(t) * np.cos(p)).ravel(), (np.sin(t) * np.sin(p)).ravel(), np.cos(t).ravel()])
+    v = radius * np.vstack([[0.0, 0.0, 1.0], ring, [0.0, 0.0, -1.0]])
+    south = len(v) - 1
+
+    def at(i: int, j: int) -> int:
+        return 1 + i * n_around + j % n_around
+
+    faces = [[0, at(0, j), at(0, j + 1)] for j in range(n_around)]
+    for i in range(n_rings - 1):
+        for j in range(n_around):
+            faces += [[at(i, j), at(i + 1, j), at(i + 1, j + 1)], [at(i, j), at(i + 1, j + 1), at(i, j + 1)]]
+    faces += [[south, at(n_rings - 1, j + 1), at(n_rings - 1, j)] for j in range(n_around)]
+    return v, np.asarray(faces, dtype=np.int64)
+
+
+def _area(v: np.ndarray, f: np.ndarray) -> float:
+    p = v[f]
+    return 0.5 * float(np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+
+
+def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
+    p = v[f]
+    return float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() / 6.0)
+
+
+_SPHERE_V, _SPHERE_F = _uv_sphere()
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(flipped=st.lists(st.booleans(), min_size=len(_SPHERE_F), max_size=len(_SPHERE_F)))
+def test_a_closed_mesh_with_flipped_faces_keeps_its_surface(flipped: list[bool]) -> None:
+    """Any subset of a closed sphere's faces turned over: the clean-up orients every face like the
+    majority (the fewer faces are flipped back), and the remeshed sphere keeps ≥ 95 % of its area,
+    stays closed and consistently oriented. (Before, edges whose two faces disagreed were cut, the
+    cut pieces dropped as small: such a mesh lost every face.)"""
+    v, f = _SPHERE_V, _SPHERE_F.copy()
+    sel = np.asarray(flipped)
+    f[sel] = f[sel][:, ::-1]
+    k = int(sel.sum())
+    cv, cf, info = clean_mesh(v, f)
+    assert len(cf) == len(f) and info["faces_flipped"] == min(k, len(f) - k)
+    assert_manifold(cv, cf)
+    assert all(len(users) == 2 for users in _edges(cf).values()), "closed: no border edge"
+    volume = _signed_volume(v, _SPHERE_F)  # > 0: the sphere's faces point outward
+    if 2 * k != len(f):  # the majority's orientation is kept (a tie keeps the first face's)
+        assert _signed_volume(cv, cf) == pytest.approx(volume if 2 * k < len(f) else -volume, rel=1e-9)
+    ov, of, rinfo = clean_and_remesh_compiled(v, f, 0.005, 3)
+    assert rinfo["faces_after_remesh"] == len(of) > 0
+    assert _area(ov, of) >= 0.95 * _area(v, _SPHERE_F)
+    assert_manifold(ov, of)
+    assert all(len(users) == 2 for users in _edges(of).values())
+    assert abs(_signed_volume(ov, of)) >= 0.95 * volume
+
+
+def test_orientation_is_repaired_per_piece_and_a_moebius_strip_stays_manifold() -> None:
+    """Two spheres, one with most faces flipped: each piece keeps its own majority. A Möbius strip
+    (not orientable) is cut where the walk cannot agree, and is still a manifold."""
+    v1, f1 = _uv_sphere()
+    f_in = f1.copy()
+    f_in[: 3 * len(f1) // 4] = f_in[: 3 * len(f1) // 4, ::-1]  # the second copy: 3/4 flipped
+    v = np.vstack([v1, v1 + [0.1, 0.0, 0.0]])
+    f = np.vstack([f1, f_in + len(v1)])
+    cv, cf, info = clean_mesh(v, f)
+    assert info["faces_flipped"] == len(f1) - 3 * len(f1) // 4 and len(cf) == len(f)
+    assert_manifold(cv, cf)
+    left = cv[cf][:, :, 0].mean(axis=1) < 0.05  # the first sphere (centred at x = 0)
+    assert _signed_volume(cv, cf[left]) > 0 > _signed_volume(cv, cf[~left])
+    # a Möbius strip of 12 quads: the last quad joins the first with a half twist
+    n = 12
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    centre = np.column_stack([np.cos(t), np.sin(t), np.zeros(n)])
+    across = np.column_stack([np.cos(t / 2) * np.cos(t), np.cos(t / 2) * np.sin(t), np.sin(t / 2)]) * 0.3
+    mv = np.vstack([centre + across, centre - across])  # vertex i: one edge, n + i: the other
+    mf = []
+    for i in range(n):
+        j = (i + 1) % n
+        a, b, c, d = (i, j, n + j, n + i) if j else (i, n + j, j, n + i)  # the twist swaps the edges
+        mf += [[a, b, c], [a, c, d]]
+    mcv, mcf, _ = clean_mesh(mv, np.asarray(mf), min_component_faces=0)
+    assert len(mcf) >= 2 * n and _area(mcv, mcf) >= 0.99 * _area(mv, np.asarray(mf))
+    assert_manifold(mcv, mcf)
+
+
 def test_pymeshlab_path_refuses_non_finite_coordinates_before_calling_it(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """pymeshlab crashes the process (SIGSEGV, exit -11) remeshing a grid with one vertex at inf;
     the call is refused first with one line. Run in a child so that a crash fails the test only."""

@@ -11,6 +11,10 @@ same run.
 
    * merge vertices with equal coordinates, drop faces with a repeated vertex or zero area,
      duplicate faces (the same three vertices in any order) and unreferenced vertices;
+   * orient the faces consistently per connected piece (a breadth-first walk over the edges of
+     exactly two faces flips a neighbour that runs the shared edge the same way; each piece keeps
+     the orientation most of its faces had), so that a closed mesh with flipped faces keeps its
+     surface instead of being cut apart at every disagreeing edge below;
    * pair the half-edges of each edge: an edge used by exactly two faces in opposite directions
      is interior; every other edge (one face, more than two, or two faces that disagree on the
      orientation) is cut, i.e. becomes a border of each face that uses it. The mesh is then
@@ -111,10 +115,9 @@ def _dst(F, h):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
-    """opp for faces F[:nf]: half-edges a->b and b->a of an edge used by exactly these two.
-    Half-edges are bucketed by origin (counting sort), so each pairing looks at one vertex's
-    few outgoing half-edges."""
+def _halfedge_buckets(F, nf):  # type: ignore[no-untyped-def]
+    """Half-edges of faces F[:nf] bucketed by origin (counting sort): (org, dst, start, out_h,
+    out_d); the half-edges leaving v are out_h[start[v]:start[v + 1]], ending at out_d[…]."""
     m = 3 * nf
     org = np.empty(m, np.int64)
     dst = np.empty(m, np.int64)
@@ -137,6 +140,16 @@ def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
         out_h[fill[a]] = h
         out_d[fill[a]] = dst[h]
         fill[a] += 1
+    return org, dst, start, out_h, out_d
+
+
+@_jit
+def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
+    """opp for faces F[:nf]: half-edges a->b and b->a of an edge used by exactly these two.
+    Half-edges are bucketed by origin (:func:`_halfedge_buckets`), so each pairing looks at one
+    vertex's few outgoing half-edges."""
+    m = 3 * nf
+    org, dst, start, out_h, out_d = _halfedge_buckets(F, nf)
     opp = np.full(m, -1, np.int64)
     for h in range(m):
         a, b = org[h], dst[h]
@@ -155,6 +168,66 @@ def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
         if n_back == 1:
             opp[h] = back
     return opp
+
+
+@_jit
+def _orient_faces(F, nf):  # type: ignore[no-untyped-def]
+    """Orient faces F[:nf] consistently per connected piece, in place: a breadth-first walk over
+    the edges used by exactly two faces, from each piece's first face, flips a neighbour that
+    runs the shared edge in the same direction. A piece then keeps the orientation most of its
+    faces had (ties: its first face's). Edges of one face or of three and more are not crossed;
+    a non-orientable piece (a Möbius strip) keeps the edges the walk could not agree on, which
+    the pairing then cuts. Returns the number of faces flipped."""
+    org, dst, start, out_h, out_d = _halfedge_buckets(F, nf)
+    flip = np.zeros(nf, np.int8)
+    piece = np.full(nf, -1, np.int64)
+    queue = np.empty(nf, np.int64)
+    for seed in range(nf):
+        if piece[seed] >= 0:
+            continue
+        piece[seed] = seed
+        queue[0] = seed
+        head, tail = 0, 1
+        while head < tail:
+            f = queue[head]
+            head += 1
+            for k in range(3):
+                h = 3 * f + k
+                a, b = org[h], dst[h]
+                other = -1
+                same = 0  # 1: the other face runs a->b too
+                users = 0
+                for i in range(start[a], start[a + 1]):
+                    if out_d[i] == b:
+                        users += 1
+                        if out_h[i] != h:
+                            other, same = out_h[i], 1
+                for i in range(start[b], start[b + 1]):
+                    if out_d[i] == a:
+                        users += 1
+                        other, same = out_h[i], 0
+                if users != 2:
+                    continue
+                g = other // 3
+                if piece[g] < 0:
+                    piece[g] = seed
+                    flip[g] = flip[f] ^ same
+                    queue[tail] = g
+                    tail += 1
+    # each piece keeps the orientation most of its faces had
+    flipped = np.zeros(nf, np.int64)
+    size = np.zeros(nf, np.int64)
+    for f in range(nf):
+        size[piece[f]] += 1
+        flipped[piece[f]] += flip[f]
+    n_flipped = 0
+    for f in range(nf):
+        if 2 * flipped[piece[f]] > size[piece[f]]:
+            flip[f] ^= 1
+        if flip[f]:
+            F[f, 1], F[f, 2] = F[f, 2], F[f, 1]
+            n_flipped += 1
+    return n_flipped
 
 
 @_jit
@@ -444,6 +517,8 @@ def clean_mesh(
     info["faces_dropped_degenerate"] = int(len(faces) - len(f))
     if len(f) == 0:
         return uv[:0], f, info
+    f = np.ascontiguousarray(f)
+    info["faces_flipped"] = int(_orient_faces(f, len(f)))  # consistent orientation first (in place)
     opp = _pair_halfedges(f, len(f))
     f, src = _split_fans(f, opp, len(uv))
     uv = uv[src]
