@@ -81,7 +81,7 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
     noremesh = _noremesh(plain)
     if len(noremesh):
         noremesh.to_csv(out_dir / f"{name}_noremesh.csv", index=False, float_format="%.6g")
-    (out_dir / f"{name}.md").write_text(_markdown(table, frame, df, name, fog, claims, noremesh))
+    (out_dir / f"{name}.md").write_text(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh))
     t = table.set_index("scan").reindex(list(SCANS))
     bar_plot(
         out_dir / f"{name}.png",
