@@ -48,6 +48,13 @@ BASELINES = {
     "centre": "metrics.improvement_pct",
     "fit": "metrics.improvement_fit_pct",
 }
+#: Each baseline's depth RMSE column (Eq. 16), for Eq. 17 of a cell's mean RMSEs.
+BASELINE_RMSE = {
+    "offsetfree": "metrics.depth_rmse_sfs_offsetfree_mm",
+    "centre": "metrics.depth_rmse_sfs_mm",
+    "fit": "metrics.depth_rmse_sfs_fit_mm",
+}
+FUSED_RMSE = "metrics.depth_rmse_fused_mm"
 
 
 def fogged(df: pd.DataFrame) -> pd.Series:
@@ -127,6 +134,10 @@ def _baselines(g: pd.DataFrame) -> dict[str, float]:
             continue
         out[f"{key}_mean"] = float(g[col].mean())
         out.update(cell_se(g, col, key))
+        rm = BASELINE_RMSE[key]
+        if rm in g and FUSED_RMSE in g:  # Eq. 17 of the mean RMSEs (not the mean of the jobs' rates)
+            before, after = float(g[rm].mean()), float(g[FUSED_RMSE].mean())
+            out[f"{key}_of_means"] = (before - after) / before * 100 if before > 0 else np.nan
     return out
 
 
@@ -189,6 +200,18 @@ def _markdown(
             + " | ".join(cells)
             + f" | {r.n} |"
         )
+    if has_free and "offsetfree_of_means" in table:
+        lines += [
+            "",
+            "Eq. 17 of each cell's mean RMSEs (instead of the mean of the jobs' rates), offset-free / "
+            "centre-placed / global-fit: "
+            + "; ".join(
+                f"{SCAN_LABELS[r.scan]} {r.klux:g} kLux {r.offsetfree_of_means:.1f} / {r.centre_of_means:.1f} / "
+                f"{r.fit_of_means:.1f} %"
+                for r in table.itertuples()
+            )
+            + ".",
+        ]
     lines += ["", _claims_lines(claims), ""]
     if len(objects) and "offset_share" in objects:
         lines += [
