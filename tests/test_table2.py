@@ -98,3 +98,22 @@ def test_table2_experiment_through_the_cli(tmp_path):
     assert table.loc["theory_fog", "R=0.5 (cm)"] == pytest.approx(27.0, rel=0.05)
     assert np.isfinite(table.loc["measured_fog", "R=0.5 (cm)"])
     assert (sweep / "tables" / "figure6_contrast.png").is_file()
+
+
+def test_beta_fit_inside_the_chamber_recovers_the_extinction():
+    """A noise-free board signal with fog filling min(z, 35 cm): the fit inside the chamber returns
+    β exactly; the paper's all-distance line (15-50 cm) underestimates it."""
+    import numpy as np
+    import pandas as pd
+
+    from nirspi_pipe.tables.table2 import _chamber_fit, lsm_max_distance
+
+    beta = 1.149
+    z = np.arange(150, 501, 50, dtype=float)
+    s = 1e6 * np.exp(-2 * beta * np.minimum(z * 1e-3, 0.35)) / (z * 1e-3) ** 2
+    good = pd.DataFrame({"scene.distance_mm": z, "derived.measured_signal_e": s})
+    fit = _chamber_fit(good)
+    assert fit["n"] == 5 and fit["extent_m"] == pytest.approx(0.35)
+    assert fit["beta_fit_per_m"] == pytest.approx(beta, rel=1e-9)
+    _, all_fit = lsm_max_distance(z * 1e-3, s, np.full(z.shape, 30.0), 64)
+    assert all_fit["beta_fit_per_m"] < 0.8 * beta

@@ -8,11 +8,17 @@ surface distances.
   measure it — over the pixels where SFS, fused and true depth all exist.
 * ``depth_rmse_sfs_fit_mm``: the same with the fusion's global scale and offset (``cloud.depth_scale``,
   ``cloud.depth_offset_m``): a baseline that already holds the iToF's global fit.
+* ``depth_rmse_sfs_offsetfree_mm``: the geometric baseline with its best constant offset (same
+  scale; the offset ``sfs_offset_mm`` = mean of true − baseline depth over the compared pixels,
+  the least-squares constant): what is left of the baseline's error once the placement of its
+  median at ``z_nom`` is corrected. Since ``RMSE² = (mean error)² + var(error)``, the offset's share
+  of the baseline's squared error is ``sfs_offset_mm² / depth_rmse_sfs_mm²``.
 * ``depth_rmse_fused_mm``: Eq. (16) between the true z-depth and the fused cloud (output of
   Alg. A3), interpolated on the same pixels (linear over the Delaunay triangulation of the
   points' image positions); ``depth_pixels`` counts the pixels compared.
 * ``improvement_pct``: Eq. (17), ``(RMSE_A2 − RMSE_A3) / RMSE_A2 × 100`` with the geometric
-  baseline; ``improvement_fit_pct`` the same with the global-fit baseline. The paper's
+  baseline; ``improvement_fit_pct`` the same with the global-fit baseline,
+  ``improvement_offsetfree_pct`` with the offset-free baseline. The paper's
   denominator is named ``RMSE_SfS``; SFS *is* Alg. A2, so it is the same number. Positive =
   fusion helped. Omitted (with a warning) when ``RMSE_A2 = 0``.
 * On an upscaled run (the device preset, ``scene: ${scene}`` given) the 3D scores are computed
@@ -339,8 +345,12 @@ class Metrics3D:
                 fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
                 before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline
                 after = rmse(z_fused[both], truth.depth_m[both])
+                offset = float(np.mean(truth.depth_m[both] - z_base[both]))  # least-squares constant
+                free = rmse(z_base[both] + offset, truth.depth_m[both])  # offset-free baseline
                 out.update(
                     depth_rmse_sfs_mm=before * 1e3,
+                    depth_rmse_sfs_offsetfree_mm=free * 1e3,
+                    sfs_offset_mm=offset * 1e3,
                     depth_rmse_sfs_fit_mm=fit * 1e3,
                     depth_rmse_fused_mm=after * 1e3,
                     depth_pixels=float(both.sum()),
@@ -353,6 +363,8 @@ class Metrics3D:
                 if before > 0 and fit > 0:
                     out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
                     out["improvement_fit_pct"] = improvement_rate(fit, after)
+                    if free > 0:
+                        out["improvement_offsetfree_pct"] = improvement_rate(free, after)
                 else:
                     warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=2)
             else:

@@ -6,7 +6,11 @@ seeds (× kLux where a table pools them) — with its sample standard deviation 
 minimum, maximum and count. The experiments share seeds across scan methods, so the four scans of
 one (object, seed, kLux) see the same noise and the same background/fog trajectories in time: the
 difference to the *Basic* scan is paired. ``d_vs_basic`` is the mean paired difference and
-``se_vs_basic`` its standard error (``std/√n``); ``|d| > 2·se`` is marked significant (†).
+``se_vs_basic`` its naive standard error (``std/√n``, the pairs treated as independent; kept for
+the CI reference tables). The figures the Markdown prints come from :mod:`nirspi_pipe.stats`:
+each cell's standard error clustered by seed (``<key>_se``, ``<key>_clusters``), the paired
+difference's standard error clustered by seed (``<key>_se_cl_vs_basic``), and a ranking claim only
+where it holds after Holm's correction on both halves of the seeds (:func:`ranking`).
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from nirspi_pipe import stats as st
 
 __all__ = [
     "SCANS",
@@ -30,6 +36,10 @@ __all__ = [
     "failures_note",
     "conditions_note",
     "bar_plot",
+    "cell",
+    "ranking",
+    "ranking_note",
+    "fmt_se",
 ]
 
 #: The paper's four scan methods, in its row order.
@@ -95,16 +105,47 @@ def compare_metric(
     """One scan's cells for metric ``col``: its :func:`stats` over ``group`` (prefixed ``key``),
     the paper's value ``paper.loc[scan, key]``, the difference, and the paired difference to
     Basic over ``df`` with its standard error."""
-    st = stats(group[col], key)
+    summary = stats(group[col], key)
     d, se, _ = paired_vs_basic(df, col, scan)
     p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
+    se_cl = st.paired_difference(df, col, scan, "basic")["se"] if scan != "basic" else 0.0
     return {
-        **st,
+        **summary,
         f"paper_{key}": p,
-        f"diff_{key}": st[f"{key}_mean"] - p,
+        f"diff_{key}": summary[f"{key}_mean"] - p,
         f"{key}_d_vs_basic": d,
         f"{key}_se_vs_basic": se,
+        **cell(group, col, key),
+        f"{key}_se_cl_vs_basic": se_cl,
     }
+
+
+def cell(group: pd.DataFrame, col: str, key: str) -> dict[str, float]:
+    """``{key}_se`` (the cell mean's standard error clustered by seed) and ``{key}_clusters`` (the
+    number of seeds) of column ``col`` over one table cell's rows (:func:`nirspi_pipe.stats.cell_summary`)."""
+    c = st.cell_summary(group, col, prefix=key)
+    return {f"{key}_se": c[f"{key}_se"], f"{key}_clusters": c[f"{key}_clusters"]}
+
+
+def ranking(df: pd.DataFrame, col: str, higher_is_better: bool, where: dict | None = None) -> pd.DataFrame:
+    """The four scans' pairwise comparisons of ``col`` over ``df`` (paired on scene, seed and kLux,
+    clustered by seed, Holm-corrected, replicated on both seed halves:
+    :func:`nirspi_pipe.stats.replicated_claims`), with the columns of ``where`` (the cell's
+    condition) added."""
+    out = st.replicated_claims(df, col, list(SCANS), higher_is_better=higher_is_better)
+    for k, v in (where or {}).items():
+        out.insert(0, k, v)
+    return out
+
+
+def ranking_note(claims: pd.DataFrame) -> str:
+    """The replicated claims of one family as text (``none`` when no claim holds)."""
+    return st.claims_sentence(claims, SCAN_LABELS)
+
+
+def fmt_se(mean: float, se: float, digits: int = 2) -> str:
+    """``"m ± se"`` with the clustered standard error (``"n/a"`` for NaN mean)."""
+    return fmt(mean, se, digits)
 
 
 def scan_by_level_rows(table: pd.DataFrame, levels: list[float], cell: Callable[[pd.Series], str]) -> list[str]:

@@ -14,6 +14,12 @@ As at the camera resolution (:mod:`nirspi_pipe.metrics`), ``upscale_psnr``/``ups
 normalised against the noise-free image the camera forms of the fine scene (the run's source,
 ``source: ${source}``, renders it with :meth:`Simulator.reference_image`), and
 ``upscale_psnr_raw``/``upscale_ssim_raw`` are the radiometric scores against the fine radiance.
+
+Given the run's upscaler (``upscaler: ${upscale}``), ``noise_{ssim,psnr,rmse}`` score the upscaled
+image against the *same upscaler applied to the camera's noise-free image* at the camera
+resolution (``Acquisition.reference``): what the noise, the daylight wander and the fog
+fluctuation cost at the upscaled resolution, without the resolution limit that the scores against
+the fine scene carry (docs/paper.md, Figure 9).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import numpy as np
 from nirspi_pipe.metrics import ImageMetrics
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products
+from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.base import finish
 from nirspi_pipe.upscale.bicubic import bicubic
 from nirspi_pipe.upscale.data import RenderCamera
@@ -45,10 +52,13 @@ class UpscaleMetrics(ImageMetrics):
         scene: the run's scene model (``${scene}``), rendered again on the fine grid.
         source: the run's source (``${source}``); when it has ``reference_image`` (the
             simulator), the normalised scores use the camera's noise-free image of the fine scene.
+        upscaler: the run's upscaler (``${upscale}``); when given, the ``noise_*`` scores
+            (module docstring).
     """
 
     scene: Any = None
     source: Any = None
+    upscaler: Any = None
 
     def compute(self, products: Products) -> dict[str, float]:
         out = super().compute(products)
@@ -69,6 +79,13 @@ class UpscaleMetrics(ImageMetrics):
         ref = fine.radiance
         reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
         out.update(self.score(ref, est, reference, prefix="upscale_"))
+        clean = products.acquisition.reference
+        if self.upscaler is not None and clean is not None:
+            clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
+            if clean_up.shape == est.shape:
+                out.update(
+                    {k: v for k, v in self.score(clean_up, est, clean_up, prefix="noise_").items() if "_raw" not in k}
+                )
         if scale > 1:
             bic = finish(bicubic(np.asarray(products.image.data, dtype=np.float64), scale), True)
             out.update(self.score(ref, bic, reference, prefix="bicubic_"))
