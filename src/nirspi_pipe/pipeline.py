@@ -154,7 +154,7 @@ def run_pipeline(cfg: DictConfig | Mapping[str, Any]) -> RunOutput:
     """
     from nirspi_pipe.scene.render import forget_renders
 
-    forget_renders()  # ground truths rendered by the metrics are shared within this run only
+    forget_renders(files_only=True)  # a scene read from a file is rendered afresh by each run
     seed = effective_seed(cfg)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}

@@ -9,7 +9,7 @@ normals are averaged over the hitting rays only.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from collections import OrderedDict
 from typing import Any
 
 import numpy as np
@@ -21,30 +21,44 @@ __all__ = ["check_common", "compose_scene", "forget_renders", "render_cached"]
 
 
 def render_cached(shape: Any, camera: Any) -> Scene:
-    """``shape.render(camera)``, remembered within one run (:func:`forget_renders`, which the
-    runner calls as each run starts: a scene that reads a file must see the file as it is). The
-    metrics stages render the same ground truth on the same fine grid, the upscale and the 3D
-    metrics of one job (the torus costs 20-30 ms each time). The arrays of a remembered scene are
-    read-only. Unhashable scene objects are rendered each time."""
+    """``shape.render(camera)``, remembered: the metrics stages render the same ground truth on
+    the same fine grid, within a job (the upscale and the 3D metrics) and across the jobs of a
+    sweep that differ only in seed, scan or light (the torus costs 7-30 ms each time; a Figure 9
+    job's metrics stage spent about a third of its time re-rendering). The last
+    :data:`MAX_REMEMBERED` renders are kept; the arrays of a remembered scene are read-only. A
+    scene that reads a file (a ``path``: meshes, images) is forgotten as each run starts
+    (:func:`forget_renders`), so it sees the file as it is then. Unhashable scene objects are
+    rendered each time."""
+    key = (shape, camera)
     try:
-        hash((shape, camera))
+        hash(key)
     except TypeError:
         return shape.render(camera)
-    return _render_remembered(shape, camera)
-
-
-def forget_renders() -> None:
-    """Forget the scenes :func:`render_cached` remembers."""
-    _render_remembered.cache_clear()
-
-
-@lru_cache(maxsize=4)
-def _render_remembered(shape: Any, camera: Any) -> Scene:
+    scene = _REMEMBERED.get(key)
+    if scene is not None:
+        _REMEMBERED.move_to_end(key)
+        return scene
     scene = shape.render(camera)
     for value in vars(scene).values():
         if isinstance(value, np.ndarray):
             value.setflags(write=False)
+    _REMEMBERED[key] = scene
+    while len(_REMEMBERED) > MAX_REMEMBERED:
+        _REMEMBERED.popitem(last=False)
     return scene
+
+
+def forget_renders(files_only: bool = False) -> None:
+    """Forget the scenes :func:`render_cached` remembers (with ``files_only``, those whose shape
+    reads a file: the runner's call as each run starts)."""
+    for key in list(_REMEMBERED):
+        if not files_only or getattr(key[0], "path", None):
+            del _REMEMBERED[key]
+
+
+#: How many renders :func:`render_cached` keeps (a fine 32² torus is ~100 kB).
+MAX_REMEMBERED = 8
+_REMEMBERED: OrderedDict[tuple[Any, Any], Scene] = OrderedDict()
 
 
 def check_common(distance_mm: float, reflectance: float, supersample: int) -> None:

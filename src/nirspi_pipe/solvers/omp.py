@@ -30,6 +30,7 @@ triangular solve are shared host code.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -194,16 +195,23 @@ def _one_blas_thread(fn: Callable[..., T]) -> Callable[..., T]:
     multiply-adds), and on the project's 2-core machines OpenBLAS's second thread made the loop
     11x slower (128² at 25 %: 14.6 s against 1.3 s, an in-process solve with and without
     OPENBLAS_NUM_THREADS=1; ``nirspi-bench omp`` times it)."""
-    import functools
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> T:
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(limits=1, user_api="blas"):
+        with _blas_controller().limit(limits=1, user_api="blas"):
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+@lru_cache(maxsize=1)
+def _blas_controller() -> Any:
+    """threadpoolctl's view of the loaded BLAS libraries, found once per process: finding them
+    (``threadpool_limits`` does it on every call) cost 1.8 ms per solve, as much as an 8² OMP
+    solve (cProfile of 20 Figure 9 jobs)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 @_one_blas_thread
