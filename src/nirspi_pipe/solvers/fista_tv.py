@@ -188,7 +188,8 @@ class FistaTVSolver:
             radiance; issue #4's fixed default, 44.6–45.3 dB on the sphere at 25 %).
         max_iter: outer FISTA iterations at most.
         tol: stop when ``‖x_k − x_{k−1}‖ ≤ tol · ‖x_k‖``.
-        tv_iter: inner iterations of each TV proximal step.
+        tv_iter: inner iterations of each TV proximal step, started from the previous step's dual
+            (docs/reconstruction.md: 5 warm against the former 20 cold).
         nonneg: project onto ``x ≥ 0`` after each proximal step (radiance cannot be negative).
     """
 
