@@ -1,0 +1,92 @@
+"""First contact (issue 27): --help describes the real default, --version is the project's,
+nirspi-collect prints a summary, readme_numbers refuses outside a clone."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from nirspi_pipe import __version__
+
+
+def test_version_is_the_projects(cli) -> None:
+    from importlib.metadata import version
+
+    res = cli("nirspi-run", "--version")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == f"nirspi-pipe {__version__} (hydra-core {version('hydra-core')})"
+
+
+@pytest.mark.parametrize("overrides", [[], ["preset=null"], ["upscale=bicubic", "upscale.scale=2"]])
+def test_help_describes_the_composed_camera(cli, overrides: list[str]) -> None:
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.api import compose
+
+    res = cli("nirspi-run", "--help", *overrides)
+    assert res.returncode == 0, res.stderr
+    head = res.stdout.split("== Examples ==")[0]
+    cfg, choices = compose([o.replace("=null", "=off") for o in overrides])
+    n = cfg.camera.resolution
+    assert f"\n  {n}x{n} patterns" in head, head
+    assert f"solver={choices['solver']}: Exact inverse" in head
+    up = OmegaConf.select(cfg, "upscale")
+    if up is None:
+        assert "upscale=null: no upscale stage" in head
+    else:
+        assert f"upscale={choices['upscale']}:" in head and f"x{up.scale} to {n * up.scale}x{n * up.scale}" in head
+    assert "64x64 patterns, exact inverse" not in head  # the old, wrong default
+
+
+def test_default_camera_in_help_is_the_device_preset(cli) -> None:
+    head = cli("nirspi-run", "--help").stdout.split("== Examples ==")[0]
+    assert "8x8 patterns (preset=device)" in head and "x4 to 32x32" in head
+
+
+def test_collect_prints_a_summary_and_the_table_on_request(cli) -> None:
+    args = ["-m", "seed=0,1", "preset=null", "camera.resolution=16", "output.images=false", "hydra.sweep.dir=sweep"]
+    assert cli("nirspi-run", *args).returncode == 0
+    res = cli("nirspi-collect", "sweep")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    assert lines[0] == "nirspi-collect: 2 records (2 ok) in sweep", lines
+    assert "sweep/results.parquet" in lines[1] and "sweep/results.csv" in lines[1]
+    assert len(lines) == 2 and "config_hash" not in res.stdout  # no table
+    table = cli("nirspi-collect", "sweep", "--print-table").stdout
+    assert "config_hash" in table and len(table.splitlines()) >= 2 + 1 + 2  # header, 2 rows, summary
+    assert cli("nirspi-collect", "sweep", "--quiet").stdout == ""
+
+
+def _fake_install(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """This module as ``pip install .`` places it: in a venv's site-packages, outside any clone."""
+    import nirspi_pipe.readme_numbers as rn
+
+    site = tmp_path / "venv" / "lib" / "python3" / "site-packages" / "nirspi_pipe" / "readme_numbers.py"
+    monkeypatch.setattr(rn, "_HERE", site)
+
+
+def test_readme_numbers_refuses_outside_a_clone(tmp_path: Path, monkeypatch, capsys) -> None:
+    from nirspi_pipe.readme_numbers import main
+
+    _fake_install(tmp_path, monkeypatch)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    with pytest.raises(SystemExit) as exc:
+        main(["--install"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "not run from a clone" in err and str(elsewhere) in err
+    assert not list(tmp_path.rglob("readme_numbers.md"))  # nothing written into the "venv"
+
+
+def test_readme_numbers_finds_the_clone(tmp_path: Path, monkeypatch) -> None:
+    from nirspi_pipe.readme_numbers import find_clone, machine_stamp
+
+    repo = Path(__file__).resolve().parents[1]
+    assert find_clone() == repo  # an editable install: the clone holding the module
+    _fake_install(tmp_path, monkeypatch)
+    assert find_clone(tmp_path) is None
+    assert find_clone(repo / "docs") == repo  # from inside a clone, installed elsewhere
+    assert machine_stamp(repo)["commit"] != "unknown"
