@@ -90,3 +90,22 @@ def test_readme_numbers_finds_the_clone(tmp_path: Path, monkeypatch) -> None:
     assert find_clone(tmp_path) is None
     assert find_clone(repo / "docs") == repo  # from inside a clone, installed elsewhere
     assert machine_stamp(repo)["commit"] != "unknown"
+
+
+def test_table2_noise_model_stays_physical() -> None:
+    """The LSM's noise variance c0 + c1·s/2 (tables/table2.py) must stay positive at every
+    signal, also when the measured variances happen to slope down (the cause of table2's sqrt
+    warning: c1 < 0 made the modelled variance negative at near distances)."""
+    import numpy as np
+
+    from nirspi_pipe.tables.table2 import lsm_max_distance
+
+    z = np.linspace(0.2, 0.5, 7)
+    s = np.exp(np.log(3e4) - 2 * 0.5 * z) / z**2
+    sigma = 420.0 - 20.0 * (s - s.min()) / (s.max() - s.min())  # noise falling with the signal
+    assert np.polyfit(0.5 * s, sigma**2, 1)[0] < 0  # an unconstrained fit would slope down
+    z_max, fit = lsm_max_distance(z, s, sigma, 64)
+    assert fit["c1"] >= 0 and fit["c0"] == pytest.approx(np.mean(sigma**2))
+    near = np.exp(fit["a"] - fit["b"] * 0.05) / 0.05**2  # the plot's nearest distance, 5 cm
+    assert fit["c0"] + fit["c1"] * 0.5 * near > 0
+    assert 0.2 < z_max < 10.0
