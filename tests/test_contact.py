@@ -109,3 +109,22 @@ def test_table2_noise_model_stays_physical() -> None:
     near = np.exp(fit["a"] - fit["b"] * 0.05) / 0.05**2  # the plot's nearest distance, 5 cm
     assert fit["c0"] + fit["c1"] * 0.5 * near > 0
     assert 0.2 < z_max < 10.0
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_deliberate_segfault_leaves_no_dump(tmp_path: Path, quiet: bool) -> None:
+    """crash_as("segv") dies of SIGSEGV without faulthandler's dump, which pytest's faulthandler
+    (inherited by forked children) would write into the test log; a crash that is not staged
+    (the control: the same fault without crash_as) still dumps."""
+    import signal
+    import subprocess
+    import sys
+
+    tests = Path(__file__).resolve().parent
+    crash = "from conftest import crash_as; crash_as('segv')" if quiet else "import ctypes; ctypes.string_at(0)"
+    code = f"import sys; sys.path.insert(0, {str(tests)!r}); {crash}"
+    res = subprocess.run(
+        [sys.executable, "-X", "faulthandler", "-c", code], capture_output=True, text=True, timeout=60, cwd=tmp_path
+    )
+    assert res.returncode == -signal.SIGSEGV
+    assert ("Fatal Python error" in res.stderr) is not quiet, res.stderr
