@@ -128,3 +128,32 @@ def test_deliberate_segfault_leaves_no_dump(tmp_path: Path, quiet: bool) -> None
     )
     assert res.returncode == -signal.SIGSEGV
     assert ("Fatal Python error" in res.stderr) is not quiet, res.stderr
+
+
+def test_sfs_region_warning_says_what_the_regions_are() -> None:
+    """A bright disc (its centre a singular point) and two dim specks just above min_intensity,
+    as background noise in the upscaled default image gives: the warning counts the specks'
+    pixels and brightness, and the advice it gives (raise sfs.min_intensity) removes it."""
+    import warnings
+
+    import numpy as np
+
+    from nirspi_pipe.sfs.models import prepare_image
+
+    y, x = np.mgrid[-16:16, -16:16] + 0.5
+    r2 = (x * x + y * y) / 10.0**2
+    img = np.where(r2 < 1, np.sqrt(np.clip(1 - r2, 0, 1)), 0.0)  # Lambertian sphere, I = cos θ
+    img[1, 1] = img[1, 2] = 0.07  # a 2-pixel speck
+    img[30, 3] = 0.06  # a 1-pixel speck
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        prep = prepare_image(img, "auto", 0.05, 1e-3, 0)
+    text = " ".join(str(w.message) for w in seen)
+    assert prep.info["regions"] == 3 and prep.info["regions_without_singular_point"] == 2
+    peak = 0.07 / img.max()  # the auto albedo is the brightest pixel
+    assert f"2 of 3 object regions (3 of {int(prep.mask.sum())} object pixels, I/albedo at most {peak:.3g})" in text
+    assert "sfs.min_intensity=0.05" in text
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prep = prepare_image(img, "auto", 0.08, 1e-3, 0)  # above the specks: no warning
+    assert prep.info["regions"] == 1
