@@ -5,7 +5,13 @@ on the scene plane in millimetres, with colour bars in units of a white target's
 3D runs a second row shows the true depth, the SFS depth made metric by the fusion's scale
 (Alg. A2), the fused depth's error against the truth (Alg. A3, mm) and the mesh render
 (``mesh.png``, pyvista off screen) when there is one. The title names the scene, scan, solver,
-the active effects and the headline metrics.
+the active effects and the headline metrics, as the record holds them (the depth RMSEs with the
+grid they were scored on); the depth-error histogram makes the same comparison
+(:func:`nirspi_pipe.mesh.metrics3d.compared_depths`) on the camera grid, and says so.
+
+Layout: matplotlib's constrained layout, saved "tight" at :data:`SUMMARY_DPI` so that nothing
+drawn is cut (the image panels keep their aspect, which the layout cannot always fit);
+tests/test_figure.py reads the figure back.
 """
 
 from __future__ import annotations
@@ -150,7 +156,7 @@ def summary_figure(products: Products, record: Mapping[str, Any], mesh_png: Path
     title_in = 0.05 + 9 * 1.2 / 72 * (title.count("\n") + 1)  # inches: the header's lines of 9 pt
     ncols = 4 if three_d else 3
     heights = [3.5] * (2 if three_d else 1) + ([4.4] if mesh_view else [])
-    # constrained layout places the title, labels, ticks and colour bars inside the canvas
+    # constrained layout packs the header, panels, labels and colour bars (saved "tight", above)
     fig = plt.figure(figsize=(4.2 * ncols, sum(heights) + title_in), dpi=SUMMARY_DPI, layout="constrained")
     grid = fig.add_gridspec(len(heights), ncols, height_ratios=heights)
     r0 = [fig.add_subplot(grid[0, c]) for c in range(ncols)]
