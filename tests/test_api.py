@@ -20,8 +20,14 @@ DOCS = Path(__file__).resolve().parents[1] / "docs"
 NOISE_FREE = ["fog=none", "illumination=none", "detector=ideal"]
 
 
-def test_docs_api_md_doctest() -> None:
-    """Every example in docs/api.md runs and prints what the page says."""
+def test_docs_api_md_doctest(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every example in docs/api.md runs and prints what the page says, and leaves nothing in
+    the temporary directory (its folder of runs once stayed there)."""
+    import tempfile
+
+    scratch = tmp_path / "tmpdir"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     res = doctest.testfile(
         str(DOCS / "api.md"),
         module_relative=False,
@@ -29,6 +35,8 @@ def test_docs_api_md_doctest() -> None:
         verbose=False,
     )
     assert res.attempted >= 20 and res.failed == 0
+    assert "tempfile" in (DOCS / "api.md").read_text()  # the page does use the temporary directory
+    assert sorted(p.name for p in scratch.iterdir()) == []
 
 
 def test_import_is_cheap_and_lazy() -> None:

@@ -226,6 +226,13 @@ def run(argv: list[str] | None = None) -> None:
     from nirspi_pipe.validate import check_config, check_overrides, rewrite_nulls
 
     args = list(sys.argv[1:] if argv is None else argv)
+    if "--version" in args:  # the project's version (Hydra's own flag would print Hydra's)
+        from importlib.metadata import version
+
+        from nirspi_pipe import __version__
+
+        print(f"nirspi-pipe {__version__} (hydra-core {version('hydra-core')})")
+        return
     if "--plugins" in args:
         _list_plugins()
         return
@@ -272,7 +279,8 @@ def collect(argv: list[str] | None = None) -> None:
 
     parser = argparse.ArgumentParser(prog="nirspi-collect", description=collect.__doc__)
     parser.add_argument("sweep_dir", type=Path, help="a multirun folder (hydra.sweep.dir)")
-    parser.add_argument("--quiet", action="store_true", help="do not print the table")
+    parser.add_argument("--print-table", action="store_true", help="also print the results table (first 20 rows)")
+    parser.add_argument("--quiet", action="store_true", help="print nothing but errors and built tables")
     parser.add_argument(
         "--tables",
         nargs="*",
@@ -292,10 +300,15 @@ def collect(argv: list[str] | None = None) -> None:
     except OutputError as exc:  # unwritable sweep folder, disk full
         print(f"nirspi-collect: error: {exc}", file=sys.stderr)
         raise SystemExit(1) from None
-    if not ns.quiet:
+    if ns.print_table:
         import pandas as pd
 
         with pd.option_context("display.width", 160, "display.max_columns", 12):
             print(frame.head(20).to_string(index=False))
-    counts = frame["status"].value_counts().to_dict() if len(frame) else {}
-    print(f"nirspi-collect: {len(frame)} records {counts} -> {ns.sweep_dir / 'results.parquet'}")
+    if not ns.quiet:
+        counts = frame["status"].value_counts().to_dict() if len(frame) else {}
+        by_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none"
+        print(f"nirspi-collect: {len(frame)} records ({by_status}) in {ns.sweep_dir}")
+        print(
+            f"  results: {ns.sweep_dir / 'results.parquet'}, {ns.sweep_dir / 'results.csv'} (--print-table prints them)"
+        )

@@ -5,7 +5,13 @@ on the scene plane in millimetres, with colour bars in units of a white target's
 3D runs a second row shows the true depth, the SFS depth made metric by the fusion's scale
 (Alg. A2), the fused depth's error against the truth (Alg. A3, mm) and the mesh render
 (``mesh.png``, pyvista off screen) when there is one. The title names the scene, scan, solver,
-the active effects and the headline metrics.
+the active effects and the headline metrics, as the record holds them (the depth RMSEs with the
+grid they were scored on); the depth-error histogram makes the same comparison
+(:func:`nirspi_pipe.mesh.metrics3d.compared_depths`) on the camera grid, and says so.
+
+Layout: matplotlib's constrained layout, saved "tight" at :data:`SUMMARY_DPI` so that nothing
+drawn is cut (the image panels keep their aspect, which the layout cannot always fit);
+tests/test_figure.py reads the figure back.
 """
 
 from __future__ import annotations
@@ -19,9 +25,11 @@ import numpy as np
 
 from nirspi_pipe.stages import Products
 
-__all__ = ["SUMMARY_NAME", "write_summary_figure"]
+__all__ = ["SUMMARY_DPI", "SUMMARY_PAD_IN", "SUMMARY_NAME", "summary_figure", "write_summary_figure"]
 
 SUMMARY_NAME = "summary.png"
+SUMMARY_DPI = 90  # dots per inch of summary.png: ~1100 px wide for the 2D figure
+SUMMARY_PAD_IN = 0.1  # inches of margin around the drawn content in summary.png
 
 
 def _extent_mm(products: Products, n: int) -> tuple[list[float], str]:
@@ -63,24 +71,39 @@ def _symmetric(a: np.ndarray) -> float:
     return float(np.percentile(finite, 99)) if finite.size and np.percentile(finite, 99) > 0 else 1.0
 
 
-def _title(record: Mapping[str, Any]) -> str:
+def _title(record: Mapping[str, Any], depth_grid: int | None = None) -> str:
+    """The header: the run, its 2D scores, its 3D scores (on ``depth_grid``², the grid the
+    record's depth RMSEs were computed on) and the active effects, numbers as in the record."""
     from nirspi_pipe.summary import effects_lines
 
     ch = record.get("choices", {}) or {}
     res = ((record.get("config", {}) or {}).get("camera") or {}).get("resolution")
-    m = record.get("metrics", {}) or {}
+    m = {k: float(v) for k, v in (record.get("metrics", {}) or {}).items() if math.isfinite(float(v))}
     head = f"scene={ch.get('scene')}  scan={ch.get('scan')}  solver={ch.get('solver')}  {res}×{res}"
-    scores = []
-    for key, fmt in (
-        ("ssim", "SSIM {:.3f}"),
-        ("psnr", "PSNR {:.2f} dB"),
-        ("depth_rmse_fused_mm", "fused depth RMSE {:.3g} mm"),
-        ("improvement_pct", "Eq. 17 improvement {:+.1f} %"),
-    ):
-        if key in m and math.isfinite(float(m[key])):
-            scores.append(fmt.format(float(m[key])))
+    scores = [fmt.format(m[key]) for key, fmt in (("ssim", "SSIM {:.3f}"), ("psnr", "PSNR {:.2f} dB")) if key in m]
+    lines = [head + ("   " + "  ".join(scores) if scores else "")]
+    if "depth_rmse_fused_mm" in m:
+        grid = f", on the {depth_grid}×{depth_grid} grid" if depth_grid else ""
+        depth = f"depth RMSE{grid}: "
+        if "depth_rmse_sfs_mm" in m:
+            depth += f"SFS {m['depth_rmse_sfs_mm']:.3g} mm (camera geometry only) → "
+        depth += f"fused {m['depth_rmse_fused_mm']:.3g} mm"
+        if "improvement_pct" in m:
+            depth += f" (Eq. 17 improvement {m['improvement_pct']:+.1f} %)"
+        if "depth_rmse_sfs_fit_mm" in m:
+            depth += f";  SFS with the fusion's global fit {m['depth_rmse_sfs_fit_mm']:.3g} mm"
+        lines.append(depth)
     effects = [" ".join(line.split()) for line in effects_lines(record)]
-    return "\n".join([head + ("   " + "  ".join(scores) if scores else ""), *effects])
+    return "\n".join([*lines, *effects])
+
+
+def _scored_grid(products: Products) -> int | None:
+    """Side of the grid the 3D metrics score depth on: the upscaled SFS grid on an upscaled run
+    (:class:`nirspi_pipe.mesh.metrics3d.Metrics3D`), else the camera's."""
+    if products.depth is None or products.truth is None:
+        return None
+    side = int(products.depth.depth_m.shape[0])
+    return side if products.upscaled is not None else products.truth.camera.resolution
 
 
 def _metric_depth(products: Products) -> np.ndarray | None:
@@ -102,24 +125,40 @@ def write_summary_figure(
     """Write ``summary.png`` into ``folder`` (see the module docstring); returns its path.
 
     ``mesh_png``: an already rendered mesh view to place in the 3D row (``mesh.png``)."""
+    import matplotlib.pyplot as plt
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fig = summary_figure(products, record, mesh_png)
+    path = folder / SUMMARY_NAME
+    try:
+        # the panels keep their aspect, so the constrained layout may leave a label past the
+        # canvas's edge: save what is drawn, all of it ("tight"), at the fixed DPI
+        fig.savefig(path, dpi=SUMMARY_DPI, bbox_inches="tight", pad_inches=SUMMARY_PAD_IN)
+    finally:
+        plt.close(fig)
+    return path
+
+
+def summary_figure(products: Products, record: Mapping[str, Any], mesh_png: Path | None = None) -> Any:
+    """The ``summary.png`` figure (a matplotlib ``Figure``, laid out; the caller closes it)."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     recon = np.asarray(products.image.data, dtype=np.float64)
     n = recon.shape[0]
     extent, xlabel = _extent_mm(products, n)
     truth = products.truth
     three_d = products.depth is not None and truth is not None
     mesh_view = three_d and mesh_png is not None and Path(mesh_png).exists()
-    title = _title(record)
-    title_in = 0.2 + 0.17 * (title.count("\n") + 1)  # inches above the panels
+    title = _title(record, _scored_grid(products))
+    title_in = 0.05 + 9 * 1.2 / 72 * (title.count("\n") + 1)  # inches: the header's lines of 9 pt
     ncols = 4 if three_d else 3
     heights = [3.5] * (2 if three_d else 1) + ([4.4] if mesh_view else [])
-    fig = plt.figure(figsize=(4.2 * ncols, sum(heights) + title_in + 0.3))
+    # constrained layout packs the header, panels, labels and colour bars (saved "tight", above)
+    fig = plt.figure(figsize=(4.2 * ncols, sum(heights) + title_in), dpi=SUMMARY_DPI, layout="constrained")
     grid = fig.add_gridspec(len(heights), ncols, height_ratios=heights)
     r0 = [fig.add_subplot(grid[0, c]) for c in range(ncols)]
     unit = "radiance (white target = 1)"
@@ -172,12 +211,9 @@ def write_summary_figure(
             ax.imshow(mpimg.imread(str(mesh_png)))
             ax.axis("off")
             ax.set_title("final mesh (left) and true surface (right), mm, seen from beside the camera", fontsize=9)
-    fig.suptitle(title, fontsize=9, x=0.01, ha="left", va="top", y=1.0 - 0.1 / fig.get_figheight())
-    fig.tight_layout(rect=(0, 0, 1, 1.0 - title_in / fig.get_figheight()))
-    path = folder / SUMMARY_NAME
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    fig.suptitle(title, fontsize=9, x=0.01, ha="left")
+    fig.canvas.draw()  # lay out now: the caller may read the artists' extents
+    return fig
 
 
 def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlabel: str) -> None:
@@ -195,7 +231,7 @@ def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlab
             fig,
             row[1],
             zs * 1e3,
-            "SFS depth, metric (Alg. A2)",
+            "SFS depth, fusion's global fit (Alg. A2)",
             "depth (mm)",
             extent,
             xlabel,
@@ -244,38 +280,39 @@ def _depth_row(fig: Any, row: Any, products: Products, extent: list[float], xlab
 
 
 def _depth_histogram(ax: Any, products: Products) -> None:
-    """Histogram of the per-pixel depth errors (mm) of SFS alone and after fusion, object pixels."""
-    from nirspi_pipe.mesh.metrics3d import _interpolate_depth, _to_grid
+    """Histogram of the per-pixel depth errors (mm) on the camera grid, object pixels: the same
+    comparison as the record's ``depth_rmse_*`` (:func:`nirspi_pipe.mesh.metrics3d.compared_depths`),
+    which on an upscaled run is made on the upscaled grid instead (the title says which)."""
+    from nirspi_pipe.mesh.metrics3d import compared_depths
 
     truth = products.truth
     assert truth is not None
-    series = []
-    zs = _metric_depth(products)
-    if zs is not None:
-        series.append(("SFS (Alg. A2)", (_to_grid(zs, truth.camera.resolution) - truth.depth_m) * 1e3))
-    if products.cloud is not None:
-        zf = _interpolate_depth(np.asarray(products.cloud.points_m), truth.camera)
-        series.append(("fused (Alg. A3)", (zf - truth.depth_m) * 1e3))
-    # the pixels where the truth and every series exist: those metrics.full scores (Eq. 16)
-    common = truth.mask & np.logical_and.reduce([np.isfinite(e) for _, e in series]) if series else truth.mask
-    data = [(label, e[common]) for label, e in series]
-    data = [(label, e) for label, e in data if e.size]
-    if not data:
+    compared = compared_depths(truth, products.depth, products.cloud)
+    if compared is None or not compared[0].any():
         ax.axis("off")
+        ax.text(0.5, 0.5, "no depth error to show\n(needs SFS and a fused cloud)", ha="center", va="center", fontsize=9)
         return
-    lim = max(float(np.percentile(np.abs(e), 99)) for _, e in data) or 1.0
-    for label, e in data:
-        rms = float(np.sqrt(np.mean(e**2)))
+    both, z_geom, z_fit, z_fused = compared
+    geom, fit, fused = ((z[both] - truth.depth_m[both]) * 1e3 for z in (z_geom, z_fit, z_fused))
+    n = truth.camera.resolution
+    lim = max(float(np.percentile(np.abs(e), 99)) for e in (fit, fused)) or 1.0
+    for label, e in (("SFS, global fit", fit), ("fused (Alg. A3)", fused)):
         ax.hist(
             np.clip(e, -lim, lim),
             bins=40,
             range=(-lim, lim),
             histtype="step",
             linewidth=1.5,
-            label=f"{label}: RMSE {rms:.3g} mm",
+            label=f"{label}: {_rmse(e):.3g} mm",
         )
-    ax.set_title("depth error on the object's pixels", fontsize=9)
+    if not np.array_equal(z_geom, z_fit, equal_nan=True):
+        ax.plot([], [], " ", label=f"SFS, geometry only: {_rmse(geom):.3g} mm (not drawn)")
+    ax.set_title(f"depth error, object pixels, {n}×{n} grid", fontsize=9)
     ax.set_xlabel("depth − true depth (mm)", fontsize=8)
     ax.set_ylabel("pixels", fontsize=8)
     ax.tick_params(labelsize=7)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, title="RMSE", title_fontsize=7)
+
+
+def _rmse(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(e))))

@@ -3,22 +3,25 @@
 Hydra fills ``$APP_CONFIG_GROUPS`` (every config group and its options, plugins' included) itself;
 the experiments with a one-line description each and the installed plugins come from the
 OmegaConf resolver ``nirspi_help`` registered here (``${nirspi_help:experiments}``,
-``${nirspi_help:plugins}``). A resolver never raises: a help page must always print.
+``${nirspi_help:plugins}``), and so does the camera of the composed config
+(``${nirspi_help:camera}``: resolution, solver, upscaler, as ``--help`` with the same overrides
+would run them). A resolver never raises: a help page must always print.
 """
 
 from __future__ import annotations
 
 from importlib import resources
+from typing import Any
 
-__all__ = ["RESOLVER", "experiments_text", "plugins_text", "register_resolvers"]
+__all__ = ["RESOLVER", "camera_text", "experiments_text", "plugins_text", "register_resolvers"]
 
 RESOLVER = "nirspi_help"
 
 
-def _description(name: str) -> str:
-    """First comment line of a packaged experiment file (after ``# @package``), or ''."""
+def _description(name: str, group: str = "experiment", package: str = "nirspi_pipe.experiments") -> str:
+    """First comment line of a packaged option file (after ``# @package``), or ''."""
     try:
-        text = (resources.files("nirspi_pipe.experiments") / "experiment" / f"{name}.yaml").read_text()
+        text = (resources.files(package) / group / f"{name}.yaml").read_text()
     except (OSError, ModuleNotFoundError):
         return ""
     for line in text.splitlines():
@@ -71,12 +74,42 @@ def plugins_text() -> str:
     return "\n".join(lines)
 
 
-def _resolve(what: str) -> str:
-    if what == "experiments":
-        return experiments_text()
-    if what == "plugins":
-        return plugins_text()
-    return f"(unknown help section {what!r}; allowed: experiments, plugins)"
+def camera_text(root: Any) -> str:
+    """The composed config's camera in words: patterns, solver, upscaler (each option's first
+    comment line), one per line, e.g. ``8x8 patterns (preset=device)``, ``solver=fwht: Exact
+    inverse by the fast Walsh–Hadamard transform``."""
+    from omegaconf import OmegaConf
+
+    choices = OmegaConf.select(root, "hydra.runtime.choices", default=None) or {}
+    n = OmegaConf.select(root, "camera.resolution", default=None)
+    preset = {"off": "null"}.get(str(choices.get("preset")), choices.get("preset"))  # off.yaml is null
+    lines = [f"{n}x{n} patterns" + (f" (preset={preset})" if preset else "")]
+    for group in ("solver", "upscale"):
+        name = choices.get(group)
+        if name is None or OmegaConf.select(root, group, default=None) is None:
+            lines.append(f"{group}=null: no {group} stage")
+            continue
+        what = _description(str(name), group, "nirspi_pipe.conf")
+        what = what.split(";")[0].split(":")[0].split(" (")[0].rstrip(".")
+        if group == "upscale":
+            scale = OmegaConf.select(root, "upscale.scale", default=None)
+            if isinstance(n, int) and isinstance(scale, int):
+                what += f", x{scale} to {n * scale}x{n * scale}"
+        lines.append(f"{group}={name}: {what}".rstrip(": "))
+    return "\n  ".join(lines)  # the template indents the first line by 2
+
+
+def _resolve(what: str, *, _root_: Any = None) -> str:
+    try:
+        if what == "experiments":
+            return experiments_text()
+        if what == "plugins":
+            return plugins_text()
+        if what == "camera":
+            return camera_text(_root_)
+    except Exception as exc:  # noqa: BLE001 - help must print
+        return f"({what} could not be described: {exc})"
+    return f"(unknown help section {what!r}; allowed: camera, experiments, plugins)"
 
 
 def register_resolvers() -> None:

@@ -16,6 +16,11 @@ average before and after, the git commit, then
 * with ``--install``: the size of a fresh venv after ``pip install <repo>`` and the time it took.
 
 Every sweep runs in a temporary folder with the installed ``nirspi-run``; nothing else is written.
+
+It runs from a clone of the repository (the README and docs it writes for, the source ``--install``
+installs): the clone holding this module (an editable install) or else the working directory or
+one of its parents. Anywhere else (e.g. after a plain ``pip install .``) it refuses with one line
+and exit status 2.
 """
 
 from __future__ import annotations
@@ -31,9 +36,30 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["machine_stamp", "main", "timed"]
+__all__ = ["find_clone", "machine_stamp", "main", "timed"]
 
-_REPO = Path(__file__).resolve().parents[2]
+_PROG = "python -m nirspi_pipe.readme_numbers"
+_HERE = Path(__file__).resolve()
+
+
+def _is_clone(folder: Path) -> bool:
+    """A checkout of this project: a git work tree whose pyproject.toml names nirspi-pipe."""
+    try:
+        text = (folder / "pyproject.toml").read_text()
+    except OSError:
+        return False
+    return (folder / ".git").exists() and 'name = "nirspi-pipe"' in text
+
+
+def find_clone(cwd: Path | None = None) -> Path | None:
+    """The clone to measure and write into: the one holding this module (an editable install,
+    ``src/nirspi_pipe/``), else ``cwd`` (default: the working directory) or one of its parents;
+    None when none is a clone (an installed package run from elsewhere)."""
+    start = (cwd or Path.cwd()).resolve()
+    for folder in (_HERE.parents[2], start, *start.parents):
+        if _is_clone(folder):
+            return folder
+    return None
 
 
 def _cpu_model() -> str:
@@ -53,12 +79,16 @@ def _load() -> str:
         return "unknown"
 
 
-def machine_stamp() -> dict[str, str]:
-    """Platform, CPU, cores, load average (1/5/15 min), UTC time, git commit."""
+def machine_stamp(repo: Path | None = None) -> dict[str, str]:
+    """Platform, CPU, cores, load average (1/5/15 min), UTC time, git commit of ``repo`` (default:
+    :func:`find_clone`'s)."""
     sha = "unknown"
+    repo = repo or find_clone()
     try:
+        if repo is None:
+            raise OSError("not in a clone")
         sha = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=_REPO, capture_output=True, text=True, timeout=5, check=True
+            ["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=5, check=True
         ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         pass
@@ -141,24 +171,35 @@ def _mesh_stage_ms(sweep: Path) -> str:
     return f"{t.median():.0f} ms median, {t.min():.0f}–{t.max():.0f} ms over {len(t)} jobs"
 
 
-def _install(tmp: Path) -> tuple[float, float]:
+def _install(tmp: Path, repo: Path) -> tuple[float, float]:
     """(seconds, MB) of ``pip install <repo>`` into a fresh venv (pip's cache as configured)."""
     venv = tmp / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
-    wall = timed([str(venv / "bin" / "pip"), "install", "-q", str(_REPO)], tmp)
+    wall = timed([str(venv / "bin" / "pip"), "install", "-q", str(repo)], tmp)
     total = sum(f.stat().st_size for f in venv.rglob("*") if f.is_file() and not f.is_symlink())
     return wall, total / 1e6
 
 
 def main(argv: list[str] | None = None) -> None:
     """Command line: see the module docstring."""
-    ap = argparse.ArgumentParser(prog="python -m nirspi_pipe.readme_numbers", description=__doc__.split("\n")[0])
-    ap.add_argument("--out", type=Path, default=_REPO / "docs" / "readme_numbers.md", help="Markdown fragment to write")
+    ap = argparse.ArgumentParser(prog=_PROG, description=__doc__.split("\n")[0])
+    ap.add_argument(
+        "--out", type=Path, default=None, help="Markdown fragment to write (default: docs/readme_numbers.md)"
+    )
     ap.add_argument("--paper", action="store_true", help="also time the full paper sweep (+experiment=paper)")
     ap.add_argument("--install", action="store_true", help="also measure pip install . in a fresh venv")
     ns = ap.parse_args(argv)
+    repo = find_clone()
+    if repo is None:
+        print(
+            f"{_PROG}: error: not run from a clone of nirspi-pipe (the installed package is at {_HERE.parent} "
+            f"and {Path.cwd()} is not in a clone): cd into a git clone of the repository and run it there",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
+    ns.out = ns.out or repo / "docs" / "readme_numbers.md"
 
-    before = machine_stamp()
+    before = machine_stamp(repo)
     out: list[str] = []
     with tempfile.TemporaryDirectory(prefix="nirspi-readme-") as t:
         tmp = Path(t)
@@ -171,8 +212,8 @@ def main(argv: list[str] | None = None) -> None:
             sweeps.append((f"{jobs} jobs", f"-m +experiment={name}", wall))
             if name != "table2":
                 mesh_ms[name] = _mesh_stage_ms(tmp / "sweeps" / name)
-        install = _install(tmp) if ns.install else None
-    after = machine_stamp()
+        install = _install(tmp, repo) if ns.install else None
+    after = machine_stamp(repo)
 
     out += [
         "<!-- generated by `python -m nirspi_pipe.readme_numbers`; do not edit by hand -->",

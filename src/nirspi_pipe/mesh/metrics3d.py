@@ -49,9 +49,10 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.mesh.fusion import back_project, grid_triangles
 from nirspi_pipe.metrics import ImageMetrics, rmse
 from nirspi_pipe.stages import Products
-from nirspi_pipe.types import Camera
+from nirspi_pipe.types import Camera, DepthMap, PointCloud, Scene
 
 __all__ = [
+    "compared_depths",
     "geometric_metric_depth",
     "Metrics3D",
     "equiangle_skewness",
@@ -265,6 +266,47 @@ def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
         return LinearNDInterpolator(uv, z)(x[..., 0], y[..., 0]).reshape(n, n)
 
 
+def _sfs_depths(
+    truth: Scene, depth: DepthMap | None, cloud: PointCloud | None
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The SFS depth (m, on its own grid) made metric by the camera geometry alone and by the
+    fusion's global fit (module docstring); each None when it cannot be made."""
+    z_sfs = z_geom = None
+    if depth is not None and not depth.metric:
+        cam = truth.camera
+        grid = cam if depth.depth_m.shape[0] == cam.resolution else cam.resampled(depth.depth_m.shape[0])
+        z_geom = geometric_metric_depth(depth.depth_m, depth.mask, float(truth.distance_m), grid.focal_px)
+    if depth is not None and (depth.metric or (cloud is not None and cloud.depth_scale is not None)):
+        zr = np.asarray(depth.depth_m, dtype=np.float64)
+        if depth.metric:
+            z_sfs = zr
+        else:
+            assert cloud is not None and cloud.depth_scale is not None
+            z_sfs = cloud.depth_scale * zr + float(cloud.depth_offset_m or 0.0)
+        z_sfs = np.where(np.asarray(depth.mask, dtype=bool) & np.isfinite(z_sfs), z_sfs, np.nan)
+    return z_geom, z_sfs
+
+
+def compared_depths(
+    truth: Scene, depth: DepthMap | None, cloud: PointCloud | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """What Eq. (16) compares, on ``truth``'s grid: the pixels where the truth, the SFS and the
+    fused depth all exist, and the SFS depth made metric by the camera geometry alone
+    (``depth_rmse_sfs_mm``), by the fusion's global fit (``depth_rmse_sfs_fit_mm``) and the fused
+    depth (``depth_rmse_fused_mm``), in metres. None without SFS depth or fused cloud.
+    ``summary.png`` plots the same errors (:mod:`nirspi_pipe.figure`)."""
+    z_geom, z_sfs = _sfs_depths(truth, depth, cloud)
+    if z_sfs is None or cloud is None:
+        return None
+    cam = truth.camera
+    z_sfs = _to_grid(z_sfs, cam.resolution)  # an upscaled SFS grid is scored on the truth's
+    z_base = _to_grid(z_geom, cam.resolution) if z_geom is not None else z_sfs
+    z_fused = _interpolate_depth(np.asarray(cloud.points_m), cam)
+    tmask = truth.mask & np.isfinite(truth.depth_m)
+    both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused) & np.isfinite(z_base)
+    return both, z_base, z_sfs, z_fused
+
+
 @dataclass(frozen=True)
 class Metrics3D:
     """Metrics ``full``: SSIM/PSNR/RMSE of the 2D image plus the 3D metrics (module docstring).
@@ -311,18 +353,8 @@ class Metrics3D:
         cam = truth.camera
         tmask = truth.mask & np.isfinite(truth.depth_m)
         cloud, mesh = products.cloud, products.mesh
-        z_sfs = z_geom = None
-        if depth is not None and not depth.metric:
-            grid = cam if depth.depth_m.shape[0] == cam.resolution else cam.resampled(depth.depth_m.shape[0])
-            z_geom = geometric_metric_depth(depth.depth_m, depth.mask, float(truth.distance_m), grid.focal_px)
-        if depth is not None and (depth.metric or (cloud is not None and cloud.depth_scale is not None)):
-            zr = np.asarray(depth.depth_m, dtype=np.float64)
-            if depth.metric:
-                z_sfs = zr
-            else:
-                assert cloud is not None and cloud.depth_scale is not None
-                z_sfs = cloud.depth_scale * zr + float(cloud.depth_offset_m or 0.0)
-            z_sfs = np.where(np.asarray(depth.mask, dtype=bool) & np.isfinite(z_sfs), z_sfs, np.nan)
+        z_geom, z_sfs = _sfs_depths(truth, depth, cloud)
+        if z_sfs is not None:
             sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
             faces = grid_triangles(sfs_valid)
             if len(faces):
@@ -336,11 +368,9 @@ class Metrics3D:
                     }
                 )
                 out.update(skewness_candidates(verts, faces, "cand_sfs"))
-        if z_sfs is not None and cloud is not None:
-            z_sfs = _to_grid(z_sfs, cam.resolution)  # an upscaled SFS grid is scored on the truth's
-            z_base = _to_grid(z_geom, cam.resolution) if z_geom is not None else z_sfs
-            z_fused = _interpolate_depth(np.asarray(cloud.points_m), cam)
-            both = tmask & np.isfinite(z_sfs) & np.isfinite(z_fused) & np.isfinite(z_base)
+        compared = compared_depths(truth, depth, cloud)
+        if compared is not None:
+            both, z_base, z_sfs, z_fused = compared
             if both.any():
                 fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
                 before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline

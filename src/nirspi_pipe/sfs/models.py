@@ -159,11 +159,14 @@ def prepare_image(
         with_src = np.unique(labels[sources])
         missing = [k for k in range(1, n + 1) if k not in set(with_src.tolist())]
         if missing:
+            size = int(np.isin(labels, missing).sum())
+            peak = float(np.max(ndimage.maximum(norm, labels, missing)))
             warnings.warn(
-                f"sfs: {len(missing)} of {n} object regions have no singular point "
-                f"(I/albedo >= {1 - source_tol:g}): the eikonal problem has no Dirichlet data "
-                "there and its solution is not determined; each is anchored at its brightest "
-                "pixel (z = 0), which is right only if that pixel faces the camera",
+                f"sfs: {len(missing)} of {n} object regions ({size} of {int(mask.sum())} object pixels, "
+                f"I/albedo at most {peak:.3g}) have no singular point (I/albedo >= {1 - source_tol:g}), "
+                "so the eikonal problem has no Dirichlet data there; each is anchored at its brightest pixel (z = 0). "
+                f"Small dim regions are usually background noise just above sfs.min_intensity={min_intensity:g} "
+                "(raise it to drop them); a large one is a surface not facing the camera (docs/sfs.md)",
                 stacklevel=3,
             )
             idx = ndimage.maximum_position(norm, labels, missing)

@@ -65,7 +65,12 @@ def lsm_max_distance(
         raise ValueError("the LSM needs at least two distances with a measured signal")
     slope, a = np.polyfit(z, np.log(s * z * z), 1)
     b = -slope
+    # noise variance = floor + shot noise, sigma² = c0 + c1·s/2, with c0 > 0 and c1 >= 0: a line fitted
+    # to noisy variances can slope down (seen at R = 0.8 without fog), and its variance then turns
+    # negative at the near distances the fit and the plot extrapolate to; the best c1 >= 0 is then 0
     c1, c0 = np.polyfit(0.5 * s, sig * sig, 1) if z.size >= 2 else (0.0, float(np.mean(sig**2)))
+    if c1 < 0:
+        c0, c1 = float(np.mean(sig**2)), 0.0
     if c0 <= 0:  # the noise floor must be positive; fall back to the smallest measured noise
         c0, c1 = float(np.min(sig) ** 2), 0.0
 

@@ -1,0 +1,118 @@
+"""summary.png (nirspi_pipe.figure): every text inside the picture, and the numbers it prints are
+the record's (issue 27: the picture was cut at the bottom; its histogram disagreed with its header)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import pytest
+
+import nirspi_pipe
+from nirspi_pipe.figure import SUMMARY_DPI, SUMMARY_PAD_IN, summary_figure, write_summary_figure
+
+_3D = ["sfs=godunov", "itof=cw4", "fusion=itof", "metrics=full"]
+
+
+@pytest.fixture(scope="module")
+def runs() -> dict[str, Any]:
+    return {
+        "2d": nirspi_pipe.run([]),  # the default: the device preset, 8² upscaled to 32²
+        "3d_up": nirspi_pipe.run(_3D),  # the same with the 3D path: depth scored on 32²
+        "3d": nirspi_pipe.run(["preset=off", "camera.resolution=16", *_3D]),  # no upscaling
+    }
+
+
+def _texts(fig: Any) -> list[Any]:
+    """The texts drawn: visible, not empty, not a tick or axis label of a hidden axes, not a tick
+    label outside its axis' limits (matplotlib keeps those but does not draw them)."""
+    out = []
+    for ax in fig.axes:
+        if ax.axison:
+            out += [t for t in (ax.xaxis.label, ax.yaxis.label) if t.get_text()]
+        out += [t for t in (ax.title, *ax.texts) if t.get_text()]
+    return out + [fig._suptitle]
+
+
+@pytest.mark.parametrize("name", ["2d", "3d_up", "3d"])
+def test_summary_png_holds_every_text_and_no_empty_band(runs: dict[str, Any], name: str, tmp_path: Path) -> None:
+    from matplotlib.image import imread
+
+    r = runs[name]
+    fig = summary_figure(r.products, r.record())
+    try:
+        renderer = fig.canvas.get_renderer()
+        texts = _texts(fig)
+        assert len(texts) >= 10  # titles, axis labels, colour-bar labels, the header
+        # what summary.png holds: the drawn content plus the pad, at the fixed DPI
+        held = fig.get_tightbbox(renderer).padded(SUMMARY_PAD_IN).transformed(fig.dpi_scale_trans)
+        # each panel as drawn (its tick labels, axis labels, title, legend, texts) and the header
+        boxes = [(ax.get_title() or ax.get_ylabel(), ax.get_tightbbox(renderer)) for ax in fig.axes]
+        boxes.append(("header", fig._suptitle.get_window_extent(renderer)))
+        assert any(ax.get_xlabel().startswith("x (mm") for ax in fig.axes)
+        for what, box in boxes:
+            assert box.x0 >= held.x0 and box.y0 >= held.y0 and box.x1 <= held.x1 and box.y1 <= held.y1, (
+                f"{what!r} at {box.bounds} outside {held.bounds}"
+            )
+        # no empty band under the header: the panels' titles start within two of its lines
+        header = fig._suptitle.get_window_extent(renderer)
+        top_title = max(ax.title.get_window_extent(renderer).y1 for ax in fig.axes if ax.title.get_text())
+        assert 0 < header.y0 - top_title < 2 * 9 * SUMMARY_DPI / 72, (header.y0, top_title)
+        # nor under the panels: the lowest text is within the pad of the bottom
+        assert min(t.get_window_extent(renderer).y0 for t in texts) - held.y0 < 2 * SUMMARY_PAD_IN * SUMMARY_DPI
+    finally:
+        plt.close(fig)
+    h, w = imread(str(write_summary_figure(tmp_path, r.products, r.record()))).shape[:2]
+    # (savefig lays the figure out again: a few pixels may differ)
+    assert abs(w - held.width) < 0.01 * w and abs(h - held.height) < 0.03 * h, ((w, h), held.bounds)
+
+
+def _numbers(text: str, key: str) -> float:
+    m = re.search(re.escape(key) + r"\s*([-+]?[0-9.]+)", text)
+    assert m, f"{key!r} not in {text!r}"
+    return float(m.group(1))
+
+
+def _header(r: Any) -> tuple[str, dict[str, float], list[str]]:
+    fig = summary_figure(r.products, r.record())
+    try:
+        legend = [t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts()]
+        titles = [ax.get_title() for ax in fig.axes]
+        return fig._suptitle.get_text(), r.metrics, legend + titles
+    finally:
+        plt.close(fig)
+
+
+def _same(printed: float, value: float) -> bool:
+    return f"{printed:.3g}" == f"{value:.3g}"
+
+
+@pytest.mark.parametrize("name", ["2d", "3d_up", "3d"])
+def test_header_prints_the_records_numbers(runs: dict[str, Any], name: str) -> None:
+    head, m, _ = _header(runs[name])
+    assert _numbers(head, "SSIM") == pytest.approx(m["ssim"], abs=5e-4)
+    assert _numbers(head, "PSNR") == pytest.approx(m["psnr"], abs=5e-3)
+    if name == "2d":
+        assert "depth" not in head
+        return
+    assert _same(_numbers(head, "SFS"), m["depth_rmse_sfs_mm"])
+    assert _same(_numbers(head, "fused"), m["depth_rmse_fused_mm"])
+    assert _same(_numbers(head, "global fit"), m["depth_rmse_sfs_fit_mm"])
+    assert _numbers(head, "improvement") == pytest.approx(m["improvement_pct"], abs=0.05)
+
+
+def test_histogram_shows_the_records_depth_errors_on_the_same_grid(runs: dict[str, Any]) -> None:
+    head, m, texts = _header(runs["3d"])  # not upscaled: the record scores the camera grid
+    assert "16×16 grid" in head and any("16×16 grid" in t for t in texts)
+    legend = " ".join(texts)
+    assert _same(_numbers(legend, "SFS, global fit:"), m["depth_rmse_sfs_fit_mm"])
+    assert _same(_numbers(legend, "fused (Alg. A3):"), m["depth_rmse_fused_mm"])
+    assert _same(_numbers(legend, "SFS, geometry only:"), m["depth_rmse_sfs_mm"])
+
+
+def test_upscaled_run_names_both_grids(runs: dict[str, Any]) -> None:
+    head, m, texts = _header(runs["3d_up"])  # 8² camera, depth scored on the 32² upscaled grid
+    assert "32×32 grid" in head and any("8×8 grid" in t for t in texts)
+    assert m["depth_pixels"] > 64  # the record's scores are not on the 8² camera grid
