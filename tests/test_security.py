@@ -152,6 +152,26 @@ def test_a_sweep_is_checked_value_by_value() -> None:
     assert check_config(["-m", "seed=0,1", "scan=basic,spiral"]) is None
 
 
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        (
+            "hydra.launcher.timeout_s=abc",
+            "hydra.launcher.timeout_s='abc' is not allowed; allowed: a number of seconds > 0",
+        ),
+        ("hydra.launcher.timeout_s=-1", "hydra.launcher.timeout_s=-1 is not allowed"),
+        ("hydra.launcher.n_jobs=0", "hydra.launcher.n_jobs=0 is not allowed; allowed: -1 (one per core)"),
+        (
+            "hydra.sweeper.allow_failures=maybe",
+            "hydra.sweeper.allow_failures='maybe' is not allowed; allowed: true or false",
+        ),
+    ],
+)
+def test_a_sweeps_own_settings_are_one_line(override: str, message: str) -> None:
+    assert message in (check_config(["-m", "seed=0,1", override]) or "")
+    assert check_config(["seed=0", override]) is None  # a single run does not use them
+
+
 def test_hydra_flags_that_load_code_are_refused() -> None:
     assert "unpickles" in (check_config(["--experimental-rerun", "x.pickle"]) or "")
     assert "--config-dir" in (check_config(["-cp", "/tmp"]) or "")

@@ -395,7 +395,34 @@ def check_config(args: list[str]) -> str | None:
             if problem:
                 return problem
     job = {k: v for k, v in plain.items() if k != "hydra"}
-    return check_plain_keys(job) or _check_stage_nodes(job)
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    return (
+        check_plain_keys(job)
+        or _check_stage_nodes(job)
+        or (_check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
+    )
+
+
+def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
+    """The nirspi launcher's ``n_jobs``/``timeout_s`` and the sweeper's ``allow_failures``, in
+    their classes' own one-line words (Hydra would wrap them in its multi-line report)."""
+    from nirspi_pipe.errors import ConfigError
+
+    launcher = hydra_node.get("launcher") or {}
+    if str(launcher.get("_target_", "")).endswith(".NirspiLauncher"):
+        from nirspi_pipe.launcher import DEFAULT_TIMEOUT_S, NirspiLauncherBase
+
+        try:
+            NirspiLauncherBase(
+                n_jobs=launcher.get("n_jobs", -1), timeout_s=launcher.get("timeout_s", DEFAULT_TIMEOUT_S)
+            )
+        except ConfigError as exc:
+            return str(exc)
+    sweeper = hydra_node.get("sweeper") or {}
+    allow = sweeper.get("allow_failures", False)
+    if str(sweeper.get("_target_", "")).endswith(".NirspiSweeper") and not isinstance(allow, bool):
+        return f"hydra.sweeper.allow_failures={allow!r} is not allowed; allowed: true or false"
+    return None
 
 
 def _check_stage_nodes(job: dict[str, Any]) -> str | None:
