@@ -342,3 +342,14 @@ def test_grid_expansion_is_hydras() -> None:
     jobs = expand_grid(parsed)
     assert len(jobs) == 2 * 1 * 3 * 2
     assert jobs[0] == ["a=1", "b=x", "+c=0", "d=u"] and jobs[-1] == ["a=2", "b=x", "+c=2", "d=v"]
+
+
+def test_a_key_given_twice_takes_its_last_value_as_in_hydra() -> None:
+    """An experiment's ``seed: range(0,20)`` and ``seed=0,1`` on the command line: 2 seeds, not
+    the product of both lists (40 grid entries, issue 25's report of a 40,960-job keying)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    args = ["seed=range(0,20)", "scan=a,b", "seed=0,1"]
+    parsed = OverridesParser.create().parse_overrides(args)
+    jobs = expand_grid(parsed)
+    assert jobs == [["seed=0", "scan=a"], ["seed=0", "scan=b"], ["seed=1", "scan=a"], ["seed=1", "scan=b"]]

@@ -297,9 +297,11 @@ def _record_status(folder: Path) -> str | None:
 
 def expand_grid(overrides: Sequence[Any]) -> list[list[str]]:
     """Every job of a grid, as Hydra's basic sweeper expands it: the cartesian product of each
-    sweep override's values (in order), plain overrides kept as they are. ``overrides`` are parsed
+    sweep override's values (in order), plain overrides kept as they are; a key given twice (an
+    experiment's ``seed: range(0,20)`` and ``seed=0,1`` on the command line) takes its last value,
+    where it first appeared. ``overrides`` are parsed
     :class:`hydra.core.override_parser.types.Override` objects (Hydra's public parser)."""
-    lists: list[list[str]] = []
+    lists: dict[str, list[str]] = {}  # a later override of the same key replaces the earlier (Hydra's rule)
     for ov in overrides:
         key = ov.get_key_element()
         if ov.is_sweep_override():
@@ -307,10 +309,10 @@ def expand_grid(overrides: Sequence[Any]) -> list[list[str]]:
                 raise ValueError(
                     f"{key}: the nirspi sweeper takes lists, range() and choice(); not interval() ({ov.input_line})"
                 )
-            lists.append([f"{key}={val}" for val in ov.sweep_string_iterator()])
+            lists[key] = [f"{key}={val}" for val in ov.sweep_string_iterator()]
         else:
-            lists.append([f"{key}={ov.get_value_element_as_str()}"])
-    return [list(job) for job in itertools.product(*lists)]
+            lists[key] = [f"{key}={ov.get_value_element_as_str()}"]
+    return [list(job) for job in itertools.product(*lists.values())]
 
 
 def _one_line(text: str) -> str:
