@@ -39,7 +39,7 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.plugins.launcher import Launcher
 from threadpoolctl import threadpool_limits
 
-from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.sweeper import ComposedJob, format_progress
 
 __all__ = ["NirspiLauncherBase", "prewarm"]
@@ -48,10 +48,6 @@ log = logging.getLogger(__name__)
 
 #: Seconds between two progress lines (the last one is always printed).
 PROGRESS_INTERVAL_S = 2.0
-
-#: Default deadline of one job, ``hydra.launcher.timeout_s``: 30 minutes, issue 24's suggestion of a
-#: generous default; half the SLURM launcher's per-job ``timeout_min: 60`` (conf/hydra/launcher/slurm.yaml).
-DEFAULT_TIMEOUT_S = 1800.0
 
 
 def _execute(
@@ -162,14 +158,7 @@ class NirspiLauncherBase(Launcher):
     """
 
     def __init__(self, n_jobs: int = -1, timeout_s: float | None = DEFAULT_TIMEOUT_S) -> None:
-        if isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or not (n_jobs == -1 or n_jobs >= 1):
-            raise ConfigError("hydra.launcher.n_jobs", n_jobs, "-1 (one per core) or an integer >= 1", absolute=True)
-        if timeout_s is not None and (
-            isinstance(timeout_s, bool) or not isinstance(timeout_s, (int, float)) or not (0 < timeout_s < float("inf"))
-        ):
-            raise ConfigError(
-                "hydra.launcher.timeout_s", timeout_s, "a number of seconds > 0, or null (no deadline)", absolute=True
-            )
+        check_launcher_settings(n_jobs, timeout_s)
         self.n_jobs = n_jobs
         self.timeout_s = None if timeout_s is None else float(timeout_s)
         self.hydra_context: Any = None

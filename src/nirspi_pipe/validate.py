@@ -404,18 +404,17 @@ def check_config(args: list[str]) -> str | None:
 
 
 def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
-    """The nirspi launcher's ``n_jobs``/``timeout_s`` and the sweeper's ``allow_failures``, in
-    their classes' own one-line words (Hydra would wrap them in its multi-line report)."""
+    """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.launchsettings`, the
+    launcher's own check) and the sweeper's ``allow_failures``, as one line (Hydra would wrap
+    them in its multi-line report)."""
     from nirspi_pipe.errors import ConfigError
 
     launcher = hydra_node.get("launcher") or {}
     if str(launcher.get("_target_", "")).endswith(".NirspiLauncher"):
-        from nirspi_pipe.launcher import DEFAULT_TIMEOUT_S, NirspiLauncherBase
+        from nirspi_pipe.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 
         try:
-            NirspiLauncherBase(
-                n_jobs=launcher.get("n_jobs", -1), timeout_s=launcher.get("timeout_s", DEFAULT_TIMEOUT_S)
-            )
+            check_launcher_settings(launcher.get("n_jobs", -1), launcher.get("timeout_s", DEFAULT_TIMEOUT_S))
         except ConfigError as exc:
             return str(exc)
     sweeper = hydra_node.get("sweeper") or {}
