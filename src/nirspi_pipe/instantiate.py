@@ -14,7 +14,7 @@ from typing import Any
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.targets import check_targets, locate, resolve
 
-__all__ = ["EFFECT_GROUPS", "build", "check_types"]
+__all__ = ["EFFECT_GROUPS", "accepted_keys", "build", "check_types", "user_key"]
 
 
 #: Config groups that are built inside another node (``source.effects.fog: ${fog}``): an error
@@ -23,7 +23,7 @@ EFFECT_GROUPS = ("fog", "illumination", "detector")
 _EFFECT_PARENT = "source.effects."
 
 
-def _user_key(full_key: str | None, key: str) -> tuple[str, bool]:
+def user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     """Where to report an error of node ``full_key`` built as part of group ``key``: the path the
     user types, and whether it is absolute (an effect group inside ``source.effects``)."""
     if not full_key:
@@ -99,7 +99,7 @@ def build(node: Any, key: str) -> Any:
         return _instantiate(plain, key)
     except _BuildFailure as failure:
         inner = failure.inner
-        where, absolute = _user_key(failure.path, key)
+        where, absolute = user_key(failure.path, key)
         if isinstance(inner, ConfigError):
             err = inner.under(where)
             raise (
@@ -107,7 +107,7 @@ def build(node: Any, key: str) -> Any:
             ) from None
         if isinstance(inner, TypeError) and "unexpected keyword argument" in str(inner):
             bad = str(inner).rsplit("'", 2)[-2] if str(inner).count("'") >= 2 else "?"
-            raise ConfigError(f"{where}.{bad}", None, _accepted_keys(failure.node), unknown_key=True) from None
+            raise ConfigError(f"{where}.{bad}", None, accepted_keys(failure.node), unknown_key=True) from None
         raise inner from None
 
 
@@ -201,7 +201,7 @@ def check_types(node: Any, key: str) -> None:
             if kinds is None or _type_ok(sub[name], kinds):
                 continue
             params = {str(k): v for k, v in sub.items() if not str(k).startswith("_")}
-            where, _ = _user_key(f"{path}.{name}", key)
+            where, _ = user_key(f"{path}.{name}", key)
             raise ConfigError(where, sub[name], _allowed_for(fn, params, name, kinds), absolute=True)
 
     try:
@@ -212,7 +212,7 @@ def check_types(node: Any, key: str) -> None:
         return
 
 
-def _accepted_keys(node: Any) -> str:
+def accepted_keys(node: Any) -> str:
     """Comma-separated constructor parameters of a node's ``_target_`` (for error messages)."""
     import inspect
 

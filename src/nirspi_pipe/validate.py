@@ -431,7 +431,8 @@ def _check_stage_nodes(job: dict[str, Any]) -> str | None:
     import inspect
 
     from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.pipeline import EFFECT_GROUPS, STAGE_GROUPS, check_types
+    from nirspi_pipe.instantiate import accepted_keys, user_key
+    from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
     from nirspi_pipe.targets import find_targets, locate
 
     for group in ("camera", *STAGE_GROUPS):
@@ -451,12 +452,8 @@ def _check_stage_nodes(job: dict[str, Any]) -> str | None:
                 continue
             for name in sub:
                 if not str(name).startswith("_") and name not in params:
-                    where = path
-                    for effect in EFFECT_GROUPS:  # source.effects.fog.x is what the user typed as fog.x
-                        if path == f"source.effects.{effect}" or path.startswith(f"source.effects.{effect}."):
-                            where = effect + path[len(f"source.effects.{effect}") :]
-                    accepted = ", ".join(p for p in params if p not in ("self", "args", "kwargs"))
-                    return f"{where}.{name} is not a key; allowed keys: {accepted or '(none)'}"
+                    where, _ = user_key(f"{path}.{name}", group)  # source.effects.fog.x is fog.x to the user
+                    return f"{where} is not a key; allowed keys: {accepted_keys(sub) or '(none)'}"
         try:
             check_types(node, group)
         except ConfigError as exc:
