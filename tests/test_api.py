@@ -42,7 +42,7 @@ def test_docs_api_md_doctest(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
 def test_import_is_cheap_and_lazy() -> None:
     code = (
         "import sys, nirspi_pipe; heavy = [m for m in ('numpy', 'pandas', 'hydra', 'omegaconf', 'matplotlib') "
-        "if m in sys.modules]; print(heavy); assert callable(nirspi_pipe.run); print('nirspi_pipe.api' in sys.modules)"
+        "if m in sys.modules]; print(heavy); assert callable(nirspi_pipe.run); print('nirspi_pipe.app.api' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
     lines = out.stdout.split()
@@ -253,7 +253,7 @@ def test_default_run_is_the_fog_chamber_and_says_so(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_help_teaches(tmp_path: Path) -> None:
     from conftest import run_cli
-    from nirspi_pipe.validate import config_groups, group_options
+    from nirspi_pipe.app.validate import config_groups, group_options
 
     res = run_cli(["nirspi-run", "--help"], tmp_path)
     assert res.returncode == 0, res.stderr

@@ -11,7 +11,7 @@ import pytest
 
 import nirspi_pipe
 from conftest import run_cli
-from nirspi_pipe.device.emulator import main as emulator_main
+from nirspi_pipe.app.devicecli import main as emulator_main
 
 # ---- nirspi_pipe.run: the overrides argument ---------------------------------------------------
 

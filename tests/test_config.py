@@ -8,9 +8,9 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
+from nirspi_pipe.app.validate import check_overrides, config_groups, group_options
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.pipeline import STAGE_GROUPS, build
-from nirspi_pipe.validate import check_overrides, config_groups, group_options
 
 CONFIG_MODULE = "nirspi_pipe.conf"
 
@@ -142,7 +142,7 @@ def test_a_top_level_typo_suggests_the_nearest_key() -> None:
 
 
 def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
-    from nirspi_pipe.validate import OFF_OPTION, REQUIRED_GROUPS, rewrite_nulls
+    from nirspi_pipe.app.validate import OFF_OPTION, REQUIRED_GROUPS, rewrite_nulls
 
     args, problem = rewrite_nulls(["-m", "upscale=null,bicubic", "sfs=None", "seed=0", "scene.distance_mm=null"])
     assert problem is None

@@ -15,7 +15,7 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
-from nirspi_pipe.configs import (
+from nirspi_pipe.app.configs import (
     CONFIG_MODULE,
     CONFIG_NAME,
     locate,
@@ -171,9 +171,9 @@ def test_schema_defaults_spell_every_parameter() -> None:
 def test_a_wrong_type_is_one_line_naming_key_and_allowed(
     overrides: list[str], key: str, allowed: str, before_the_run: bool
 ) -> None:
+    from nirspi_pipe.app.validate import check_overrides
     from nirspi_pipe.errors import ConfigError
     from nirspi_pipe.pipeline import build
-    from nirspi_pipe.validate import check_overrides
 
     msg = check_overrides(overrides)
     if before_the_run:  # refused before any job starts, sweep values included

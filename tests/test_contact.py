@@ -22,7 +22,7 @@ def test_version_is_the_projects(cli) -> None:
 def test_help_describes_the_composed_camera(cli, overrides: list[str]) -> None:
     from omegaconf import OmegaConf
 
-    from nirspi_pipe.api import compose
+    from nirspi_pipe.app.api import compose
 
     res = cli("nirspi-run", "--help", *overrides)
     assert res.returncode == 0, res.stderr

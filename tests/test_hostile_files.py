@@ -172,7 +172,7 @@ def test_fuzzed_npz_bytes_load_or_fail_with_one_line(tmp_path: Path, data: st.Da
 def test_recording_scaled_by_huge_factors_is_finite_or_a_clear_error(tmp_path: Path, exponent: int) -> None:
     from hydra import compose, initialize_config_module
 
-    from nirspi_pipe.cli import execute_job
+    from nirspi_pipe.app.jobs import execute_job
     from nirspi_pipe.finite import is_finite_tree
 
     path = tmp_path / "scaled.npz"

@@ -15,9 +15,10 @@ import pandas as pd
 import pytest
 
 from conftest import script
-from nirspi_pipe import jobs, records
+from nirspi_pipe import records
+from nirspi_pipe.app import jobs
+from nirspi_pipe.app.sweeper import ComposedJob
 from nirspi_pipe.records import RECORD_NAME, JobLock, OutputError, read_record, write_record
-from nirspi_pipe.sweeper import ComposedJob
 
 fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are forked")
 linux_only = pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="finds a file's name in /proc/self/fd")
@@ -69,7 +70,7 @@ def test_the_tables_never_write_through_a_link(tmp_path: Path, capsys: pytest.Ca
     """The paper tables write their files in place (pandas, matplotlib): a linked file in
     ``tables/`` is removed first (its target kept), and a ``tables`` folder that is a link is
     refused in one line, with no table built."""
-    from nirspi_pipe.results import build_tables
+    from nirspi_pipe.app.results import build_tables
 
     victim = tmp_path / "victim.txt"
     victim.write_text("keep")
@@ -237,7 +238,7 @@ def test_a_job_whose_folder_cannot_be_written_fails_alone(tmp_path: Path, monkey
     """In-process: the disk is full when the launcher counts one job's attempt (``attempts.json``,
     which used to end the whole sweep with no ``results.parquet``): that job is a failed
     (unwritten) record naming the file, the others run."""
-    import nirspi_pipe.launcher as launcher
+    import nirspi_pipe.app.launcher as launcher
 
     real = jobs._bump_attempts
 
@@ -293,7 +294,7 @@ def fdopen(fd, *args, **kwargs):
 
 
 os.fdopen = fdopen
-from nirspi_pipe.cli import run
+from nirspi_pipe.app.cli import run
 
 sys.argv[0] = "nirspi-run"
 run()
@@ -362,8 +363,8 @@ def test_disk_full_in_a_sweep_is_one_line_per_job_and_results_are_written(tmp_pa
 
 
 def test_timeout_s_is_checked() -> None:
+    from nirspi_pipe.app.launcher import DEFAULT_TIMEOUT_S, NirspiLauncherBase
     from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.launcher import DEFAULT_TIMEOUT_S, NirspiLauncherBase
 
     assert NirspiLauncherBase().timeout_s == DEFAULT_TIMEOUT_S == 1800
     assert NirspiLauncherBase(timeout_s=None).timeout_s is None

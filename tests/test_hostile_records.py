@@ -12,7 +12,7 @@ from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nirspi_pipe.cli import execute_job
+from nirspi_pipe.app.jobs import execute_job
 from nirspi_pipe.finite import drop_nonfinite, is_finite_tree
 
 leaf = st.one_of(

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 
 from conftest import crash_as
+from nirspi_pipe.app.sweeper import ComposedJob
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.records import RECORD_NAME, read_record, write_record
-from nirspi_pipe.sweeper import ComposedJob
 
 fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are forked")
 
@@ -28,7 +28,7 @@ def _fake_execute(config, out_dir, choices, overrides, job_num, attempt=None):  
 def test_crashing_jobs_take_only_themselves_down(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Jobs that segfault, exit, are SIGKILLed or raise each get a failed record naming what
     happened; every other job runs, on runners that are reused and replaced after each crash."""
-    import nirspi_pipe.launcher as launcher
+    import nirspi_pipe.app.launcher as launcher
 
     monkeypatch.setattr(launcher, "_execute", _fake_execute)
     hows = ["ok", "segv", "ok", "kill", "ok", "exit", "raise", "ok", "ok", "ok"]
@@ -70,7 +70,7 @@ def test_a_hanging_job_is_killed_at_its_deadline(tmp_path: Path, monkeypatch: py
     sweep ends soon after the deadline rather than after the hang."""
     import time
 
-    import nirspi_pipe.launcher as launcher
+    import nirspi_pipe.app.launcher as launcher
 
     monkeypatch.setattr(launcher, "_execute", _hanging_execute)
     hows = ["ok", "hang", "ok", "ok", "ok"]
@@ -97,7 +97,7 @@ def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pyte
     import sys
     import time
 
-    import nirspi_pipe.launcher as launcher
+    import nirspi_pipe.app.launcher as launcher
 
     monkeypatch.setattr(launcher, "_execute", _fake_execute)
     items = [(tmp_path / f"job{i}", i, ComposedJob({"how": "ok"}, {}, [])) for i in range(3)]
@@ -125,7 +125,7 @@ def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pyte
 
 @pytest.mark.parametrize("bad", [0, -2, 1.5, True, "2"])
 def test_bad_n_jobs_is_one_line(bad: object) -> None:
-    from nirspi_pipe.launcher import NirspiLauncherBase
+    from nirspi_pipe.app.launcher import NirspiLauncherBase
 
     with pytest.raises(ConfigError) as info:
         NirspiLauncherBase(n_jobs=bad)  # type: ignore[arg-type]
@@ -174,33 +174,98 @@ def test_another_sweeper_composes_through_hydra_and_runs_on_runners(cli) -> None
         assert rec["meta"]["overrides"][0] == f"seed={num}" and rec["config"]["seed"] == num
 
 
-def test_prewarm_loads_what_the_jobs_would_load_and_composing_does_not() -> None:
-    """Every lazy import of the prewarm resolves and really loads its modules (scikit-image's
-    subpackages load nothing until an attribute is read); importing the metrics module, as
-    composing a config does for its defaults, leaves scipy.stats out; building a metrics stage
-    loads it."""
+_WARM_THEN_RUN = r"""
+import json, sys, warnings
+warnings.simplefilter("ignore")
+from hydra import compose, initialize_config_module
+from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, scan_indices
+from nirspi_pipe.instantiate import plain_config
+import nirspi_pipe.metrics as m
+composed = "scipy.stats" in sys.modules
+with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+    cfg = plain_config(compose(CONFIG_NAME, overrides=json.loads(sys.argv[1])))
+from nirspi_pipe.execute import warm_up
+failed = warm_up([cfg])
+before = set(sys.modules)
+from nirspi_pipe.pipeline import run_pipeline
+run_pipeline(cfg, scan_indices=scan_indices)
+print(json.dumps({"composed": composed, "failed": failed, "new": sorted(set(sys.modules) - before)}))
+"""
+
+#: Modules a job may still load after the warm-up: pyopencl's context is made in the job's own
+#: process by design (stages.WarmsUp: no threads before a fork) and loads these on first use;
+#: the read-out's range model is imported by the forward model's read-out effect, which has no
+#: warm-up of its own (its own class, not a stage's, imports it).
+_LOADED_BY_THE_JOB = ("pyopencl", "pytools", "platformdirs", "encodings.", "nirspi_pipe.physics.range_model")
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [],
+        [
+            "preset=device",
+            "fog=chamber",
+            "sfs=lax_friedrichs",
+            "itof=cw4",
+            "fusion=itof",
+            "upscale=fsrcnn",
+            "metrics=upscale",
+        ],
+        ["fog=chamber", "sfs=lax_friedrichs", "sfs.backend=auto"],
+    ],
+    ids=["default", "device-fog-itof-fsrcnn", "sfs-auto"],
+)
+def test_a_job_loads_nothing_its_stages_warm_up_did_not(overrides: list[str]) -> None:
+    """The launcher warms the stages up without naming a module (``nirspi_pipe.execute.warm_up``
+    calls each ``_target_``'s own ``warm_up``): after it, running the job imports nothing more
+    than the listed per-process modules; composing a config leaves scipy.stats unloaded."""
+    import json
     import subprocess
     import sys
 
-    code = (
-        "import sys; import nirspi_pipe.metrics as m; print('scipy.stats' in sys.modules); "
-        "m.ImageMetrics(); print('scipy.stats' in sys.modules); "
-        "from nirspi_pipe.launcher import prewarm; print(prewarm([{}])); "
-        "import skimage.filters, skimage.transform; n = len(sys.modules); "
-        "skimage.transform.resize; skimage.filters.threshold_otsu; print(len(sys.modules) - n)"
+    ov = ["camera.resolution=16", *overrides]
+    out = subprocess.run(
+        [sys.executable, "-c", _WARM_THEN_RUN, json.dumps(ov)], capture_output=True, text=True, timeout=300, check=True
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
-    # the jobs' own first use of the functions loads no module after the prewarm
-    assert out.stdout.splitlines() == ["False", "True", "[]", "0"], out.stdout
+    got = json.loads(out.stdout.splitlines()[-1])
+    assert got["failed"] == [] and got["composed"] is False, got
+    late = [m for m in got["new"] if not m.startswith(_LOADED_BY_THE_JOB)]
+    assert late == [], f"loaded by the job after the warm-up: {late}"
+
+
+def test_warm_up_is_called_per_distinct_target_and_reports_failures() -> None:
+    """``warm_up`` calls a class's hook once per distinct parameters, reads nested targets, never
+    imports a target outside the allow-list, and reports a failing hook as a line."""
+    from nirspi_pipe.execute import warm_up
+    from nirspi_pipe.sfs.models import LaxFriedrichsSFS
+
+    calls: list[dict[str, object]] = []
+    original = LaxFriedrichsSFS.__dict__["warm_up"]
+    try:
+        LaxFriedrichsSFS.warm_up = classmethod(lambda cls, params: calls.append(dict(params)))  # type: ignore[assignment,method-assign]
+        node = {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "numpy"}
+        failed = warm_up(
+            [{"sfs": node}, {"sfs": dict(node)}, {"a": [{"b": {**node, "tol": 0.1}}]}, {"x": {"_target_": "os.system"}}]
+        )
+        assert failed == [] and calls == [{"backend": "numpy"}, {"backend": "numpy", "tol": 0.1}]
+
+        def boom(cls: type, params: object) -> None:
+            raise RuntimeError("no compiler")
+
+        LaxFriedrichsSFS.warm_up = classmethod(boom)  # type: ignore[assignment,method-assign]
+        assert warm_up([{"sfs": node}]) == ["nirspi_pipe.sfs.models.LaxFriedrichsSFS: RuntimeError: no compiler"]
+    finally:
+        LaxFriedrichsSFS.warm_up = original  # type: ignore[method-assign]
 
 
 _RUNNER_FIRST_SOLVE = r"""
 import json, os, signal, time, warnings
 warnings.simplefilter("ignore")
-from nirspi_pipe.launcher import prewarm
+from nirspi_pipe.execute import warm_up
 from nirspi_pipe.sfs import opencl as ocl
 
-prewarm([{"sfs": {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "auto"}}])
+warm_up([{"sfs": {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "auto"}}])
 contexts = ocl._context.cache_info().currsize
 r, w = os.pipe()
 pid = os.fork()
@@ -229,7 +294,7 @@ print(json.dumps({"contexts": contexts, "status": os.waitpid(pid, 0)[1], "child"
 
 @fork_only
 def test_runner_warms_opencl_up_after_the_fork(tmp_path: Path) -> None:
-    """The prewarm makes no OpenCL context in the sweeping process: one made before ``fork``
+    """The warm-up makes no OpenCL context in the sweeping process: one made before ``fork``
     leaves the child's first launch hanging (PoCL's worker threads are not forked; measured:
     killed by the 20 s alarm, whether the parent had only built the kernel or launched it too).
     So each runner warms up when it builds its first job's stages, and that job's SFS time holds

@@ -64,7 +64,7 @@ def test_3d_run(surface):
 
 
 def test_execute_job_writes_mesh_files(tmp_path):
-    from nirspi_pipe.cli import execute_job
+    from nirspi_pipe.app.jobs import execute_job
 
     cfg = _cfg("itof=cw4", "fusion=itof", "surface=power_crust", "metrics=full")
     record = execute_job(cfg, tmp_path, {}, [])

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nirspi_pipe.api import run
+from nirspi_pipe.app.api import run
 
 
 @pytest.mark.filterwarnings("ignore")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from nirspi_pipe import plugins
+from nirspi_pipe.app import plugins
 
 
 def _pip_flags() -> list[str]:

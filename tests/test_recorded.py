@@ -16,7 +16,8 @@ from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nirspi_pipe.cli import execute_job
+from nirspi_pipe.app.configs import scan_indices
+from nirspi_pipe.app.jobs import execute_job
 from nirspi_pipe.device.recording import RecordingError, load_recording, match_hadamard, save_recording
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.patterns.hadamard import fwht2, sylvester
@@ -141,11 +142,15 @@ def test_spec_with_a_scan_order_name(tmp_path: Path) -> None:
         order="basic",
         ratio=0.5,
     )
-    out = run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=8"))
+    cfg = config("source=recorded", f"source.path={path}", "camera.resolution=8")
+    # the runner knows no config: the scan option is resolved by the config layer it is handed
+    with pytest.raises(RecordingError, match="key 'order': cannot be resolved here; store explicit 'indices'"):
+        run_pipeline(cfg)
+    out = run_pipeline(cfg, scan_indices=scan_indices)
     assert np.array_equal(out.products.acquisition.indices, np.arange(n * n // 2))
     np.savez(path, measurements=c, basis="hadamard", resolution=n, split="differential", order="nope")
     with pytest.raises(RecordingError, match="key 'order'.*not a scan option; allowed: basic"):
-        run_pipeline(config("source=recorded", f"source.path={path}", "camera.resolution=8"))
+        run_pipeline(cfg, scan_indices=scan_indices)
 
 
 def test_scan_ratio_truncates_in_file_order(tmp_path: Path) -> None:

@@ -18,7 +18,8 @@ from pathlib import Path
 import pytest
 
 from nirspi_pipe import records
-from nirspi_pipe.jobs import crash_message, run_sweep_job
+from nirspi_pipe.app.jobs import crash_message, run_sweep_job
+from nirspi_pipe.app.sweeper import SweepFileError, expand_grid, load_sweep_file
 from nirspi_pipe.records import (
     RECORD_NAME,
     InputHasher,
@@ -30,7 +31,6 @@ from nirspi_pipe.records import (
     read_record,
     write_record,
 )
-from nirspi_pipe.sweeper import SweepFileError, expand_grid, load_sweep_file
 
 
 def _leftovers(folder: Path) -> list[str]:

@@ -17,9 +17,9 @@ import yaml
 
 import nirspi_pipe
 from nirspi_pipe import targets
+from nirspi_pipe.app.validate import check_config
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.targets import PROJECT_TARGETS, check_target, check_targets, locate
-from nirspi_pipe.validate import check_config
 
 #: ``{target: its arguments as a config node}``: each call would create the file MARK if it ran.
 ATTACKS = {

@@ -165,7 +165,7 @@ def test_no_anchor_error_names_every_reason(sphere):
 
 
 def test_failed_record_keeps_its_warnings(tmp_path):
-    from nirspi_pipe.cli import execute_job
+    from nirspi_pipe.app.jobs import execute_job
 
     # one spot aimed off the object: fusion has no anchor and the job fails
     cfg = _cfg(

@@ -15,7 +15,7 @@ from hydra import compose, initialize_config_module
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nirspi_pipe.cli import execute_job
+from nirspi_pipe.app.jobs import execute_job
 from nirspi_pipe.device.convert import convert
 from nirspi_pipe.device.emulator import Emulator
 from nirspi_pipe.device.protocol import StreamError

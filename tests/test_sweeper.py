@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
-from nirspi_pipe.sweeper import subdir_override
+from nirspi_pipe.app.sweeper import subdir_override
 
 
 def test_hex_job_keys_stay_strings() -> None:
@@ -43,7 +43,7 @@ def _sweeper_for(loader, experiment: str):  # type: ignore[no-untyped-def]
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from nirspi_pipe.sweeper import NirspiSweeperBase
+    from nirspi_pipe.app.sweeper import NirspiSweeperBase
 
     cfg = loader.load_configuration("config", [f"+experiment={experiment}"], run_mode=RunMode.MULTIRUN)
     node = OmegaConf.to_container(cfg.hydra.sweeper, resolve=False)

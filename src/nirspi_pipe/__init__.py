@@ -19,7 +19,7 @@ __version__ = "0.1.0"
 __all__ = ["BadOverrides", "BadResults", "RunFailed", "RunResult", "__version__", "compose", "load_results", "run"]
 
 if TYPE_CHECKING:
-    from nirspi_pipe.api import (
+    from nirspi_pipe.app.api import (
         BadOverrides,
         BadResults,
         RunFailed,
@@ -31,9 +31,9 @@ if TYPE_CHECKING:
 
 
 def __getattr__(name: str) -> Any:
-    """Lazy exports of :mod:`nirspi_pipe.api` (PEP 562)."""
+    """Lazy exports of :mod:`nirspi_pipe.app.api` (PEP 562)."""
     if name in __all__ and name != "__version__":
-        from nirspi_pipe import api
+        from nirspi_pipe.app import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'nirspi_pipe' has no attribute {name!r}")

@@ -5,7 +5,7 @@ of an exact reconstruction, a solver residual of an overflowing input. A record 
 such a value as if it were a result, so :func:`drop_nonfinite` removes every non-finite number
 from a record's ``metrics``, ``derived``, ``timings_ms`` and ``info`` and returns one warning per
 value saying what was left out and why. The runner calls it once, just before the record is
-written (``cli.execute_job``).
+written (:func:`nirspi_pipe.execute.execute_job`).
 """
 
 from __future__ import annotations

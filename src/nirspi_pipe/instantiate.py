@@ -2,25 +2,40 @@
 restricted to the allow-list of :mod:`nirspi_pipe.targets`, with one-line errors naming the key.
 
 Used by the runner (:mod:`nirspi_pipe.pipeline`) and by the config layer
-(:func:`nirspi_pipe.configs.scan_indices`); it imports nothing of Hydra (OmegaConf only to turn a
-config node into plain data).
+(:func:`nirspi_pipe.app.configs.scan_indices`). It imports nothing of Hydra or OmegaConf: it works
+on plain data, and :func:`plain_config` turns any mapping that reads as a config (an OmegaConf
+node included, whose interpolations resolve as they are read) into that plain data.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from functools import lru_cache
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.targets import check_targets, locate, resolve
 
-__all__ = ["EFFECT_GROUPS", "accepted_keys", "build", "check_types", "user_key"]
+__all__ = ["EFFECT_GROUPS", "accepted_keys", "build", "check_types", "plain_config", "user_key"]
 
 
 #: Config groups that are built inside another node (``source.effects.fog: ${fog}``): an error
 #: there is reported under the group the user typed (``fog.beta_per_m``).
 EFFECT_GROUPS = ("fog", "illumination", "detector")
 _EFFECT_PARENT = "source.effects."
+
+
+def plain_config(node: Any) -> Any:
+    """``node`` as plain data: every mapping a ``dict`` with ``str`` keys, every list or tuple
+    (or other non-string sequence, such as an OmegaConf ``ListConfig``) a ``list``, scalars
+    unchanged. A mapping's values are read through its own ``items()``, so an OmegaConf node's
+    interpolations are resolved here, as ``OmegaConf.to_container(node, resolve=True)`` does
+    (tested against it in tests/test_architecture.py). Plain data comes back as an equal copy."""
+    if isinstance(node, Mapping):
+        return {str(k): plain_config(v) for k, v in node.items()}
+    if isinstance(node, (list, tuple)) or (isinstance(node, Sequence) and not isinstance(node, (str, bytes))):
+        return [plain_config(v) for v in node]
+    return node
 
 
 def user_key(full_key: str | None, key: str) -> tuple[str, bool]:
@@ -90,9 +105,7 @@ def build(node: Any, key: str) -> Any:
     came from, so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …`` (and
     ``fog.beta_per_m=…`` for the fog model that ``source.effects`` builds).
     """
-    from omegaconf import Container, OmegaConf
-
-    plain = OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node
+    plain = plain_config(node)
     check_targets(plain, key)  # every target of the node is allowed, before anything is imported
     check_types(plain, key)
     try:
@@ -173,7 +186,6 @@ def check_types(node: Any, key: str) -> None:
     plain container) have their annotated type; a string for a number
     (``scene.distance_mm=abc``) is a one-line :class:`ConfigError` naming the key and the stage's
     allowed values. The dataclass annotations are the source of types."""
-    from omegaconf import Container, OmegaConf
 
     def walk(sub: Any, path: str) -> None:
         if isinstance(sub, list):
@@ -205,7 +217,7 @@ def check_types(node: Any, key: str) -> None:
             raise ConfigError(where, sub[name], _allowed_for(fn, params, name, kinds), absolute=True)
 
     try:
-        walk(OmegaConf.to_container(node, resolve=True) if isinstance(node, Container) else node, key)
+        walk(plain_config(node), key)
     except ConfigError:
         raise
     except Exception:  # noqa: BLE001 - the check is a courtesy; instantiation reports the rest

@@ -20,7 +20,9 @@ Two scores per image metric (docs/paper.md, "Metrics"):
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -118,6 +120,12 @@ class ImageMetrics:
         # skimage.metrics import structural_similarity"): loaded when a metrics stage is built, so
         # that composing a config (which imports this module for its defaults) does not pay it and
         # the first job's timed metrics stage does not either
+        self.warm_up({})
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """Import scikit-image's metric functions (0.7 s with scipy.stats;
+        :class:`nirspi_pipe.stages.WarmsUp`)."""
         from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:

@@ -1,4 +1,4 @@
-"""Build the stages from a composed config and run them, timing each one.
+"""Build the stages from a resolved config (plain data) and run them, timing each one.
 
 The runner owns all timing (``time.perf_counter`` around each stage call) and all randomness
 (one ``SeedSequence`` from ``cfg.seed``, one independent child stream per random stage, so that
@@ -12,15 +12,17 @@ import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-from omegaconf import DictConfig
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types
+from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
+
+if TYPE_CHECKING:
+    from nirspi_pipe.sources.recorded import ScanIndices
 
 __all__ = [
     "EFFECT_GROUPS",
@@ -64,7 +66,7 @@ class RunOutput:
     warnings: list[str] = field(default_factory=list)
 
 
-def build_stages(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+def build_stages(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped)."""
     stages: dict[str, Any] = {}
     for group in STAGE_GROUPS:
@@ -128,26 +130,26 @@ def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
     return {k: dict(v.info) for k, v in pairs.items() if v is not None and v.info}
 
 
-def effective_seed(cfg: DictConfig | Mapping[str, Any]) -> int:
+def effective_seed(cfg: Mapping[str, Any]) -> int:
     """The run's seed: ``cfg.seed``, or when it is null a seed derived from the hash of the
     resolved config (so every job of a sweep gets its own, reproducible noise)."""
-    from omegaconf import Container, OmegaConf
-
     from nirspi_pipe.records import config_hash
 
     seed = cfg.get("seed", 0)
     if seed is None:
-        resolved: Any = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, Container) else cfg
-        return int(config_hash(resolved)[:8], 16)
+        return int(config_hash(plain_config(cfg))[:8], 16)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError("seed", seed, "an integer >= 0, or null (derived from the config)")
     return seed
 
 
-def run_pipeline(cfg: DictConfig | Mapping[str, Any]) -> RunOutput:
+def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = None) -> RunOutput:
     """Run one configuration end to end and return its products, metrics and timings (ms).
-    ``cfg`` is a composed config or its resolved plain container (what the nirspi launcher runs:
-    turning it back into an OmegaConf node would cost ~40 ms per job).
+    ``cfg`` is the resolved config as plain data (any mapping that reads as one works: it is
+    read through ``get`` and ``[]``). ``scan_indices(order, ratio, n)`` resolves the scan option
+    a recording names in its pattern spec; the config layer passes
+    :func:`nirspi_pipe.app.configs.scan_indices`. A source that needs it and gets none fails
+    with a one-line error naming ``source``.
 
     Raises :class:`ConfigError` / :class:`NirspiError` for bad configuration or input; other
     exceptions are bugs or numerical failures and propagate unchanged.
@@ -171,9 +173,7 @@ def run_pipeline(cfg: DictConfig | Mapping[str, Any]) -> RunOutput:
         if getattr(source, "needs_scan_indices", False) and getattr(source, "scan_indices", None) is None:
             from dataclasses import replace
 
-            from nirspi_pipe.configs import scan_indices
-
-            source = replace(source, scan_indices=scan_indices)  # the runner resolves scan options
+            source = replace(source, scan_indices=scan_indices)  # the caller resolves scan options
         n = camera.resolution
 
         truth = None

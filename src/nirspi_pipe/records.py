@@ -448,7 +448,7 @@ def opencl_devices() -> tuple[str, ...]:
 
     Cached per process: the first call costs the OpenCL platform query (~0.1–0.5 s). Where
     ``os.fork`` exists and this process has not loaded pyopencl yet, the query runs in a forked
-    child, so that a sweep worker which forks one child per job (:mod:`nirspi_pipe.jobs`) never
+    child, so that a sweep worker which forks one child per job (:mod:`nirspi_pipe.app.jobs`) never
     holds an initialised OpenCL runtime, whose threads a fork would not copy.
     """
     if not hasattr(os, "fork") or "pyopencl" in sys.modules:

@@ -1,7 +1,7 @@
 """Stage protocols: what each config group's ``_target_`` must provide.
 
-A stage is any object built by ``hydra.utils.instantiate`` from its group's config that has the
-method named here. Stages are pure with respect to their inputs: they never mutate them, they
+A stage is any object built by :func:`nirspi_pipe.instantiate.build` from its group's config
+(after the allow-list check of :mod:`nirspi_pipe.targets`) that has the method named here. Stages are pure with respect to their inputs: they never mutate them, they
 take randomness only from the ``numpy.random.Generator`` they are handed, and they do not time
 themselves (the runner in :mod:`nirspi_pipe.pipeline` does). Bookkeeping a stage wants in the
 record goes into the ``info`` mapping of the dataclass it returns; physical quantities a source
@@ -23,12 +23,19 @@ fusion     ``fuse(depth, itof, camera)``                   :class:`PointCloud`
 surface    ``reconstruct(cloud)``                          :class:`Mesh`
 metrics    ``compute(products)``                           ``{name: float}``
 =========  ==============================================  ==========================
+
+Every stage class (and every class built inside a stage's node, such as a fog model) may also
+define :class:`WarmsUp`'s class method ``warm_up(params)``: what its first use in a process
+would otherwise pay for (imports, compiled kernels loaded from their disk cache). The sweep
+launcher calls it through :func:`nirspi_pipe.execute.warm_up` once in the sweeping process,
+before it forks the jobs, for every ``_target_`` the sweep's configs name; it names no module.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -55,7 +62,26 @@ __all__ = [
     "Surface",
     "Metrics",
     "Products",
+    "WarmsUp",
 ]
+
+
+@runtime_checkable
+class WarmsUp(Protocol):
+    """Optional part of every stage protocol: prepare this process for the stage.
+
+    ``warm_up(params)`` is a class method: ``params`` are the keys of the stage's config node
+    (``_target_`` and other ``_``-keys removed), and no instance is built, so a stage whose
+    construction does per-process work (an OpenCL context) does not do it here. It is called
+    in a process that then forks the jobs, so it must not start threads (no OpenCL platform or
+    context: PoCL's worker threads would not exist in the children) and must not change state
+    a job reads (it only makes the first call cheaper). It raises nothing the job would not
+    raise itself: a failure is reported by :func:`nirspi_pipe.execute.warm_up` and the job
+    that needs the stage says what is wrong.
+    """
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None: ...
 
 
 @runtime_checkable

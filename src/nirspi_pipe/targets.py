@@ -7,7 +7,7 @@ target is built only when it is on the allow-list, and the check is a comparison
 
 * :data:`PROJECT_TARGETS`: nirspi-pipe's own stage classes (every ``_target_`` the shipped config
   options and experiments name, and the nested classes whose defaults the schemas expand), and
-  its one Hydra callback (:class:`nirspi_pipe.results.CollectResults`);
+  its one Hydra callback (:class:`nirspi_pipe.app.results.CollectResults`);
 * the classes that installed plugins register, read from the installed distributions' metadata
   (entry-point group ``nirspi_pipe.targets``, see docs/plugins.md) without importing them::
 
@@ -17,7 +17,7 @@ target is built only when it is on the allow-list, and the check is a comparison
 Anything else is a one-line :class:`~nirspi_pipe.errors.ConfigError` naming the key. The
 runner (:func:`nirspi_pipe.pipeline.build`) checks every node it builds; ``nirspi-run`` and
 ``nirspi_pipe.run`` also check the whole composed config, Hydra's own node included, before
-Hydra builds its callbacks, launcher and sweeper (:func:`nirspi_pipe.validate.check_config`).
+Hydra builds its callbacks, launcher and sweeper (:func:`nirspi_pipe.app.validate.check_config`).
 This module imports neither Hydra nor OmegaConf.
 """
 
@@ -108,7 +108,7 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         "nirspi_pipe.upscale.metrics.UpscaleMetrics",
         "nirspi_pipe.mesh.metrics3d.Metrics3D",
         # Hydra callback (hydra.callbacks.collect)
-        "nirspi_pipe.results.CollectResults",
+        "nirspi_pipe.app.results.CollectResults",
     }
 )
 

@@ -92,7 +92,7 @@ def test_explicit_patterns_match_the_hadamard_path(kind: str) -> None:
 
 
 def test_discovered_by_nirspi_pipe() -> None:
-    from nirspi_pipe.plugins import discover
+    from nirspi_pipe.app.plugins import discover
 
     report = discover(refresh=True)
     names = {p.name: p for p in report.plugins}
@@ -105,7 +105,7 @@ def test_the_config_takes_its_defaults_from_the_class() -> None:
     # admm_tv.yaml names only its _target_: every key comes from ADMMTVSolver's fields.
     from hydra import compose, initialize_config_module
 
-    from nirspi_pipe.plugins import activate
+    from nirspi_pipe.app.plugins import activate
 
     activate()  # plugin config folders join the search path
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):

@@ -54,8 +54,8 @@ def test_the_installed_plugin_adds_the_effect_through_the_config():
     """Through the entry point: nirspi-pipe composes source=simulator_rain and runs it."""
     from hydra import compose, initialize_config_module
 
+    from nirspi_pipe.app.plugins import activate, discover
     from nirspi_pipe.pipeline import run_pipeline
-    from nirspi_pipe.plugins import activate, discover
 
     report = discover(refresh=True)
     assert "rain" in {p.name for p in report.plugins}, report

@@ -1,11 +1,11 @@
 """Hydra looks for sweeper and launcher classes in the ``hydra_plugins`` namespace; these are
 nirspi-pipe's.
 
-The implementations live in :mod:`nirspi_pipe.sweeper` and :mod:`nirspi_pipe.launcher`.
+The implementations live in :mod:`nirspi_pipe.app.sweeper` and :mod:`nirspi_pipe.app.launcher`.
 """
 
-from nirspi_pipe.launcher import NirspiLauncherBase
-from nirspi_pipe.sweeper import NirspiSweeperBase
+from nirspi_pipe.app.launcher import NirspiLauncherBase
+from nirspi_pipe.app.sweeper import NirspiSweeperBase
 
 
 class NirspiSweeper(NirspiSweeperBase):

@@ -21,6 +21,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
@@ -256,8 +257,14 @@ def _cause_line(exc: BaseException) -> str:
     return first(exc) if cause is None else f"{first(exc).rstrip(':')}: {first(cause)}"
 
 
-def main(argv: list[str] | None = None) -> None:
-    """``nirspi-device-emulator``: serve a simulated scene on 127.0.0.1 (prints the port)."""
+def main(
+    argv: list[str] | None = None, render_scene: Callable[[str, int, list[str]], np.ndarray] | None = None
+) -> None:
+    """``nirspi-device-emulator``: serve a simulated scene on 127.0.0.1 (prints the port).
+
+    ``render_scene(scene, resolution, overrides)`` renders a scene option's relative radiance;
+    the console script (:func:`nirspi_pipe.app.devicecli.main`) passes the config layer's
+    :func:`nirspi_pipe.app.configs.render_scene`, so this module composes no config itself."""
     p = argparse.ArgumentParser(prog="nirspi-device-emulator", description=__doc__.split("\n\n")[0])
     p.add_argument("--port", type=int, default=0, help="TCP port on 127.0.0.1 (0: a free one; printed)")
     p.add_argument("--scene", default="sphere", help="a nirspi-pipe scene option (default sphere)")
@@ -282,9 +289,12 @@ def main(argv: list[str] | None = None) -> None:
     if problem:
         print(f"nirspi-device-emulator: error: {problem}", file=sys.stderr)
         raise SystemExit(2)
+    if render_scene is None:
+        print(
+            "nirspi-device-emulator: error: no scene renderer; run the nirspi-device-emulator command", file=sys.stderr
+        )
+        raise SystemExit(2)
     try:
-        from nirspi_pipe.configs import render_scene  # the command line composes; the emulator does not
-
         radiance = render_scene(ns.scene, ns.resolution, ns.scene_override)
     except Exception as exc:  # noqa: BLE001 - one line for the user
         print(f"nirspi-device-emulator: error: {_cause_line(exc)}", file=sys.stderr)

@@ -38,7 +38,9 @@ fog does not reduce the background. Fog backscatter of the laser into the receiv
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -228,6 +230,11 @@ class ContinuousWave4:
     quantum_efficiency: float = 0.8
     demod_contrast: float = 0.5
     min_phase_snr: float = 3.0
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """Import scikit-image's Otsu threshold (spot aiming; :class:`nirspi_pipe.stages.WarmsUp`)."""
+        from skimage.filters import threshold_otsu  # noqa: F401
 
     def __post_init__(self) -> None:
         positive = {

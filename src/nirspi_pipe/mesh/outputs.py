@@ -15,7 +15,7 @@ import numpy as np
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Mesh, Scene
 
-__all__ = ["write_mesh_outputs", "write_ply", "render_meshes", "truth_mesh"]
+__all__ = ["render_meshes", "truth_mesh", "warm_up", "write_mesh_outputs", "write_ply"]
 
 
 def _polydata(vertices_m: np.ndarray, faces: np.ndarray):  # type: ignore[no-untyped-def]
@@ -99,3 +99,8 @@ def write_mesh_outputs(folder: Path, products: Products, render: bool = True) ->
     except Exception as exc:  # noqa: BLE001 - a missing GL context must not fail the run
         warnings.warn(f"mesh render failed: {type(exc).__name__}: {exc}", stacklevel=2)
     return written
+
+
+def warm_up() -> None:
+    """Import pyvista (0.5 s), through which ``mesh.ply`` and ``mesh.png`` are written."""
+    import pyvista  # noqa: F401

@@ -12,6 +12,7 @@ removed (the same rule as the power crust's).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -55,6 +56,15 @@ class ScreenedPoisson:
     remesh_edge_factor: float = 1.0
     max_hole_edges: int = 30
     remesher: str = "auto"
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """Load pymeshlab, the remesher and the mesh writers (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
+
+        load_meshlab()
+        resolve_remesher(str(params.get("remesher", cls.remesher)))
+        warm_up_outputs()
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)

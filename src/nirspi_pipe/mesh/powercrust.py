@@ -37,15 +37,17 @@ from __future__ import annotations
 
 import heapq
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.crustfaces import crust_faces, power_centres
-from nirspi_pipe.mesh.remesh import check_remesh_keys, remesh_to_cloud, resolve_remesher, sample_spacing
+from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
 #: Grid (m) the samples are snapped to before the Delaunay/Qhull steps. Assumed: 10 nm, five orders
@@ -360,6 +362,18 @@ class PowerCrust:
     # Not in the generated config schema (never a key of surface=power_crust; +surface.weld_factor=…
     # sets it): the configs, job keys and derived seeds of power-crust runs stay as they were.
     weld_factor: float = field(default=0.25, metadata={"config": False})
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """Load the crust's and the remesher's compiled kernels (numba's disk cache, or one
+        compilation of ~20 s when it is cold: once, not by every job at the same time), pymeshlab
+        and the mesh writers (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
+
+        resolve_remesher(str(params.get("remesher", cls.remesher)))
+        load_meshlab()
+        warm_up()
+        warm_up_outputs()
 
     def __post_init__(self) -> None:
         check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)

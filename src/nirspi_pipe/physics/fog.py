@@ -22,6 +22,7 @@ first asked for. ``fog=none`` never imports miepython.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any, NamedTuple
@@ -218,6 +219,13 @@ class MieFog:
     trend_rel: float = 0.0
 
     active = True
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """Import miepython and the fog's time series (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        import miepython  # noqa: F401
+
+        import nirspi_pipe.physics.timevarying  # noqa: F401
 
     def __post_init__(self) -> None:
         if self.droplet_diameter_um is None:

@@ -30,6 +30,7 @@ Shared keys (all stages):
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -337,6 +338,16 @@ class LaxFriedrichsSFS:
     slope_average: str = field(default="cos2", metadata={"config": False})
     singular: str = "maximal"
 
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """With ``backend`` ``auto`` or ``opencl``, import pyopencl and the kernels' module only:
+        the context and the compiled program are made when the stage is built, in the job's
+        own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
+        if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
+            import pyopencl  # noqa: F401
+
+            import nirspi_pipe.sfs.opencl  # noqa: F401
+
     def __post_init__(self) -> None:
         _check_common(self, SCHEMES)
         if self.singular not in SINGULAR_CHOICES:
@@ -473,6 +484,16 @@ class PerspectiveSFS:
     min_intensity: float = 0.05
     source_tol: float = 1e-3
     median_px: int = 0
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """With ``backend`` ``auto`` or ``opencl``, import pyopencl and the kernels' module only:
+        the context and the compiled program are made when the stage is built, in the job's
+        own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
+        if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
+            import pyopencl  # noqa: F401
+
+            import nirspi_pipe.sfs.opencl  # noqa: F401
 
     def __post_init__(self) -> None:
         _check_common(self, ("lax_friedrichs",))

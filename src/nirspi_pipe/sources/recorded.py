@@ -30,7 +30,7 @@ from nirspi_pipe.types import Acquisition, Camera, Scene
 __all__ = ["Recorded", "recording_to_acquisition"]
 
 #: ``(order, ratio, n) -> indices``: resolves a scan option a recording names (the runner hands
-#: :func:`nirspi_pipe.configs.scan_indices` to the source; a stage never reads configs itself).
+#: :func:`nirspi_pipe.app.configs.scan_indices` to the source; a stage never reads configs itself).
 ScanIndices = Callable[[str, float, int], np.ndarray]
 
 

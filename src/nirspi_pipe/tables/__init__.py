@@ -1,7 +1,7 @@
 """Paper-shaped tables built from a sweep's results.
 
 An experiment config lists the tables it feeds under the top-level key ``tables`` (for example
-``tables: [table2]``). After the sweep, :class:`nirspi_pipe.results.CollectResults` calls
+``tables: [table2]``). After the sweep, :class:`nirspi_pipe.app.results.CollectResults` calls
 ``nirspi_pipe.tables.<name>.build(frame, out_dir)`` for each, where ``frame`` is the sweep's
 results table and ``out_dir`` is ``<sweep>/tables``. A builder writes ``<name>.csv`` and
 ``<name>.md`` (and figures) there and returns the table as a DataFrame. ``nirspi-collect DIR

@@ -25,6 +25,7 @@ the fine scene carry (docs/paper.md, Figure 9).
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,6 +60,13 @@ class UpscaleMetrics(ImageMetrics):
     scene: Any = None
     source: Any = None
     upscaler: Any = None
+
+    @classmethod
+    def warm_up(cls, params: Mapping[str, Any]) -> None:
+        """The image metrics' imports and scikit-image's ``resize`` (the scene rendered at the
+        upscaled resolution; :class:`nirspi_pipe.stages.WarmsUp`)."""
+        super().warm_up(params)
+        from skimage.transform import resize  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:
         out = super().compute(products)

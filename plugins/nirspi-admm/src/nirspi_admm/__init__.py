@@ -15,7 +15,7 @@ __all__ = ["ADMMTVSolver", "admm_tv", "register"]
 def register() -> str:
     """Entry point for nirspi-pipe: the config folder holding ``solver/admm_tv.yaml``, after
     registering its schema (the defaults of :class:`ADMMTVSolver`, the one place they live)."""
-    from nirspi_pipe.configs import register_schemas
+    from nirspi_pipe.app.configs import register_schemas
 
     register_schemas("nirspi_admm.conf")
     return "pkg://nirspi_admm.conf"

@@ -164,10 +164,10 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import open_dict
 
-    from nirspi_pipe.cli import CONFIG_MODULE, CONFIG_NAME
-    from nirspi_pipe.plugins import activate
-    from nirspi_pipe.sweeper import register_hydra_plugins
-    from nirspi_pipe.validate import check_config, check_overrides
+    from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
+    from nirspi_pipe.app.plugins import activate
+    from nirspi_pipe.app.registration import register_hydra_plugins
+    from nirspi_pipe.app.validate import check_config, check_overrides
 
     overrides = _override_list(overrides)
     flags = [o for o in overrides if o.startswith("-")]
@@ -212,7 +212,7 @@ def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) 
     overrides = _override_list(overrides)  # once: a generator is read once
     cfg, choices = compose(overrides)
     if output_dir is not None:
-        from nirspi_pipe.cli import execute_job
+        from nirspi_pipe.app.jobs import execute_job
 
         kept: list[Any] = []
         folder = Path(output_dir)
@@ -221,9 +221,11 @@ def run(overrides: Sequence[str] = (), *, output_dir: str | Path | None = None) 
             raise RunFailed(f"{record['meta']['error']} (traceback: {folder / 'error.txt'})")
         out = kept[0]
     else:
+        from nirspi_pipe.app.configs import scan_indices
+        from nirspi_pipe.instantiate import plain_config
         from nirspi_pipe.pipeline import run_pipeline
 
-        out = run_pipeline(cfg)
+        out = run_pipeline(plain_config(cfg), scan_indices=scan_indices)
         folder = None
     from omegaconf import OmegaConf
 
@@ -251,7 +253,7 @@ def load_results(path: str | Path, *, refresh: bool = False) -> pd.DataFrame:
     table is rebuilt from the jobs' ``record.json`` files (nothing is written).
     """
 
-    from nirspi_pipe.results import collect
+    from nirspi_pipe.app.results import collect
 
     p = Path(path)
     if p.is_file():

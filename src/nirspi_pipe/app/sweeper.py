@@ -14,16 +14,16 @@ It expands the sweep like Hydra's ``basic`` sweeper (command-line sweeps plus
   block a sweep); a job that does not compose is a failed record naming the bad override;
 * writes ``sweep.json`` in the sweep folder (start time, totals, every job's key and
   overrides), from which a watcher thread prints progress and an ETA as records appear, and which
-  :func:`nirspi_pipe.results.collect` uses to list jobs that never wrote a record.
+  :func:`nirspi_pipe.app.results.collect` uses to list jobs that never wrote a record.
 
-Each launched job runs through :func:`nirspi_pipe.jobs.run_sweep_job` (a lock per job folder, an
+Each launched job runs through :func:`nirspi_pipe.app.jobs.run_sweep_job` (a lock per job folder, an
 attempt counter, and a forked child so that a segfault or a kill is a failed row). Should the
 launcher itself fail (a joblib worker killed from outside), the jobs without a record are
 launched again, at most ``max_attempts`` rounds (fewer when a round wrote no record: the
 launcher could not start). A job folder that is a symbolic link is refused (not launched; a failed
 row naming the link), and nothing is written through it.
 
-After the sweep the results callback (:class:`nirspi_pipe.results.CollectResults`) exits non-zero
+After the sweep the results callback (:class:`nirspi_pipe.app.results.CollectResults`) exits non-zero
 when any job failed or is missing, naming how many and why (:data:`launcher_failures` holds why the
 launcher failed), unless ``hydra.sweeper.allow_failures=true``.
 """
@@ -73,7 +73,6 @@ __all__ = [
     "load_sweep_file",
     "progress_line",
     "read_sweep_file",
-    "register_hydra_plugins",
 ]
 
 log = logging.getLogger(__name__)
@@ -604,7 +603,7 @@ class NirspiSweeperBase(Sweeper):
             raise SystemExit(1) from None
 
     def _sweep(self, sweep_dir: Path, arguments: list[str]) -> Any:
-        from nirspi_pipe.jobs import attempts_with_this_code
+        from nirspi_pipe.app.jobs import attempts_with_this_code
 
         atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
         try:
@@ -613,7 +612,7 @@ class NirspiSweeperBase(Sweeper):
             print(f"nirspi-run: error: the sweep cannot be expanded: {_one_line(str(exc))}", file=sys.stderr)
             raise SystemExit(2) from None
         t0 = time.perf_counter()
-        # a launcher that can run composed jobs (the nirspi launcher, nirspi_pipe.launcher) gets them
+        # a launcher that can run composed jobs (the nirspi launcher, nirspi_pipe.app.launcher) gets them
         run_composed = getattr(self.launcher, "run_composed", None)
         prepared = self.prepare(grid, workers=getattr(self.launcher, "workers", None) if run_composed else None)
         keys = [key for key, _ in prepared]
@@ -853,19 +852,3 @@ class ProgressWatcher(threading.Thread):
         if self.is_alive():
             self.join()
         self.report()
-
-
-def register_hydra_plugins() -> None:
-    """Register nirspi-pipe's Hydra plugin classes explicitly.
-
-    Hydra only instantiates sweepers and launchers from the ``hydra_plugins`` namespace, which it
-    discovers by scanning; that scan misses editable installs (Hydra issue #2359). Registering the
-    classes by hand makes ``hydra/sweeper=nirspi`` and ``hydra/launcher=nirspi`` work for every
-    kind of install.
-    """
-    from hydra.core.plugins import Plugins
-
-    from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiSweeper
-
-    Plugins.instance().register(NirspiSweeper)
-    Plugins.instance().register(NirspiLauncher)

@@ -140,7 +140,7 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     sweep order, and a job without a record (killed, or never started) is a row with
     ``status == "missing"``. Without it, every ``record.json`` below the folder is a row.
     """
-    from nirspi_pipe.sweeper import load_sweep_file
+    from nirspi_pipe.app.sweeper import load_sweep_file
 
     sweep = Path(sweep_dir)
     if not sweep.is_dir():
@@ -268,11 +268,11 @@ def _refuse_link(folder: Path, what: str) -> None:
 def sweep_problem(frame: pd.DataFrame, sweep: Path) -> str | None:
     """Why a finished sweep must exit non-zero, in one line: how many jobs are not ``ok``, by
     status, with their most frequent errors; jobs that failed without a record and without a row
-    (:data:`nirspi_pipe.jobs.unwritten_jobs`); the launcher's failures
-    (:data:`nirspi_pipe.sweeper.launcher_failures`). None when every job is ok."""
-    from nirspi_pipe.jobs import unwritten_jobs
+    (:data:`nirspi_pipe.app.jobs.unwritten_jobs`); the launcher's failures
+    (:data:`nirspi_pipe.app.sweeper.launcher_failures`). None when every job is ok."""
+    from nirspi_pipe.app.jobs import unwritten_jobs
+    from nirspi_pipe.app.sweeper import launcher_failures
     from nirspi_pipe.safeio import sanitize_text
-    from nirspi_pipe.sweeper import launcher_failures
 
     bad = frame[frame["status"] != "ok"] if len(frame) else frame
     rows = set(bad["job"]) if len(bad) else set()
@@ -317,11 +317,11 @@ class CollectResults(Callback):  # type: ignore[misc]
             raise SystemExit(1)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-        from nirspi_pipe.sweeper import register_hydra_plugins
+        from nirspi_pipe.app.registration import register_hydra_plugins
 
         register_hydra_plugins()
-        from nirspi_pipe.jobs import unwritten_jobs
-        from nirspi_pipe.sweeper import launcher_failures
+        from nirspi_pipe.app.jobs import unwritten_jobs
+        from nirspi_pipe.app.sweeper import launcher_failures
 
         unwritten_jobs.clear()  # this sweep's, in this process
         launcher_failures.clear()
@@ -331,8 +331,8 @@ class CollectResults(Callback):  # type: ignore[misc]
         sweep = Path(config.hydra.sweep.dir)
         if not sweep.is_dir():
             return
+        from nirspi_pipe.app.sweeper import SweepFileError
         from nirspi_pipe.records import OutputError
-        from nirspi_pipe.sweeper import SweepFileError
 
         try:
             frame = finish_sweep(sweep)

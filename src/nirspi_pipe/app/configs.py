@@ -11,14 +11,14 @@ source :class:`SchemaSource` (public plugin API) and generated when first compos
 The option file then keeps only its ``_target_`` and the values that differ from the target's
 defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
 Types come from the same annotations (:func:`nirspi_pipe.pipeline.check_types`): ``nirspi-run``
-checks them before any job starts (:mod:`nirspi_pipe.validate`), the runner before it builds a
+checks them before any job starts (:mod:`nirspi_pipe.app.validate`), the runner before it builds a
 stage, and a wrong type reads like a wrong value. docs/architecture.md, "Where defaults and
 types live", says why the schemas are plain nodes rather than typed structured configs.
 
 Group and option listings go through ``hydra.initialize_config_module`` and the public
 :class:`hydra.core.config_loader.ConfigLoader` interface of ``GlobalHydra``; when a Hydra app is
 already running (``nirspi-run``) its own global instance is used. The experiments folder and
-installed plugins' config folders are on the search path (:func:`nirspi_pipe.plugins.activate`
+installed plugins' config folders are on the search path (:func:`nirspi_pipe.app.plugins.activate`
 registers a public ``SearchPathPlugin``).
 """
 
@@ -59,7 +59,7 @@ __all__ = [
     "SchemaSearchPath",
 ]
 
-log = logging.getLogger("nirspi_pipe.configs")
+log = logging.getLogger("nirspi_pipe.app.configs")
 
 #: The package holding the primary config and its groups.
 CONFIG_MODULE = "nirspi_pipe.conf"
@@ -327,7 +327,7 @@ def _loader() -> Iterator[Any]:
     from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
-    from nirspi_pipe.plugins import activate
+    from nirspi_pipe.app.plugins import activate
 
     activate()  # plugin config folders join the search path
     gh = GlobalHydra.instance()
@@ -394,8 +394,15 @@ def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
 
 def render_scene(scene: str, resolution: int, overrides: list[str] | None = None) -> np.ndarray:
     """Relative radiance ``(n, n)`` of the ``scene=<scene>`` option at ``resolution`` (for the
-    device emulator's command line)."""
+    device emulator's command line). Raises :class:`ConfigError` naming ``scene`` and the
+    allowed options when ``scene`` is not one."""
     from hydra import compose
+
+    from nirspi_pipe.errors import ConfigError
+
+    allowed = group_options("scene")
+    if scene not in allowed:
+        raise ConfigError("scene", scene, ", ".join(allowed))
 
     from nirspi_pipe.instantiate import build
 

@@ -1,11 +1,11 @@
 """The ``nirspi`` launcher (``hydra/launcher=nirspi``, the default): sweep jobs as forked children.
 
-The nirspi sweeper composes every job's config to key its folder (:mod:`nirspi_pipe.sweeper`).
+The nirspi sweeper composes every job's config to key its folder (:mod:`nirspi_pipe.app.sweeper`).
 This launcher runs exactly those configs: the sweeping process imports the stage modules once,
 then forks one child per job, at most ``n_jobs`` at a time (one per core by default), and waits
 for whichever ends first. A job therefore costs no second Hydra composition (0.4-1 s each,
 ``python -m cProfile`` of ``hydra.compose`` on the paper's configs), no worker start-up and no
-pickling. Each child is the crash-isolated child every launcher uses (:mod:`nirspi_pipe.jobs`):
+pickling. Each child is the crash-isolated child every launcher uses (:mod:`nirspi_pipe.app.jobs`):
 the folder's lock, the attempt count, and a ``failed`` record naming the signal when it
 segfaults or is killed; the other jobs go on. A job still running ``timeout_s`` seconds after it
 was sent (``hydra.launcher.timeout_s``, 1800 by default) is killed with its runner and becomes a
@@ -39,10 +39,10 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.plugins.launcher import Launcher
 from threadpoolctl import threadpool_limits
 
-from nirspi_pipe.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
-from nirspi_pipe.sweeper import ComposedJob, format_progress
+from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
+from nirspi_pipe.app.sweeper import ComposedJob, format_progress
 
-__all__ = ["NirspiLauncherBase", "prewarm"]
+__all__ = ["NirspiLauncherBase"]
 
 log = logging.getLogger(__name__)
 
@@ -58,95 +58,10 @@ def _execute(
     job_num: int | None,
     attempt: int | None = None,
 ) -> dict[str, Any]:
-    """:func:`nirspi_pipe.cli.execute_job` on a composed job's resolved plain config."""
-    from nirspi_pipe.cli import execute_job
+    """:func:`nirspi_pipe.app.jobs.execute_job` on a composed job's resolved plain config."""
+    from nirspi_pipe.app.jobs import execute_job
 
     return execute_job(config, out_dir, choices, overrides, job_num, attempt=attempt)
-
-
-def _targets(node: Any) -> set[str]:
-    if isinstance(node, dict):
-        found = {str(node["_target_"])} if isinstance(node.get("_target_"), str) else set()
-        for value in node.values():
-            found |= _targets(value)
-        return found
-    if isinstance(node, list):
-        return set().union(*(_targets(v) for v in node)) if node else set()
-    return set()
-
-
-#: Modules the stages import inside their functions (listed from ``sys.modules`` before and after
-#: one job of each paper experiment in a prewarmed process), imported once before the forks.
-#: ``module:name`` also reads ``name`` from it: scikit-image's subpackages load their modules on
-#: first attribute access (``import skimage.transform`` alone loads nothing; ``.resize`` loads
-#: 115 modules, 0.17 s, and the metrics' two functions bring scipy.stats, 0.7 s).
-_LAZY_IMPORTS = (
-    "nirspi_pipe.finite",
-    "nirspi_pipe.safeio",
-    "nirspi_pipe.physics.range_model",
-    "nirspi_pipe.physics.timevarying",
-    "nirspi_pipe.upscale.data",
-    "nirspi_pipe.upscale.metrics",
-    "nirspi_pipe.mesh.outputs",
-    "nirspi_pipe.sfs.opencl",
-    "miepython",
-    "skimage.filters:threshold_otsu",
-    "skimage.transform:resize",
-    "skimage.metrics:peak_signal_noise_ratio",
-    "skimage.metrics:structural_similarity",
-)
-
-
-def prewarm(configs: Sequence[dict[str, Any]]) -> list[str]:
-    """Import, once in the sweeping process, what every forked job would otherwise import again:
-    the pipeline, the module of every ``_target_`` the configs name, pymeshlab, pyvista and the
-    compiled power-crust and remesher kernels (numba) when a surface stage is used, pyopencl when
-    an SFS stage may use it, and the run's provenance.
-    Nothing that starts threads: no OpenCL platform or context (PoCL's worker threads would not
-    exist in the forked children: with a context made here, even one that launched the kernel,
-    a child's first launch hangs). Each runner warms the back end up when it builds its first
-    job's SFS stage (:func:`nirspi_pipe.sfs.opencl.warm_up`: context, program from the disk
-    cache, one launch of each kernel), so the compilation counts in that job's ``build``, never
-    in its ``sfs`` time. Returns the targets that could not be imported (their jobs report it)."""
-    from nirspi_pipe import cli, pipeline  # noqa: F401 - imported for their side effect
-    from nirspi_pipe.records import provenance
-    from nirspi_pipe.targets import allowed_targets, locate
-
-    provenance()
-    missing = []
-    targets: set[str] = set()
-    for config in configs:
-        targets |= _targets(config)
-    for target in sorted(targets & allowed_targets()):  # any other target: its job refuses it, unimported
-        try:
-            if locate(target) is None:
-                missing.append(target)
-        except Exception:  # noqa: BLE001 - the job itself reports a bad target
-            missing.append(target)
-    import importlib
-
-    for name in _LAZY_IMPORTS:
-        module, _, attr = name.partition(":")
-        try:
-            loaded = importlib.import_module(module)
-            if attr:
-                getattr(loaded, attr)
-        except Exception:  # noqa: BLE001 - an optional module: the job that needs it reports it
-            missing.append(name)
-    if any(config.get("surface") for config in configs):
-        from nirspi_pipe.mesh.powercrust import warm_up
-        from nirspi_pipe.mesh.remesh import load_meshlab, resolve_remesher
-
-        load_meshlab()
-        # numba's compiled power-crust and remesher kernels (no threads: safe to fork): loaded from
-        # numba's disk cache here once, or compiled once (~20 s) when the cache is cold, rather than
-        # by every runner at the same time
-        warm_up()
-        resolve_remesher("auto")
-        import pyvista  # noqa: F401 - mesh.ply is written through it (0.5 s to import)
-    if any(str((config.get("sfs") or {}).get("backend", "")) in ("auto", "opencl") for config in configs):
-        import pyopencl  # noqa: F401 - imported only: no platform or context, which start threads
-    return missing
 
 
 class NirspiLauncherBase(Launcher):
@@ -177,7 +92,7 @@ class NirspiLauncherBase(Launcher):
         then run it as :meth:`run_composed` does, into ``hydra.sweep.dir/hydra.sweep.subdir``."""
         from omegaconf import open_dict
 
-        from nirspi_pipe.sweeper import composed_job
+        from nirspi_pipe.app.sweeper import composed_job
 
         items = []
         for idx, overrides in enumerate(job_overrides):
@@ -201,14 +116,16 @@ class NirspiLauncherBase(Launcher):
     def _run(
         self, items: list[tuple[Path, int, ComposedJob]], sweep_dir: Path, sweep_file: Path | None, resume: bool
     ) -> list[JobReturn]:
-        from nirspi_pipe.jobs import ClaimedJob, run_sweep_job, unwritten_failure
+        from nirspi_pipe.app.jobs import ClaimedJob, run_sweep_job, unwritten_failure
         from nirspi_pipe.records import OutputError, refuse_link
 
         refuse_link(sweep_dir, "sweep folder")
 
         sweep_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        missing = prewarm([job.config for _, _, job in items])
+        from nirspi_pipe.execute import warm_up
+
+        missing = warm_up([job.config for _, _, job in items])  # each stage's own warm_up (stages.WarmsUp)
         if missing:
             log.debug("not importable (their jobs will say so): %s", ", ".join(missing))
         records: list[dict[str, Any] | None] = [None] * len(items)
@@ -298,7 +215,7 @@ def _returns(items: list[tuple[Path, int, ComposedJob]], records: list[dict[str,
 def _runner_main(conn: Any, items: list[tuple[Path, int, ComposedJob]]) -> None:
     """A runner: run the jobs the launcher sends (``(index, attempt)``), one at a time, and answer
     ``(index, wait status)`` for each; stop at ``None`` or when the launcher is gone."""
-    from nirspi_pipe.jobs import execute_attempt
+    from nirspi_pipe.app.jobs import execute_attempt
 
     while True:
         try:

@@ -13,156 +13,21 @@ the config options each adds, and those that failed to load (see docs/plugins.md
 from __future__ import annotations
 
 import argparse
-import contextlib
-import datetime as _dt
 import logging
 import os
 import sys
-import time
-import traceback
 from pathlib import Path
 from typing import Any
 
-from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME
-from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
 
-__all__ = ["run", "collect", "execute_job"]
+__all__ = ["run", "collect"]
 
 log = logging.getLogger("nirspi_pipe")
 
 _EXIT_CONFIG = 2
 #: Hydra flags after which nothing is built (help, completion, info): no composition is checked.
 _NO_RUN_FLAGS = frozenset({"--help", "-h", "--hydra-help", "--version", "-sc", "--shell-completion", "--info", "-i"})
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    first = text[0] if text else type(exc).__name__
-    return first if isinstance(exc, NirspiError) else f"{type(exc).__name__}: {first}"
-
-
-def _summary(record: dict[str, Any], out_dir: Path) -> str:
-    from nirspi_pipe.summary import format_summary
-
-    return format_summary(record, out_dir)
-
-
-def execute_job(
-    cfg: Any,
-    out_dir: Path,
-    choices: dict[str, str],
-    overrides: list[str],
-    job_num: int | None = None,
-    attempt: int | None = None,
-    on_output: Any = None,
-) -> dict[str, Any]:
-    """Run one job (``cfg``: a composed config or its resolved plain dict) and write its record
-    and arrays into ``out_dir``. Never raises for a failing
-    pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
-    traceback goes to ``error.txt``. Returns the record. Raises
-    :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
-    with the pipeline's ``RunOutput`` of a successful run (the Python API keeps the arrays)."""
-    from omegaconf import OmegaConf
-
-    from nirspi_pipe.finite import drop_nonfinite
-    from nirspi_pipe.pipeline import run_pipeline
-    from nirspi_pipe.records import OutputError, atomic_write, drop_links, new_record, refuse_link, write_record
-
-    refuse_link(out_dir)  # nothing is written through a link (docs/hostile.md)
-    config: Any = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-    started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-    record = new_record(config, choices, overrides, job_num, attempt, seed=_seed_or_none(cfg), started=started)
-    t0 = time.perf_counter()
-    output = None
-    try:
-        output = run_pipeline(cfg)
-    except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
-        record["meta"]["error"] = _one_line(exc)
-        record["meta"]["warnings"] = list(getattr(exc, "nirspi_warnings", []))
-        record["meta"]["error_type"] = "ConfigError" if isinstance(exc, ConfigError) else type(exc).__name__
-        try:
-            atomic_write(out_dir / "error.txt", traceback.format_exc())
-        except OutputError:  # the record below says what failed; it raises if the folder is unwritable
-            with contextlib.suppress(OSError):  # an older run's traceback does not belong to this record
-                (out_dir / "error.txt").unlink(missing_ok=True)
-    else:
-        with contextlib.suppress(OSError):  # an older run's traceback does not belong to this record
-            (out_dir / "error.txt").unlink(missing_ok=True)
-        record.update(
-            metrics=output.metrics,
-            timings_ms=output.timings_ms,
-            derived=output.derived,
-            info=output.info,
-        )
-        record["meta"].update(status="ok", warnings=output.warnings)
-        record["meta"]["warnings"] += drop_nonfinite(record)  # no NaN/Inf in an ok record (finite.py)
-    record["meta"]["wall_s"] = time.perf_counter() - t0
-    if output is not None:
-        try:
-            drop_links(out_dir, ("summary.png", "mesh.ply", "mesh.png"))  # written in place, not renamed
-            _write_products(cfg, out_dir, output)
-            if (cfg.get("output", {}) or {}).get("images", True):
-                _write_summary_png(out_dir, output, record)
-        except OutputError as exc:  # disk full, unwritable folder: the job failed, say where
-            record["meta"].update(status="failed", error=str(exc), error_type="OutputError")
-        except OSError as exc:  # a writer that does not go through atomic_write (mesh.ply)
-            where = f" {exc.filename}" if exc.filename else f" into {out_dir}"
-            record["meta"].update(
-                status="failed", error=f"cannot write{where}: {exc.strerror or exc}", error_type="OutputError"
-            )
-        if on_output is not None:
-            on_output(output)
-    write_record(out_dir, record)
-    return record
-
-
-def _write_products(cfg: Any, out_dir: Path, output: Any) -> None:
-    from nirspi_pipe.records import write_arrays
-
-    p = output.products
-    truth = p.truth
-    out_cfg = cfg.get("output", {}) or {}
-    arrays = {
-        "reconstruction": p.image.data,
-        "upscaled": p.upscaled.data if p.upscaled is not None else None,
-        "truth_radiance": truth.radiance if truth is not None else None,
-        "truth_depth_m": truth.depth_m if truth is not None else None,
-        "truth_mask": truth.mask if truth is not None else None,
-        "indices": p.acquisition.indices,
-        "y_pos": p.acquisition.y_pos,
-        "y_neg": p.acquisition.y_neg,
-        "depth_m": p.depth.depth_m if p.depth is not None else None,
-    }
-    images = {"reconstruction": p.image.data, "truth": truth.radiance if truth is not None else None}
-    write_arrays(
-        out_dir,
-        arrays if out_cfg.get("arrays", True) else {},
-        images if out_cfg.get("images", True) else {},
-    )
-    if p.mesh is not None:
-        from nirspi_pipe.mesh.outputs import write_mesh_outputs
-
-        # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
-        write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
-
-
-def _write_summary_png(out_dir: Path, output: Any, record: dict[str, Any]) -> None:
-    """summary.png (nirspi_pipe.figure); a failing figure is a warning in the record, not a failed run."""
-    from nirspi_pipe.figure import write_summary_figure
-
-    try:
-        write_summary_figure(out_dir, output.products, record, mesh_png=out_dir / "mesh.png")
-    except Exception as exc:  # noqa: BLE001 - a picture must not fail the run
-        record["meta"]["warnings"].append(f"summary.png not written: {_one_line(exc)}")
-
-
-def _seed_or_none(cfg: Any) -> int | None:
-    from nirspi_pipe.pipeline import effective_seed
-
-    try:
-        return effective_seed(cfg)
-    except Exception:  # noqa: BLE001 - an invalid seed is reported by the run itself
-        return None
 
 
 def _hydra_task(cfg: Any) -> None:
@@ -175,11 +40,12 @@ def _hydra_task(cfg: Any) -> None:
     overrides = list(hc.overrides.task)
     # hc.job is a DictConfig at run time (typed as the JobConf dataclass); num is '???' in a single run
     job_num: int | None = hc.job.get("num")  # type: ignore[attr-defined]
+    from nirspi_pipe.app.jobs import execute_job
     from nirspi_pipe.records import OutputError
 
-    if hc.mode == RunMode.MULTIRUN:  # crash-isolated, locked and counted (nirspi_pipe.jobs)
-        from nirspi_pipe.jobs import run_sweep_job
-        from nirspi_pipe.sweeper import SWEEP_FILE
+    if hc.mode == RunMode.MULTIRUN:  # crash-isolated, locked and counted (nirspi_pipe.app.jobs)
+        from nirspi_pipe.app.jobs import run_sweep_job
+        from nirspi_pipe.app.sweeper import SWEEP_FILE
 
         sweep_file = Path(str(hc.sweep.dir)) / SWEEP_FILE
         ours = "nirspi" in str(hc.sweeper.get("_target_", ""))  # keyed folders (basic: numbered)
@@ -212,7 +78,9 @@ def _hydra_task(cfg: Any) -> None:
                 print(error_txt.read_text(), file=sys.stderr)
             raise SystemExit(_EXIT_CONFIG if config_error else 1)
         if not quiet:
-            print(_summary(record, out_dir))
+            from nirspi_pipe.summary import format_summary
+
+            print(format_summary(record, out_dir))
     elif failed:
         log.error("job %s failed: %s", out_dir.name, record["meta"]["error"])
 
@@ -221,9 +89,9 @@ def run(argv: list[str] | None = None) -> None:
     """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …)."""
     import hydra
 
-    from nirspi_pipe.helptext import register_resolvers
-    from nirspi_pipe.sweeper import register_hydra_plugins
-    from nirspi_pipe.validate import check_config, check_overrides, rewrite_nulls
+    from nirspi_pipe.app.helptext import register_resolvers
+    from nirspi_pipe.app.registration import register_hydra_plugins
+    from nirspi_pipe.app.validate import check_config, check_overrides, rewrite_nulls
 
     args = list(sys.argv[1:] if argv is None else argv)
     if "--version" in args:  # the project's version (Hydra's own flag would print Hydra's)
@@ -254,7 +122,7 @@ def run(argv: list[str] | None = None) -> None:
 def _activate_plugins() -> None:
     """Load installed plugins and put their config folders on Hydra's search path; a plugin
     that fails to load is named in one warning line on stderr and skipped."""
-    from nirspi_pipe.plugins import activate
+    from nirspi_pipe.app.plugins import activate
 
     logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # printed here instead
     for fail in activate().failures:
@@ -266,7 +134,7 @@ def _activate_plugins() -> None:
 
 def _list_plugins() -> None:
     """``nirspi-run --plugins``: list installed plugins, the options they add, and failures."""
-    from nirspi_pipe.plugins import discover, format_report
+    from nirspi_pipe.app.plugins import discover, format_report
 
     logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # failures are listed below
     print(format_report(discover()))
@@ -275,7 +143,7 @@ def _list_plugins() -> None:
 def collect(argv: list[str] | None = None) -> None:
     """``nirspi-collect DIR``: rebuild ``results.parquet``/``results.csv`` from the records in a
     sweep folder (for sweeps that were killed or are still running)."""
-    from nirspi_pipe.results import finish_sweep
+    from nirspi_pipe.app.results import finish_sweep
 
     parser = argparse.ArgumentParser(prog="nirspi-collect", description=collect.__doc__)
     parser.add_argument("sweep_dir", type=Path, help="a multirun folder (hydra.sweep.dir)")
@@ -289,8 +157,8 @@ def collect(argv: list[str] | None = None) -> None:
         help="paper tables to rebuild (default: those the sweep's experiments list)",
     )
     ns = parser.parse_args(argv)
+    from nirspi_pipe.app.sweeper import SweepFileError
     from nirspi_pipe.records import OutputError
-    from nirspi_pipe.sweeper import SweepFileError
 
     try:
         frame = finish_sweep(ns.sweep_dir, ns.tables)

@@ -37,7 +37,7 @@ def _description(name: str, group: str = "experiment", package: str = "nirspi_pi
 def experiments_text() -> str:
     """``  name  description`` per experiment (``+experiment=NAME``), one per line."""
     try:
-        from nirspi_pipe.validate import group_options
+        from nirspi_pipe.app.validate import group_options
 
         names = group_options("experiment")
     except Exception as exc:  # noqa: BLE001 - help must print
@@ -58,7 +58,7 @@ def experiments_text() -> str:
 def plugins_text() -> str:
     """Installed plugins (entry-point group ``nirspi_pipe.plugins``) and the options they add."""
     try:
-        from nirspi_pipe.plugins import discover
+        from nirspi_pipe.app.plugins import discover
 
         report = discover()
     except Exception as exc:  # noqa: BLE001 - help must print

@@ -50,11 +50,33 @@ __all__ = [
     "ClaimedJob",
     "crash_message",
     "execute_attempt",
+    "execute_job",
     "read_attempts",
     "run_sweep_job",
 ]
 
 log = logging.getLogger(__name__)
+
+
+def execute_job(
+    cfg: Any,
+    out_dir: Path,
+    choices: dict[str, str],
+    overrides: list[str],
+    job_num: int | None = None,
+    attempt: int | None = None,
+    on_output: Any = None,
+) -> dict[str, Any]:
+    """The runner's :func:`nirspi_pipe.execute.execute_job` for a composed config (an OmegaConf
+    node or its resolved plain dict), with the config layer's resolver of the scan option a
+    recording names (:func:`nirspi_pipe.app.configs.scan_indices`). Every front end (the command
+    line, the launchers, the Python API) runs a job through this function."""
+    from nirspi_pipe.app.configs import scan_indices
+    from nirspi_pipe.execute import execute_job as run_job
+    from nirspi_pipe.instantiate import plain_config
+
+    return run_job(plain_config(cfg), out_dir, choices, overrides, job_num, attempt, on_output, scan_indices)
+
 
 ATTEMPTS_NAME = "attempts.json"
 _CHILD_FAILED = 70  # exit code of a child whose job runner itself raised (EX_SOFTWARE)
@@ -226,7 +248,7 @@ class ClaimedJob:
     process wrote none for this attempt, the lock released).
 
     :func:`run_sweep_job` runs it in a forked child (:meth:`fork`) and waits; the ``nirspi``
-    launcher (:mod:`nirspi_pipe.launcher`) hands claimed jobs to runner processes and finishes
+    launcher (:mod:`nirspi_pipe.app.launcher`) hands claimed jobs to runner processes and finishes
     each with 0 when its runner reports it done, or with the runner's wait status when the
     runner died running it."""
 
@@ -347,7 +369,7 @@ def _record_crash(
     attempt: int,
     deadline_s: float | None = None,
 ) -> dict[str, Any]:
-    from omegaconf import OmegaConf
+    from nirspi_pipe.instantiate import plain_config
 
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":
@@ -358,8 +380,8 @@ def _record_crash(
         fields["timeout_s"] = deadline_s
     config: dict[str, Any]
     try:
-        container = cfg if isinstance(cfg, dict) else OmegaConf.to_container(cfg, resolve=True)
-        config = {str(k): v for k, v in container.items()} if isinstance(container, dict) else {}
+        container = plain_config(cfg)
+        config = container if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}
     record = new_record(config, choices, overrides, job_num, attempt, error=message, error_type=error_type, **fields)

@@ -1,5 +1,5 @@
 """The nirspi launcher's settings and their checks, in a module of their own: the launcher uses
-them, and so does :func:`nirspi_pipe.validate.check_config` before a sweep starts (importing the
+them, and so does :func:`nirspi_pipe.app.validate.check_config` before a sweep starts (importing the
 launcher there would close an import circle through the CLI)."""
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from nirspi_pipe.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
+from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 
 __all__ = [
     "check_config",
@@ -404,14 +404,14 @@ def check_config(args: list[str]) -> str | None:
 
 
 def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
-    """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.launchsettings`, the
+    """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.app.launchsettings`, the
     launcher's own check) and the sweeper's ``allow_failures``, as one line (Hydra would wrap
     them in its multi-line report)."""
     from nirspi_pipe.errors import ConfigError
 
     launcher = hydra_node.get("launcher") or {}
     if str(launcher.get("_target_", "")).endswith(".NirspiLauncher"):
-        from nirspi_pipe.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
+        from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 
         try:
             check_launcher_settings(launcher.get("n_jobs", -1), launcher.get("timeout_s", DEFAULT_TIMEOUT_S))

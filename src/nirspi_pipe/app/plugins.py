@@ -297,7 +297,7 @@ def _load_one(ep: metadata.EntryPoint, builtin: set[tuple[str, str]]) -> PluginI
         value=ep.value,
         distribution=_distribution(ep),
         searchpath=paths,
-        # its generated schemas (schema/<group>/<option>, nirspi_pipe.configs) are not options
+        # its generated schemas (schema/<group>/<option>, nirspi_pipe.app.configs) are not options
         options={g: sorted(o) for g, o in sorted(options.items()) if g.split("/", 1)[0] != "schema"},
     )
 
@@ -362,7 +362,7 @@ def activate() -> PluginReport:
     """Load the plugins and register :class:`NirspiPluginSearchPath` with Hydra (idempotent).
 
     Call it before composing a config (``nirspi-run`` does); afterwards every Hydra search path
-    created in this process (the app's, :mod:`nirspi_pipe.validate`'s, ``compose`` in tests)
+    created in this process (the app's, :mod:`nirspi_pipe.app.validate`'s, ``compose`` in tests)
     includes the plugin config folders. Joblib workers receive the composed configuration and
     Hydra's singleton state (ConfigStore, plugin registry) from the parent.
     """

@@ -1,0 +1,14 @@
+"""``nirspi-device-emulator``'s console script: the device emulator with the config layer's
+scene renderer (the emulator itself, in :mod:`nirspi_pipe.device.emulator`, composes no config)."""
+
+from __future__ import annotations
+
+__all__ = ["main"]
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``nirspi-device-emulator``: serve a simulated scene option on 127.0.0.1 (prints the port)."""
+    from nirspi_pipe.app.configs import render_scene
+    from nirspi_pipe.device.emulator import main as serve
+
+    serve(argv, render_scene=render_scene)

@@ -1,0 +1,25 @@
+"""Hydra's registry of plugin classes: nirspi-pipe's sweeper and launcher.
+
+A module of its own, above :mod:`nirspi_pipe.app.sweeper` and :mod:`nirspi_pipe.app.launcher`:
+the classes Hydra instantiates live in the ``hydra_plugins`` namespace, which imports both.
+"""
+
+from __future__ import annotations
+
+__all__ = ["register_hydra_plugins"]
+
+
+def register_hydra_plugins() -> None:
+    """Register nirspi-pipe's Hydra plugin classes explicitly.
+
+    Hydra only instantiates sweepers and launchers from the ``hydra_plugins`` namespace, which it
+    discovers by scanning; that scan misses editable installs (Hydra issue #2359). Registering the
+    classes by hand makes ``hydra/sweeper=nirspi`` and ``hydra/launcher=nirspi`` work for every
+    kind of install.
+    """
+    from hydra.core.plugins import Plugins
+
+    from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiSweeper
+
+    Plugins.instance().register(NirspiSweeper)
+    Plugins.instance().register(NirspiLauncher)
