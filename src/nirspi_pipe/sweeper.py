@@ -618,9 +618,9 @@ class NirspiSweeperBase(Sweeper):
         prepared = self.prepare(grid, workers=getattr(self.launcher, "workers", None) if run_composed else None)
         keys = [key for key, _ in prepared]
         composed: dict[str, ComposedJob] = {}  # the first job of each key runs (as it is launched below)
-        for key, job in prepared:
-            if isinstance(key, str) and job is not None:
-                composed.setdefault(key, job)
+        for key, composed_job in prepared:
+            if isinstance(key, str) and composed_job is not None:
+                composed.setdefault(key, composed_job)
         keying_s = time.perf_counter() - t0
         log.info("keyed %d jobs in %.1f s", len(grid), keying_s)
 
