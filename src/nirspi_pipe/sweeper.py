@@ -189,7 +189,7 @@ class ComposedJob:
 
 def composed_job(cfg: Any) -> ComposedJob:
     """The :class:`ComposedJob` of a config Hydra composed (``load_sweep_config``)."""
-    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])  # type: ignore[arg-type]
+    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])
     return ComposedJob(_resolved(cfg), _choices(cfg), task)
 
 
