@@ -227,7 +227,7 @@ def _set_keying_sweeper(sweeper: Any) -> None:
 
 def _key_chunk(chunk: list[tuple[int, list[str]]]) -> list[tuple[int, Any, ComposedJob | None]]:
     """Key a worker's share of the jobs (its structural override sets, composed once each)."""
-    done = _keying_sweeper._prepare_serial([ov for _, ov in chunk], True)  # noqa: SLF001 - our own class
+    done = _keying_sweeper._prepare_serial([ov for _, ov in chunk], True)  # our own class
     return [
         (i, key if isinstance(key, str) else ComposeFailure(type(key).__name__, str(key)), job)
         for (i, _), (key, job) in zip(chunk, done, strict=True)
