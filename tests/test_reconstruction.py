@@ -230,24 +230,3 @@ def test_non_finite_measurements_are_replaced_with_a_warning():
     with pytest.warns(UserWarning, match="non-finite"):
         out = FWHTSolver().solve(Acquisition(n=8, indices=np.arange(64), y_pos=c))
     assert np.all(np.isfinite(out.data))
-
-
-def _opencl_available() -> bool:
-    try:
-        from nirspi_pipe.solvers.omp_opencl import opencl_context
-
-        opencl_context()
-        return True
-    except Exception:  # noqa: BLE001 - any failure means no usable device here
-        return False
-
-
-@pytest.mark.skipif(not _opencl_available(), reason="no OpenCL device that builds the kernels")
-@pytest.mark.parametrize("basis", ["dct", "haar"])
-def test_omp_opencl_agrees_with_numpy(basis):
-    img = _scene(N_SIDE)
-    acq = _acquire(img, ORDERS["zigzag"](ratio=0.3).select(N_SIDE))
-    a = OMPSolver(basis=basis, backend="numpy").solve(acq)
-    b = OMPSolver(basis=basis, backend="opencl").solve(acq)
-    assert a.info["iterations"] == b.info["iterations"]
-    np.testing.assert_allclose(b.data, a.data, atol=1e-5)

@@ -79,7 +79,7 @@ def test_disk_full_is_one_line_and_leaves_the_old_record(tmp_path: Path, monkeyp
 
     class Full:
         def __init__(self, fd: int, mode: str) -> None:
-            self.fh = open(fd, mode)  # noqa: SIM115 - closed in __exit__
+            self.fh = open(fd, mode)  # closed in __exit__
 
         def __enter__(self) -> Full:
             return self

@@ -18,6 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from nirspi_pipe.backends import blob_problem, sfs_second_order_problems, smooth_problem
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.sfs import opencl as ocl
 from nirspi_pipe.sfs.models import LaxFriedrichsSFS
@@ -26,38 +27,6 @@ from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, solve_numpy
 from nirspi_pipe.types import Camera, Image2D
 
 ATOL_PX = 1e-9  # numpy and OpenCL do the same operations in the same order (FP_CONTRACT off)
-
-
-def _grid(n: int):
-    length = n / 2.0
-    c = (np.arange(n) + 0.5 - n / 2.0) / length
-    return length, c[None, :] * np.ones((n, 1)), c[:, None] * np.ones((1, n))
-
-
-def smooth_problem(n: int):
-    """``φ = x²/2 + y² + 0.3xy + 0.1x³``: one critical point (the origin), no contour, so
-    ``z = Lφ`` is the viscosity solution of ``|∇z| = |∇φ|`` with ``z = 0`` there."""
-    length, x, y = _grid(n)
-    phi = x * x / 2 + y * y + 0.3 * x * y + 0.1 * x**3
-    f = np.hypot(x + 0.3 * y + 0.3 * x * x, 2 * y + 0.3 * x)
-    return length, length * phi, f, np.ones_like(x, bool)
-
-
-def blob_problem(n: int, k: float = 0.25):
-    """A closed smooth object with an occluding contour: ``z = c(1 − sqrt(1 − ρ))`` with
-    ``ρ = (x/a)² + (y/b)² + k(x/a)³`` (an ellipsoid for ``k = 0``), seen with the light at the
-    camera: ``F = tan θ``, capped at ``I = cos θ = 0.05`` as the SFS stage does. Evaluated where
-    ``I > 0.05`` (the rim included)."""
-    a, b, c = 0.8, 0.6, 0.7
-    length, x, y = _grid(n)
-    rho = (x / a) ** 2 + (y / b) ** 2 + k * (x / a) ** 3
-    inside = rho < 1
-    s = np.sqrt(np.clip(1 - rho, 1e-300, None))
-    grad = np.hypot(2 * x / a**2 + 3 * k * x * x / a**3, 2 * y / b**2)
-    f = np.where(inside, c / (2 * s) * grad, 1e9)
-    cos = 1 / np.sqrt(1 + f * f)
-    f = np.sqrt(1 / np.maximum(cos, 0.05) ** 2 - 1)
-    return length, length * np.where(inside, c * (1 - s), 0.0), f, inside & (cos > 0.05)
 
 
 def _solve(kind, n, slope, backend="numpy"):
@@ -230,33 +199,13 @@ def test_stage_hard_images_finite(img, n, albedo):
 
 
 def _agreement_problems():
-    out = []
-    for kind, n in ((smooth_problem, 24), (blob_problem, 32), (lambda n: blob_problem(n, 0.0), 17)):
-        length, z_true, f, ev = kind(n)
-        fixed = ev & (z_true <= z_true[ev].min() + 1e-12)
-        out.append(SweepProblem(f, fixed, np.where(fixed, z_true, BIG)))
-    rng = np.random.default_rng(5)
-    f = rng.random((13, 21)) * 5
-    fixed = np.zeros_like(f, bool)
-    fixed[3, 4] = fixed[10, 15] = True
-    out.append(SweepProblem(f, fixed, np.where(fixed, 0.0, BIG)))
-    return out
+    return list(sfs_second_order_problems().values())
 
 
 def _agree(a: SweepResult, b: SweepResult) -> None:
     assert a.sweeps == b.sweeps and a.converged == b.converged
     assert np.max(np.abs(a.z - b.z)) <= ATOL_PX
     assert abs(a.final_change - b.final_change) <= ATOL_PX
-
-
-@pytest.mark.skipif(not ocl.opencl_available("second_order"), reason="no OpenCL device here builds float64 kernels")
-@pytest.mark.parametrize("local_size", [1, 8])
-@pytest.mark.parametrize("slope", ["cos2", "node"])
-def test_opencl_agrees_with_numpy(local_size, slope):
-    for problem in _agreement_problems():
-        a = solve_numpy(problem, "second_order", 1e-4, 400, slope_average=slope)
-        b = ocl.solve_opencl(problem, "second_order", 1e-4, 400, local_size=local_size, slope_average=slope)
-        _agree(a, b)
 
 
 @pytest.mark.skipif(not ocl.opencl_available("second_order"), reason="no OpenCL device here builds float64 kernels")

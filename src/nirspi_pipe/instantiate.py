@@ -93,7 +93,7 @@ def _instantiate(node: Any, path: str) -> Any:
         return fn(*args, **kwargs)
     except _BuildFailure:
         raise
-    except Exception as exc:  # noqa: BLE001 - translated by build()
+    except Exception as exc:  # translated by build()
         raise _BuildFailure(exc, path, node) from exc
 
 

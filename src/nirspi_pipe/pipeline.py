@@ -111,7 +111,7 @@ def _recorded_warnings() -> Iterator[list[warnings.WarningMessage]]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
-            yield caught  # type: ignore[misc]
+            yield caught
         except Exception as exc:
             exc.nirspi_warnings = [f"{w.category.__name__}: {w.message}" for w in caught]  # type: ignore[attr-defined]
             raise

@@ -221,7 +221,7 @@ def read_npz(
     limit = read_budget(budget)
     try:
         file_len = path.stat().st_size
-        fh = open(path, "rb")  # noqa: SIM115 - closed by the `with fh` below
+        fh = open(path, "rb")  # closed by the `with fh` below
     except FileNotFoundError:
         raise UnsafeInputError(f"{where}: file does not exist") from None
     except OSError as exc:

@@ -192,7 +192,7 @@ def run_sweep_job(
         job = ClaimedJob.claim(cfg, out_dir, choices, overrides, job_num, sweep_file, resume, wait=True)
     except OutputError as exc:  # disk full, a folder that is a link: this job fails, the others go on
         return unwritten_failure(out_dir, overrides, job_num, exc)
-    assert job is not None  # noqa: S101 - wait=True always takes the lock
+    assert job is not None  # wait=True always takes the lock
     if job.done is not None:
         return job.finish(None)
     if not hasattr(os, "fork"):  # pragma: no cover - Windows: no isolation
@@ -329,7 +329,7 @@ class ClaimedJob:
         (:func:`deadline_message`). Releases the lock."""
         try:
             if status is None:
-                assert self.done is not None  # noqa: S101 - nothing ran: claim() found it done
+                assert self.done is not None  # nothing ran: claim() found it done
                 return self.done
             rec = _own_record(self.out_dir, self.attempt)
             if rec is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:

@@ -177,7 +177,7 @@ class NirspiLauncherBase(Launcher):
                     else:
                         i = deferred.pop(0)
                         claimed = claim(i, wait=True)
-                    assert claimed is not None  # noqa: S101 - wait=True always claims
+                    assert claimed is not None  # wait=True always claims
                     if isinstance(claimed, dict):
                         finished(i, claimed)
                     elif claimed.done is not None:

@@ -237,7 +237,7 @@ def _probe(ep: metadata.EntryPoint) -> str | None:
         os.close(read_fd)
         try:
             _register(ep)
-        except BaseException:  # noqa: BLE001, S110 - the parent's own import reports it
+        except BaseException:  # noqa: BLE001 - the parent's own import reports it
             pass
         os.write(write_fd, b"ok")
         os._exit(0)

@@ -300,7 +300,7 @@ except ImportError:  # pragma: no cover
     Callback = object  # type: ignore[misc,assignment]
 
 
-class CollectResults(Callback):  # type: ignore[misc]
+class CollectResults(Callback):
     """Hydra callback: after a multirun, write ``results.parquet``/``results.csv`` in the sweep
     folder and log a one-line status count."""
 

@@ -188,7 +188,7 @@ class ComposedJob:
 
 def composed_job(cfg: Any) -> ComposedJob:
     """The :class:`ComposedJob` of a config Hydra composed (``load_sweep_config``)."""
-    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])  # type: ignore[arg-type]
+    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])
     return ComposedJob(_resolved(cfg), _choices(cfg), task)
 
 
@@ -226,7 +226,7 @@ def _set_keying_sweeper(sweeper: Any) -> None:
 
 def _key_chunk(chunk: list[tuple[int, list[str]]]) -> list[tuple[int, Any, ComposedJob | None]]:
     """Key a worker's share of the jobs (its structural override sets, composed once each)."""
-    done = _keying_sweeper._prepare_serial([ov for _, ov in chunk], True)  # noqa: SLF001 - our own class
+    done = _keying_sweeper._prepare_serial([ov for _, ov in chunk], True)  # our own class
     return [
         (i, key if isinstance(key, str) else ComposeFailure(type(key).__name__, str(key)), job)
         for (i, _), (key, job) in zip(chunk, done, strict=True)
@@ -617,9 +617,9 @@ class NirspiSweeperBase(Sweeper):
         prepared = self.prepare(grid, workers=getattr(self.launcher, "workers", None) if run_composed else None)
         keys = [key for key, _ in prepared]
         composed: dict[str, ComposedJob] = {}  # the first job of each key runs (as it is launched below)
-        for key, job in prepared:
-            if isinstance(key, str) and job is not None:
-                composed.setdefault(key, job)
+        for key, composed_job in prepared:
+            if isinstance(key, str) and composed_job is not None:
+                composed.setdefault(key, composed_job)
         keying_s = time.perf_counter() - t0
         log.info("keyed %d jobs in %.1f s", len(grid), keying_s)
 

@@ -82,9 +82,9 @@ def _auto(sizes: list[int], ratio: float, repeat: int) -> int:
             auto = FistaTVSolver()
             out = auto.solve(acq)
             fixed = FistaTVSolver(lam=float(out.info["lam"]))
-            t_inv = median_time_s(lambda a=acq: FWHTSolver().solve(a), repeat)
-            t_auto = median_time_s(lambda a=acq: auto.solve(a), repeat, min_time_s=0.0)
-            t_fixed = median_time_s(lambda a=acq: fixed.solve(a), repeat, min_time_s=0.0)
+            t_inv = median_time_s(lambda: FWHTSolver().solve(acq), repeat)
+            t_auto = median_time_s(lambda: auto.solve(acq), repeat, min_time_s=0.0)
+            t_fixed = median_time_s(lambda: fixed.solve(acq), repeat, min_time_s=0.0)
             print(
                 f"{n:>4}^2 {case:>7} {out.info['lam_rule']!s:>5} {float(out.info['lam']):>9.2e} {t_inv * 1e3:>8.3f} "
                 f"{t_auto * 1e3:>8.1f} {t_fixed * 1e3:>9.1f} {t_auto / t_inv:>10.0f} {t_auto / t_fixed - 1:>13.1f}"

@@ -24,7 +24,7 @@ import numpy as np
 from nirspi_pipe.benchmarks import median_time_s
 
 
-def _load(target: str, backend: str | None):  # type: ignore[no-untyped-def]
+def _load(target: str, backend: str | None):
     """An sfs stage from a config option name (``second_order``) or an import path."""
     if "." in target:
         module, _, name = target.rpartition(".")
@@ -39,7 +39,7 @@ def _load(target: str, backend: str | None):  # type: ignore[no-untyped-def]
     return build(cfg.sfs, "sfs")
 
 
-def _remesher_ratio(cloud, surface, repeat: int) -> str:  # type: ignore[no-untyped-def]
+def _remesher_ratio(cloud, surface, repeat: int) -> str:
     """Clean-up + remeshing of the last cloud's trimmed power crust by each implementation, in the
     same run: the compiled one against pymeshlab's (the reference)."""
     from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled
@@ -115,7 +115,7 @@ def main(argv: list[str]) -> int:
     metrics = Metrics3D()
     sfs = _load(ns.sfs, ns.sfs_backend) if ns.sfs else None
 
-    def run_sfs():  # type: ignore[no-untyped-def]
+    def run_sfs():
         if sfs is not None:
             return sfs.solve(image, cam)
         return degraded_depth(scene, np.random.default_rng(1))

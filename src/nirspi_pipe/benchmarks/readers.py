@@ -49,10 +49,8 @@ def main(argv: list[str]) -> int:
         for name, save in (("stored", np.savez), ("deflate", np.savez_compressed)):
             path = Path(tmp) / f"{name}.npz"
             save(path, patterns=big, measurements=rng.random(1000))
-            ours = _median_s(
-                lambda p=path: {k: np.asarray(v).sum() for k, v in read_npz(p, mmap=False).items()}, ns.repeat
-            )
-            ref = _median_s(lambda p=path: {k: v.sum() for k, v in _np_load_all(p).items()}, ns.repeat)
+            ours = _median_s(lambda: {k: np.asarray(v).sum() for k, v in read_npz(path, mmap=False).items()}, ns.repeat)
+            ref = _median_s(lambda: {k: v.sum() for k, v in _np_load_all(path).items()}, ns.repeat)
             print(
                 f"npz {name:8s} {path.stat().st_size / 1e6:7.1f} MB: read_npz {ours:.3f} s, numpy.load {ref:.3f} s, "
                 f"ratio {ours / ref:.2f}"
@@ -63,8 +61,8 @@ def main(argv: list[str]) -> int:
         for ext in (".ply", ".stl", ".obj"):
             path = Path(tmp) / f"sphere{ext}"
             mesh.save(str(path))
-            ours = _median_s(lambda p=path: read_mesh_file(p), ns.repeat)
-            ref = _median_s(lambda p=path: pv.read(str(p)), ns.repeat)
+            ours = _median_s(lambda: read_mesh_file(path), ns.repeat)
+            ref = _median_s(lambda: pv.read(str(path)), ns.repeat)
             print(
                 f"mesh {ext:5s} {mesh.n_cells} triangles, {path.stat().st_size / 1e6:.1f} MB: ours {ours:.3f} s, "
                 f"pyvista.read {ref:.3f} s, ratio {ours / ref:.2f}"

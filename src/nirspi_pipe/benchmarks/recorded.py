@@ -66,7 +66,8 @@ def main(argv: list[str]) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "split.npz"
         img = split_hadamard_file(path, ns.n)
-        times, info = [], {}
+        times: list[float] = []
+        info: dict[str, object] = {}
         for _ in range(ns.repeat):
             t0 = time.perf_counter()
             rec, info = fast_path(path)

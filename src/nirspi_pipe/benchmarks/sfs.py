@@ -21,11 +21,12 @@ scikit-fmm``).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 
 import numpy as np
 
 from nirspi_pipe.benchmarks import median_time_s
-from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, solve_numpy
+from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, solve_numpy
 
 I_MIN = 0.05
 
@@ -74,7 +75,7 @@ def main(argv: list[str]) -> int:
             "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm)"
         )
         return 2
-    solvers = {"numpy": solve_numpy}
+    solvers: dict[str, Callable[..., SweepResult]] = {"numpy": solve_numpy}
     if "opencl" in ns.backends:
         from nirspi_pipe.sfs.opencl import opencl_available, solve_opencl
 

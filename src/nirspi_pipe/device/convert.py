@@ -117,7 +117,7 @@ def convert(
             raise RecordingError("differential", f"has {y.size} values for {m} patterns")
     match = match_hadamard(signed)
     n = int(round(np.sqrt(signed.shape[1])))
-    if match.hadamard and match.kind == "signed":
+    if match.hadamard and match.kind == "signed" and match.signs is not None:  # signs: set for every signed match
         flip = match.signs  # rows stored as −h_k: swap the halves / negate the difference
         if split == "differential":
             y = y * flip

@@ -151,7 +151,9 @@ class Emulator:
             write_json_line(fh, {"error": str(exc)})
             fh.flush()
             return True
-        n, count = req.get("n"), req.get("count")
+        # untrusted JSON values, checked below before any use
+        n: Any = req.get("n")
+        count: Any = req.get("count")
         problem = None
         if req.get("protocol") != PROTOCOL:
             problem = f"protocol must be {PROTOCOL!r}, got {short_repr(req.get('protocol'), 40)}"

@@ -327,7 +327,10 @@ def save_recording(path: str | Path, compressed: bool = False, **arrays: Any) ->
     Keyword arguments are the format's keys; strings are stored as 0-d unicode arrays. Returns
     the path written. ``order`` cannot be validated here; store ``indices`` instead.
     """
-    stored = {k: (np.array(v) if isinstance(v, str) else np.asarray(v)) for k, v in arrays.items() if v is not None}
+    # Any: numpy types savez(**kwds) as arrays or allow_pickle: bool, so a dict of arrays does not fit it
+    stored: dict[str, Any] = {
+        k: (np.array(v) if isinstance(v, str) else np.asarray(v)) for k, v in arrays.items() if v is not None
+    }
     stored.setdefault("format_version", np.array(FORMAT_VERSION))
     validate_recording(stored, f"save_recording({path})")
     path = Path(path)

@@ -389,9 +389,11 @@ class ContinuousWave4:
             phi = np.mod(4.0 * np.pi * f * r / C_M_S, 2.0 * np.pi) if hit else 0.0
             mean = n_b / 4.0 + n_s / 4.0 * (1.0 + self.demod_contrast * np.cos(phi + k_phase))
             counts = rng.poisson(mean).astype(np.float64)  # shot noise of signal + background
-            dist, amp, offset = demodulate_4phase(counts, f)
+            dist_0d, amp, offset = demodulate_4phase(counts, f)  # one pixel: 0-d arrays
+            dist = float(dist_0d)
+            s_phi: float
             if amp > 0:
-                s_phi = np.sqrt(offset / 2.0) / (2.0 * amp)  # phase noise, rad
+                s_phi = float(np.sqrt(offset / 2.0) / (2.0 * amp))  # phase noise, rad
             else:
                 s_phi = np.inf
             s_shot = C_M_S / (4.0 * np.pi * f) * s_phi

@@ -35,7 +35,7 @@ _EDGES = np.array([(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3
 
 
 @_jit
-def _centres(T, W, use_w):  # type: ignore[no-untyped-def]
+def _centres(T, W, use_w):
     t = T.shape[0]
     c = np.zeros((t, 3))
     ok = np.zeros(t, np.bool_)
@@ -73,11 +73,11 @@ def power_centres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     in the same order): centres ``(t, 3)`` and the non-degenerate flag ``(t,)``."""
     T = np.ascontiguousarray(tets, dtype=np.float64)
     W = np.zeros((len(T), 4)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    return _centres(T, W, weights is not None)  # type: ignore[no-any-return]
+    return _centres(T, W, weights is not None)
 
 
 @_jit
-def _stable_order(key, m):  # type: ignore[no-untyped-def]
+def _stable_order(key, m):
     """``np.argsort(key, kind="stable")`` for keys ``a*m + b`` (0 <= b < m): a counting sort by
     ``a``, then an insertion sort by ``b`` inside each (small) bucket."""
     k = key.shape[0]
@@ -107,7 +107,7 @@ def _stable_order(key, m):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _weld(P, wtol):  # type: ignore[no-untyped-def]
+def _weld(P, wtol):
     """Cluster of each point of P (n, 3): connected components of the pairs within wtol,
     numbered in order of their smallest member; and the clusters' mean positions."""
     n = P.shape[0]
@@ -151,7 +151,7 @@ def _weld(P, wtol):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _crust(poles, tets, centres, inner, wtol, edges):  # type: ignore[no-untyped-def]
+def _crust(poles, tets, centres, inner, wtol, edges):
     t = tets.shape[0]
     m = poles.shape[0]
     # 1. mixed edges: key (a*m + b, a < b), tetrahedron, ring pair
@@ -303,7 +303,7 @@ def crust_faces(
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """Power-crust triangles (module docstring): ``(vertices (v, 3), faces (f, 3), polygons)``,
     the vertices in the unit of ``poles``/``centres``; ``wtol``: the welding distance, same unit."""
-    return _crust(  # type: ignore[no-any-return]
+    return _crust(
         np.ascontiguousarray(poles, dtype=np.float64),
         np.ascontiguousarray(tets, dtype=np.int64),
         np.ascontiguousarray(centres, dtype=np.float64),

@@ -76,12 +76,12 @@ except ImportError:  # pragma: no cover - exercised only where numba is absent
     njit = None  # type: ignore[assignment]
 
 
-def _jit(fn):  # type: ignore[no-untyped-def]
+def _jit(fn):
     """Compiled, cached in the private folder of :mod:`nirspi_pipe.mesh.jitcache`."""
     return jitcache.jit(fn) if njit is not None else fn
 
 
-def _jit_inline(fn):  # type: ignore[no-untyped-def]
+def _jit_inline(fn):
     """For the one-line corner-table helpers: inlined into their callers (numba otherwise calls
     them as functions)."""
     return jitcache.jit(fn, inline="always") if njit is not None else fn
@@ -95,27 +95,27 @@ def _jit_inline(fn):  # type: ignore[no-untyped-def]
 
 
 @_jit_inline
-def _nxt(h):  # type: ignore[no-untyped-def]
+def _nxt(h):
     return h - h % 3 + (h % 3 + 1) % 3
 
 
 @_jit_inline
-def _prv(h):  # type: ignore[no-untyped-def]
+def _prv(h):
     return h - h % 3 + (h % 3 + 2) % 3
 
 
 @_jit_inline
-def _org(F, h):  # type: ignore[no-untyped-def]
+def _org(F, h):
     return F[h // 3, h % 3]
 
 
 @_jit_inline
-def _dst(F, h):  # type: ignore[no-untyped-def]
+def _dst(F, h):
     return F[h // 3, (h % 3 + 1) % 3]
 
 
 @_jit
-def _halfedge_buckets(F, nf):  # type: ignore[no-untyped-def]
+def _halfedge_buckets(F, nf):
     """Half-edges of faces F[:nf] bucketed by origin (counting sort): (org, dst, start, out_h,
     out_d); the half-edges leaving v are out_h[start[v]:start[v + 1]], ending at out_d[…]."""
     m = 3 * nf
@@ -144,7 +144,7 @@ def _halfedge_buckets(F, nf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
+def _pair_halfedges(F, nf):
     """opp for faces F[:nf]: half-edges a->b and b->a of an edge used by exactly these two.
     Half-edges are bucketed by origin (:func:`_halfedge_buckets`), so each pairing looks at one
     vertex's few outgoing half-edges."""
@@ -171,7 +171,7 @@ def _pair_halfedges(F, nf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _orient_faces(F, nf):  # type: ignore[no-untyped-def]
+def _orient_faces(F, nf):
     """Orient faces F[:nf] consistently per connected piece, in place: a breadth-first walk over
     the edges used by exactly two faces, from each piece's first face, flips a neighbour that
     runs the shared edge in the same direction. A piece then keeps the orientation most of its
@@ -231,7 +231,7 @@ def _orient_faces(F, nf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _find(parent, i):  # type: ignore[no-untyped-def]
+def _find(parent, i):
     while parent[i] != i:
         parent[i] = parent[parent[i]]
         i = parent[i]
@@ -239,7 +239,7 @@ def _find(parent, i):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _split_fans(F, opp, nv):  # type: ignore[no-untyped-def]
+def _split_fans(F, opp, nv):
     """Give every fan of a non-manifold vertex its own vertex. Returns (F', source vertex of
     each vertex of F')."""
     nf = F.shape[0]
@@ -276,7 +276,7 @@ def _split_fans(F, opp, nv):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _components(opp, nf):  # type: ignore[no-untyped-def]
+def _components(opp, nf):
     """Connected piece of each face (connectivity across paired edges)."""
     parent = np.arange(nf)
     for h in range(3 * nf):
@@ -291,7 +291,7 @@ def _components(opp, nf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _vertex_halfedges(F, nf, nv):  # type: ignore[no-untyped-def]
+def _vertex_halfedges(F, nf, nv):
     vh = np.full(nv, -1, np.int64)
     for h in range(3 * nf):
         v = F[h // 3, h % 3]
@@ -301,7 +301,7 @@ def _vertex_halfedges(F, nf, nv):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _ring(F, opp, vh, v, out):  # type: ignore[no-untyped-def]
+def _ring(F, opp, vh, v, out):
     """Outgoing half-edges of v into out; returns (count, on_border). Walks one way around the
     fan, then, if it met a border, the other way from the start."""
     h0 = vh[v]
@@ -336,7 +336,7 @@ def _ring(F, opp, vh, v, out):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _border_flags(F, opp, vh, nv):  # type: ignore[no-untyped-def]
+def _border_flags(F, opp, vh, nv):
     bnd = np.zeros(nv, np.bool_)
     buf = np.empty(2 * _MAX_VALENCE + 2, np.int64)
     for v in range(nv):
@@ -347,7 +347,7 @@ def _border_flags(F, opp, vh, nv):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _connected(F, opp, vh, a, b, buf):  # type: ignore[no-untyped-def]
+def _connected(F, opp, vh, a, b, buf):
     n, _ = _ring(F, opp, vh, a, buf)
     for i in range(n):
         if _dst(F, buf[i]) == b:
@@ -360,7 +360,7 @@ def _connected(F, opp, vh, a, b, buf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _min_angle_cos(V, a, b, c):  # type: ignore[no-untyped-def]
+def _min_angle_cos(V, a, b, c):
     """Cosine of the smallest angle of triangle (a, b, c): 1 when it has no area."""
     worst = -1.0
     for i in range(3):
@@ -376,7 +376,7 @@ def _min_angle_cos(V, a, b, c):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _face_exists(F, opp, vh, a, b, c, buf):  # type: ignore[no-untyped-def]
+def _face_exists(F, opp, vh, a, b, c, buf):
     """True when some face has the vertices a, b and c."""
     n, _ = _ring(F, opp, vh, a, buf)
     for i in range(n):
@@ -389,7 +389,7 @@ def _face_exists(F, opp, vh, a, b, c, buf):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _close_holes(V, F, opp, nv, max_edges):  # type: ignore[no-untyped-def]
+def _close_holes(V, F, opp, nv, max_edges):
     """Faces closing every border loop of at most max_edges edges, by ear clipping: (new faces
     (k, 3), number of loops left open)."""
     nf = F.shape[0]
@@ -546,7 +546,7 @@ def clean_mesh(
 
 
 @_jit_inline
-def _face_normal(V, a, b, c, out):  # type: ignore[no-untyped-def]
+def _face_normal(V, a, b, c, out):
     u0, u1, u2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
     w0, w1, w2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
     out[0] = u1 * w2 - u2 * w1
@@ -555,13 +555,13 @@ def _face_normal(V, a, b, c, out):  # type: ignore[no-untyped-def]
 
 
 @_jit_inline
-def _len2(V, a, b):  # type: ignore[no-untyped-def]
+def _len2(V, a, b):
     d0, d1, d2 = V[a, 0] - V[b, 0], V[a, 1] - V[b, 1], V[a, 2] - V[b, 2]
     return d0 * d0 + d1 * d1 + d2 * d2
 
 
 @_jit
-def _split_long(V, F, opp, vh, bnd, nv, nf, hi2):  # type: ignore[no-untyped-def]
+def _split_long(V, F, opp, vh, bnd, nv, nf, hi2):
     """Split every edge longer than sqrt(hi2) at its midpoint (new faces are visited too; passes
     repeat until none is left). Returns (nv, nf, overflow)."""
     for _pass in range(16):
@@ -573,7 +573,7 @@ def _split_long(V, F, opp, vh, bnd, nv, nf, hi2):  # type: ignore[no-untyped-def
 
 
 @_jit
-def _split_pass(V, F, opp, vh, bnd, nv, nf, hi2):  # type: ignore[no-untyped-def]
+def _split_pass(V, F, opp, vh, bnd, nv, nf, hi2):
     f = 0
     while f < nf:
         if F[f, 0] < 0:
@@ -648,7 +648,7 @@ def _split_pass(V, F, opp, vh, bnd, nv, nf, hi2):  # type: ignore[no-untyped-def
 
 
 @_jit
-def _live_out(F, v, h1, h2, h3, h4, buf, na, buf2, nb):  # type: ignore[no-untyped-def]
+def _live_out(F, v, h1, h2, h3, h4, buf, na, buf2, nb):
     """A live half-edge leaving v after a collapse: h1 or h3 themselves, or the successors of
     h2 or h4 (which end at v), or any live one of the two old rings; -1 if none."""
     for h, succ in ((h1, False), (h2, True), (h3, False), (h4, True)):
@@ -666,7 +666,7 @@ def _live_out(F, v, h1, h2, h3, h4, buf, na, buf2, nb):  # type: ignore[no-untyp
 
 
 @_jit_inline
-def _stitch(opp, h):  # type: ignore[no-untyped-def]
+def _stitch(opp, h):
     """Before h's face goes: its other two edges' outer half-edges become each other's opposites
     (or a border, where one has none). Returns them: (across next(h), across prev(h))."""
     x1, x2 = opp[_nxt(h)], opp[_prv(h)]
@@ -678,7 +678,7 @@ def _stitch(opp, h):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):  # type: ignore[no-untyped-def]
+def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):
     """Collapse edges shorter than sqrt(lo2) (module docstring); returns the number collapsed."""
     count = 0
     nv = V.shape[0]
@@ -797,7 +797,7 @@ def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):  # 
 
 
 @_jit_inline
-def _shape(V, a, b, c):  # type: ignore[no-untyped-def]
+def _shape(V, a, b, c):
     """4√3·area / (sum of squared edge lengths): 1 for an equilateral triangle, 0 for a degenerate one."""
     u0, u1, u2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
     w0, w1, w2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
@@ -807,7 +807,7 @@ def _shape(V, a, b, c):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _valences(F, bnd, nf, nv):  # type: ignore[no-untyped-def]
+def _valences(F, bnd, nf, nv):
     """Number of neighbours of each vertex: its faces, plus one on a border."""
     val = np.zeros(nv, np.int64)
     for f in range(nf):
@@ -821,7 +821,7 @@ def _valences(F, bnd, nf, nv):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):  # type: ignore[no-untyped-def]
+def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):
     """Flip interior edges that bring the valences closer to 6 (4 on a border)."""
     count = 0
     val = _valences(F, bnd, nf, nv)
@@ -889,7 +889,7 @@ def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):  # type: ignore[no-
 
 
 @_jit
-def _relax(V, F, opp, vh, bnd, nv, buf, nrm):  # type: ignore[no-untyped-def]
+def _relax(V, F, opp, vh, bnd, nv, buf, nrm):
     """Tangential relaxation of the interior vertices (Jacobi: all from the old positions)."""
     P = V[:nv].copy()
     for v in range(nv):
@@ -921,7 +921,7 @@ def _relax(V, F, opp, vh, bnd, nv, buf, nrm):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _remesh(V0, F0, target, iterations, v_cap, f_cap, rounds):  # type: ignore[no-untyped-def]
+def _remesh(V0, F0, target, iterations, v_cap, f_cap, rounds):
     """Botsch-Kobbelt remeshing of a clean mesh; returns (V, F, nv, nf, overflow)."""
     nv, nf = V0.shape[0], F0.shape[0]
     V = np.zeros((v_cap, 3))
@@ -955,7 +955,7 @@ def _remesh(V0, F0, target, iterations, v_cap, f_cap, rounds):  # type: ignore[n
 
 
 @_jit
-def _ranks(used):  # type: ignore[no-untyped-def]
+def _ranks(used):
     """Each marked index's rank among the marked ones (-1 for the others), and their count."""
     rank = np.full(used.shape[0], -1, np.int64)
     n = 0
@@ -967,7 +967,7 @@ def _ranks(used):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _live(F, nv):  # type: ignore[no-untyped-def]
+def _live(F, nv):
     """The live faces of F (first index >= 0) renumbered into the vertices they use, and those
     vertices' old indices (ascending)."""
     used = np.zeros(nv, np.bool_)

@@ -109,7 +109,7 @@ def rebuild_on_failure(fn: Callable[[], T], modules: tuple[str, ...] = KERNEL_MO
     (compiling afresh). A second failure propagates."""
     try:
         return fn()
-    except Exception as exc:  # noqa: BLE001 - numba raises whatever unpickling a bad index raises
+    except Exception as exc:  # numba raises whatever unpickling a bad index raises
         removed = clear(modules)
         if not removed:
             raise

@@ -18,7 +18,7 @@ from nirspi_pipe.types import Mesh, Scene
 __all__ = ["render_meshes", "truth_mesh", "warm_up", "write_mesh_outputs", "write_ply"]
 
 
-def _polydata(vertices_m: np.ndarray, faces: np.ndarray):  # type: ignore[no-untyped-def]
+def _polydata(vertices_m: np.ndarray, faces: np.ndarray):
     import pyvista as pv
 
     f = np.asarray(faces, dtype=np.int64)

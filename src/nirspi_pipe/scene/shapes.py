@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,14 +53,16 @@ def rotation_matrix(rotation_deg: tuple[float, float, float] | list[float]) -> n
     return mx @ my @ mz
 
 
-def _check_rotation(rotation_deg: object) -> tuple[float, float, float]:
+def _check_rotation(rotation_deg: Any) -> tuple[float, float, float]:
+    """``rotation_deg`` as three floats; any other value (a config's, unchecked) is a one-line error."""
+    rot: tuple[float, ...]
     try:
-        rot = tuple(float(a) for a in rotation_deg)  # type: ignore[union-attr]
+        rot = tuple(float(a) for a in rotation_deg)
     except TypeError:
         rot = ()
     if len(rot) != 3 or not all(np.isfinite(rot)):
         raise ConfigError("rotation_deg", rotation_deg, "three finite angles [rx, ry, rz] in degrees")
-    return rot  # type: ignore[return-value]
+    return rot[0], rot[1], rot[2]
 
 
 def _check_size(key: str, value: float, distance_mm: float) -> None:
@@ -167,9 +170,9 @@ class Torus:
             tt[a] += np.where(done, 0.0, f)
             out = tt[a] > tf[a]
             active[a[done | out]] = False
-        t_all = np.full(rays.shape[:-1], np.inf).ravel()
-        t_all[idx[hit]] = tt[hit]
-        t_all = t_all.reshape(rays.shape[:-1])
+        t_flat = np.full(rays.shape[:-1], np.inf).ravel()
+        t_flat[idx[hit]] = tt[hit]
+        t_all = t_flat.reshape(rays.shape[:-1])
         hit_all = np.isfinite(t_all)
         p = o_loc + d_loc * np.where(hit_all, t_all, 0.0)[..., None]
         rxy = np.maximum(np.hypot(p[..., 0], p[..., 1]), 1e-12)

@@ -188,7 +188,7 @@ def _run(
 
         try:
             return solve_opencl(problem, scheme, tol, max_sweeps, slope_average=slope_average)
-        except Exception as exc:  # noqa: BLE001 - turned into a one-line user error
+        except Exception as exc:  # turned into a one-line user error
             if type(exc).__module__.startswith("pyopencl") or isinstance(exc, RuntimeError):
                 lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
                 errs = [ln for ln in lines if "error" in ln.lower() and "clBuildProgram" not in ln]

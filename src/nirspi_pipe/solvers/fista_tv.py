@@ -92,7 +92,7 @@ def _tv_prox_dense(v: np.ndarray, w: np.ndarray, p: np.ndarray, iters: int) -> t
     return out.reshape(batch, n, n), pf.reshape(batch, 2, n, n)
 
 
-def lipschitz(op, n_iter: int = 30, seed: int = 0) -> float:  # type: ignore[no-untyped-def]
+def lipschitz(op, n_iter: int = 30, seed: int = 0) -> float:
     """Largest eigenvalue of ``AᵀA`` by power iteration (``n_iter`` steps), +2 % margin."""
     rng = np.random.default_rng(seed)
     v = rng.standard_normal(op.shape[1])
@@ -113,10 +113,10 @@ def choose_weight(
     acquisition: Acquisition,
     y: np.ndarray,
     scale: float,
-    solve,  # type: ignore[no-untyped-def]
-    forward,  # type: ignore[no-untyped-def]
-    fit=None,  # type: ignore[no-untyped-def]
-    predict=None,  # type: ignore[no-untyped-def]
+    solve,
+    forward,
+    fit=None,
+    predict=None,
 ) -> tuple[float, dict[str, object]]:
     """The TV weight by the documented rule, shared by ``fista_tv`` and the plugin's ``admm_tv``.
 
@@ -217,8 +217,8 @@ class FistaTVSolver:
 
     def _fista(
         self,
-        fwd,  # type: ignore[no-untyped-def]
-        adj,  # type: ignore[no-untyped-def]
+        fwd,
+        adj,
         y: np.ndarray,
         n: int,
         scale: float,
@@ -302,7 +302,7 @@ class FistaTVSolver:
         return Image2D(x, info=info)
 
 
-def _batch_operator(acquisition: Acquisition, rows: np.ndarray | None = None):  # type: ignore[no-untyped-def]
+def _batch_operator(acquisition: Acquisition, rows: np.ndarray | None = None):
     """``(fwd, adj)`` of the acquisition's measurements (those at positions ``rows``, default all)
     on batches: ``fwd`` ``(B, N) → (B, m)``, ``adj`` ``(B, m) → (B, N)``; the fast transform on
     the Hadamard path (``O(B·N log N)``), products with the pattern matrix otherwise."""

@@ -128,7 +128,7 @@ class OpenCLOmpBackend:
         self.d_g = cl.Buffer(self.ctx, mf.READ_WRITE, size=8 * n2)
         self.h_g = np.empty(n2)
 
-    def _products(self, left, right) -> np.ndarray:  # type: ignore[no-untyped-def]
+    def _products(self, left, right) -> np.ndarray:
         """``leftᵀ · grid · right`` on the device (``left``/``right`` buffers of ``M`` or ``Mᵀ``)."""
         cl, q, n = self.cl, self.queue, np.int32(self.n)
         self.k_mt_r(q, (self.n, self.n), None, left, self.d_grid, self.d_tmp, n)

@@ -160,8 +160,10 @@ class Stream:
         where = f"stream {self.host}:{self.port} (timeout_s={self.timeout_s:g})"
         idx = np.ascontiguousarray(indices, dtype="<i8")
         deadline = time.monotonic() + float(self.timeout_s)
+        port = self.port
+        assert port is not None  # refused by __post_init__
         try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
+            sock = socket.create_connection((self.host, port), timeout=self.timeout_s)
         except TimeoutError:
             raise StreamError("connect", f"no answer within {self.timeout_s:g} s (source.timeout_s)", where) from None
         except OSError as exc:

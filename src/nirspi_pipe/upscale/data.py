@@ -153,8 +153,8 @@ def random_shapes_hr(side: int, rng: np.random.Generator) -> np.ndarray:
         if kind == 0:  # polygon
             k = int(rng.integers(3, 7))
             cy, cx, r = rng.uniform(0, big, 2).tolist() + [rng.uniform(0.05, 0.35) * big]
-            ang = np.sort(rng.uniform(0, 2 * np.pi, k))
-            rr, cc = polygon(cy + r * np.sin(ang), cx + r * np.cos(ang), (big, big))
+            angles = np.sort(rng.uniform(0, 2 * np.pi, k))
+            rr, cc = polygon(cy + r * np.sin(angles), cx + r * np.cos(angles), (big, big))
             img[rr, cc] = value
         elif kind == 1:  # ellipse
             cy, cx = rng.uniform(0, big, 2)

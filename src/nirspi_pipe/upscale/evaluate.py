@@ -30,7 +30,7 @@ def score_heldout(
         for pair in heldout_pairs(weights.scale, noise_rel, n_lr=n_lr):
             bic = finish(bicubic(pair.lr, weights.scale), True)
             net = finish(fsrcnn_forward(pair.lr, weights), True)
-            row = {
+            row: dict[str, Any] = {
                 "scale": weights.scale,
                 "noise_rel": noise_rel,
                 "image": pair.name,

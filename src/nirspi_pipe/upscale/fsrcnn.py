@@ -178,7 +178,7 @@ def fsrcnn_forward(image: np.ndarray, weights: FsrcnnWeights) -> np.ndarray:
 
 def save_weights(path: str | Path, weights: FsrcnnWeights) -> None:
     """Write ``weights`` as a compressed float32 ``.npz`` (no pickles; ``meta`` as JSON text)."""
-    arrays: dict[str, np.ndarray] = {}
+    arrays: dict[str, Any] = {}  # Any: numpy types savez(**kwds) as arrays or allow_pickle: bool
     for i, layer in enumerate(weights.layers):
         arrays[f"conv{i}_w"] = layer.w.astype(np.float32)
         arrays[f"conv{i}_b"] = layer.b.astype(np.float32)

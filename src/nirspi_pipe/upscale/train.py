@@ -33,7 +33,7 @@ __all__ = ["main", "train_scale"]
 _DEFAULT_OUT = Path(__file__).resolve().parent / "weights"
 
 
-def _import_torch():  # type: ignore[no-untyped-def]
+def _import_torch():
     try:
         import torch
     except ImportError:
@@ -46,7 +46,7 @@ def _import_torch():  # type: ignore[no-untyped-def]
     return torch
 
 
-def _build_net(torch, scale: int, d: int, s: int, m: int):  # type: ignore[no-untyped-def]
+def _build_net(torch, scale: int, d: int, s: int, m: int):
     nn = torch.nn
     layers: list[Any] = [nn.Conv2d(1, d, 5, padding=2), nn.PReLU(d), nn.Conv2d(d, s, 1), nn.PReLU(s)]
     for _ in range(m):
@@ -63,7 +63,7 @@ def _build_net(torch, scale: int, d: int, s: int, m: int):  # type: ignore[no-un
     return nn.Sequential(body, deconv)
 
 
-def _to_weights(net, scale: int, residual: bool, border: int, meta: dict[str, Any]) -> FsrcnnWeights:  # type: ignore[no-untyped-def]
+def _to_weights(net, scale: int, residual: bool, border: int, meta: dict[str, Any]) -> FsrcnnWeights:
     body, deconv = net[0], net[1]
     mods = list(body)
     layers = []
@@ -86,7 +86,7 @@ def _to_weights(net, scale: int, residual: bool, border: int, meta: dict[str, An
     )
 
 
-def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:  # type: ignore[no-untyped-def]
+def train_scale(scale: int, ns: argparse.Namespace, log=print) -> FsrcnnWeights:
     """Train one scale with the options in ``ns`` (see :func:`main`) and return the weights."""
     torch = _import_torch()
     torch.manual_seed(ns.seed * 10 + scale)
