@@ -41,8 +41,9 @@ def test_rain_attenuates_the_round_trip():
 
 
 def test_rain_sits_after_the_fog_in_the_chain():
-    chain = forward_model(MeasuredFog(beta_per_m=1.0), extra=[Rain()])
-    assert [e.name for e in chain] == ["fog", "rain", "backscatter"]
+    model = forward_model(MeasuredFog(beta_per_m=1.0), extra=[Rain()])
+    assert model.names == ("fog", "rain", "backscatter")
+    assert [e.name for e in model.image] == ["fog", "rain"]  # an image effect
 
 
 def test_bad_rate_names_its_key():
