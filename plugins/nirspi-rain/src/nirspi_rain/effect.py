@@ -8,7 +8,9 @@ near infrared because raindrops (0.1–5 mm) are far larger than 1.55 µm.
 
 The effect is an image effect (``domain = "image"``: before the patterns measure anything): each
 pixel's active light is multiplied by ``e^{−2 β_rain ℓ}`` with ``ℓ = min(range, extent)`` the rain
-path along its ray (the round trip, as for fog, Eq. 6 of the paper).
+path along its ray (the round trip, as for fog, Eq. 6 of the paper). A steady physical attenuation,
+it is part of the noise-free reference the normalised metrics score against
+(``in_reference = True``), as the fog's transmission is.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ class Rain:
 
     name: ClassVar[str] = "rain"
     domain: ClassVar[Literal["image"]] = "image"  # an image effect: forward_model places it after the fog
-    in_reference: ClassVar[bool] = False  # as before the stages: not in the metrics' reference
+    in_reference: ClassVar[bool] = True  # a steady attenuation: in the reference the metrics score against
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.rate_mm_per_h) or not 0.0 <= self.rate_mm_per_h <= 500.0:
