@@ -30,32 +30,35 @@ Every effect has a ``name`` and declares its stage (``domain``); image and readi
 streams they draw from, :meth:`Exposure.rng`). A new effect (device optics, an LED droop, rain) is
 one small frozen dataclass and one config (docs/plugins.md).
 
-Built-in effects, in the order :func:`forward_model` chains them:
+Built-in effects, in the order :func:`forward_model` chains them (name, class, what enables it,
+whether it is in the reference):
 
-======================  ==========================  ============================================  =====
-effect                  enabled by                  what it does                                  ref.
-======================  ==========================  ============================================  =====
-*image*
-``budget``              ``detector=ingaas``          1/r² fall-off per pixel, LED power, lens, QE  yes
-                                                     (Eqs. 10–11): :class:`Illumination`
-``fog``                 ``fog=chamber|measured``     e^{−2βr} per pixel, round trip (Eq. 6):       yes
-                                                     :class:`FogAttenuation`
-``fog_fluctuation``     ``fog.fluctuation_rel > 0``  β(t) = β f(t) per reading:                    no
-                                                     :class:`FogFluctuation`
-``fog_trend``           ``fog.trend_rel != 0``       β(t) = β (1 + rel t/T): :class:`FogTrend`     no
-*readings*
-``backscatter``         ``fog.backscatter_gain > 0`` veil of the lit fog (Eq. 12):                 yes
-                                                     :class:`Backscatter`
-``led_droop``           ``source.effects.led_droop…``  LED power droop per reading: :class:`LedDroop` no
-``background``          ``illumination.klux > 0``    ambient charge (Eqs. 7, 10–11):               no
-                                                     :class:`BackgroundLight`
-``background_drift``    ``illumination.drift…``      drift, flicker, wander: :class:`BackgroundDrift` no
-*read-out*
-``detector``            ``detector=ingaas``          shot/dark/read noise, saturation, ADC:        no
-                                                     :class:`DetectorReadout`
-*output*
-``gaussian_noise``      ``source.effects.noise_rel``  idealised Gaussian noise: :class:`GaussianNoise` no
-======================  ==========================  ============================================  =====
+* image stage
+
+  - ``budget``, :class:`Illumination` (``detector=ingaas``): 1/r² fall-off per pixel, LED power,
+    lens, QE (Eqs. 10–11); in the reference;
+  - ``fog``, :class:`FogAttenuation` (``fog=chamber|measured``): e^{−2βr} per pixel, round trip
+    (Eq. 6); in the reference;
+  - ``fog_fluctuation``, :class:`FogFluctuation` (``fog.fluctuation_rel > 0``): β(t) = β f(t)
+    per reading; not in the reference;
+  - ``fog_trend``, :class:`FogTrend` (``fog.trend_rel != 0``): β(t) = β (1 + rel t/T); not in
+    the reference;
+
+* readings stage
+
+  - ``backscatter``, :class:`Backscatter` (``fog.backscatter_gain > 0``): veil of the lit fog
+    (Eq. 12); in the reference (its steady veil);
+  - ``led_droop``, :class:`LedDroop` (``source.effects.led_droop_rel != 0``): LED power droop per
+    reading; not in the reference;
+  - ``background``, :class:`BackgroundLight` (``illumination.klux > 0``): ambient charge
+    (Eqs. 7, 10–11); not in the reference (it cancels in the split difference);
+  - ``background_drift``, :class:`BackgroundDrift` (``illumination.drift…``): drift, flicker,
+    wander; not in the reference;
+
+* read-out: ``detector``, :class:`DetectorReadout` (``detector=ingaas``): shot/dark/read noise,
+  saturation, ADC;
+* output stage: ``gaussian_noise``, :class:`GaussianNoise` (``source.effects.noise_rel > 0``):
+  idealised Gaussian noise.
 """
 
 from __future__ import annotations

@@ -1,13 +1,16 @@
 """Source ``simulator``: the NIR-SPI camera in the fog chamber (paper §§3–5, Eqs. 5–12).
 
-The simulator is the ordered chain of the physical effects that the config enables, and of
-nothing else (:mod:`nirspi_pipe.physics.effects`; docs/architecture.md draws the chain). The
-runner builds the chain from the ``fog``, ``illumination`` and ``detector`` groups
-(``source.effects`` in conf/source/simulator.yaml, Hydra's recursive instantiation) and hands it
-to :class:`Simulator`; the simulator never builds an effect. ``fog=none``, ``illumination=none``
-(0 kLux) and ``detector=ideal`` put nothing in the chain: no Mie call, no fog array, no noise
-draw. With an empty chain the readings are the split Hadamard measurements of the scene radiance
-and the reconstruction equals it to rounding.
+The simulator runs the forward model that the config enables, and nothing else, in its typed
+stages: image effects, the measurement, reading effects, the read-out, output effects
+(:mod:`nirspi_pipe.physics.effects`; docs/architecture.md draws them). The runner builds the
+:class:`~nirspi_pipe.physics.effects.ForwardModel` from the ``fog``, ``illumination`` and
+``detector`` groups (``source.effects`` in conf/source/simulator.yaml, Hydra's recursive
+instantiation) and hands it to :class:`Simulator`; the simulator never builds an effect.
+``fog=none``, ``illumination=none`` (0 kLux) and ``detector=ideal`` put nothing in it: no Mie
+call, no fog array, no noise draw. With an empty model the readings are the split Hadamard
+measurements of the scene radiance and the reconstruction equals it to rounding. The reference
+the normalised metrics score against (``Acquisition.reference``) is formed by exactly the effects
+that declare ``in_reference`` (:meth:`Simulator.reference_image`).
 
 Split convention: each ±1 pattern ``P_k`` is shown as ``(1 + P_k)/2`` then ``(1 − P_k)/2``, one
 pattern period apart (``1/pattern_rate_hz``), so a changing background does not cancel exactly
