@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import ifwht2, pattern
 from nirspi_pipe.physics.detector import IdealDetector, Photodiode
-from nirspi_pipe.physics.effects import forward_model
+from nirspi_pipe.physics.effects import ForwardModel, forward_model
 from nirspi_pipe.physics.fog import MeasuredFog, NoFog
 from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import Sphere
@@ -86,7 +86,7 @@ def test_fog_none_never_calls_mie(monkeypatch):
 
 def test_inactive_effects_are_not_built():
     sim = Simulator(forward_model(fog=NoFog(), illumination=Background(klux=0.0), detector=IdealDetector()))
-    assert sim.effects == () and sim.effect_names == ()
+    assert sim.effects == ForwardModel() and sim.effect_names == ()
 
 
 def test_derived_quantities_of_a_full_run():

@@ -9,10 +9,15 @@ import pytest
 from nirspi_rain import Rain, rain_extinction_per_m
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.physics.effects import forward_model
+from nirspi_pipe.metrics import ImageMetrics
+from nirspi_pipe.physics.budget import PhotonBudget
+from nirspi_pipe.physics.effects import Exposure, forward_model
 from nirspi_pipe.physics.fog import MeasuredFog
+from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.scene.shapes import Plane
+from nirspi_pipe.solvers.fwht import FWHTSolver
 from nirspi_pipe.sources.simulator import Simulator
+from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera
 
 N = 8
@@ -41,8 +46,38 @@ def test_rain_attenuates_the_round_trip():
 
 
 def test_rain_sits_after_the_fog_in_the_chain():
-    chain = forward_model(MeasuredFog(beta_per_m=1.0), extra=[Rain()])
-    assert [e.name for e in chain] == ["fog", "rain", "backscatter"]
+    model = forward_model(MeasuredFog(beta_per_m=1.0), extra=[Rain()])
+    assert model.names == ("fog", "rain", "backscatter")
+    assert [e.name for e in model.image] == ["fog", "rain"]  # an image effect
+
+
+def test_the_reference_the_metrics_score_against_includes_the_rain():
+    """Rain is a steady attenuation (``in_reference``): the normalised metrics' reference is the
+    clear camera's image times the rain's round-trip transmittance, so a noise-free rainy run
+    scores as perfect as a noise-free foggy one."""
+    n = 16
+    scene = Sphere().render(Camera(n))
+    rain = Rain(rate_mm_per_h=500.0, extent_mm=float("inf"))
+    assert rain.in_reference is True
+    sim = Simulator(forward_model(extra=[rain]))
+    acq = sim.acquire(scene, np.arange(n * n), n, np.random.default_rng(0))
+    clear_ref = Simulator().reference_image(scene)
+    t_rain = rain.transmittance(Exposure.static(scene, PhotonBudget()))
+    assert np.ptp(t_rain[scene.mask]) > 1e-4  # the attenuation differs across the object
+    assert acq.reference == pytest.approx(clear_ref * t_rain, rel=1e-12, abs=1e-15)
+    # with fog too: the rain multiplies the foggy reference, and the veil is added on top
+    fog = MeasuredFog(beta_per_m=2.0, backscatter_gain=0.01)
+    foggy_ref = Simulator(forward_model(fog=fog)).reference_image(scene)
+    wet_foggy = Simulator(forward_model(fog=fog, extra=[rain])).reference_image(scene)
+    veil = foggy_ref - Simulator(forward_model(fog=MeasuredFog(beta_per_m=2.0, backscatter_gain=0.0))).reference_image(
+        scene
+    )
+    assert wet_foggy == pytest.approx((foggy_ref - veil) * t_rain + veil, rel=1e-12, abs=1e-15)
+    # the normalised metrics: perfect against the reference with the rain, not against the one without
+    img = FWHTSolver().solve(acq)
+    metrics = ImageMetrics()
+    assert metrics.compute(Products(scene, acq, img))["psnr"] >= 100.0
+    assert metrics.score(scene.radiance, img.data, clear_ref)["psnr"] < 100.0
 
 
 def test_bad_rate_names_its_key():
@@ -71,6 +106,9 @@ def test_the_installed_plugin_adds_the_effect_through_the_config():
     assert wet.products.acquisition.info["effects"] == "fog,rain,backscatter"
     assert wet.derived["rain_rate_mm_per_h"] == 100.0
     assert wet.derived["signal_photons_per_pattern"] < dry.derived["signal_photons_per_pattern"]
+    # the reference the run's metrics scored against has the rain in it
+    wet_ref, dry_ref = wet.products.acquisition.reference, dry.products.acquisition.reference
+    assert (wet_ref < dry_ref)[wet.products.acquisition.truth.mask].all()
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         bad = compose(
             "config", overrides=["source=simulator_rain", "source.effects.extra.0.rate_mm_per_h=-5", *overrides]

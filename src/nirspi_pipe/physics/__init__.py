@@ -8,9 +8,14 @@
   saturation, ADC).
 * :mod:`.timevarying` — background drift/flicker/wander and fog fluctuation (seeded).
 * :mod:`.range_model` — Algorithm A1 and the calibration of its free constants on Table 2.
-* :mod:`.effects` — the forward model as a chain of small effect objects (illumination, fog
-  attenuation, fog fluctuation, backscatter, background light, drift, detector, Gaussian noise),
-  the public :class:`~.effects.Effect` interface, and :func:`~.effects.forward_model`.
+* :mod:`.forward` — the forward model's typed stages: the hand-offs (``ImageState``, ``Readings``,
+  ``Output``), the protocols of image, reading and output effects and of the read-out, the
+  measurement and the ideal read-out between them.
+* :mod:`.effects` — the built-in effects (illumination, fog attenuation, fog fluctuation and trend,
+  backscatter, LED droop, background light, drift, detector read-out, Gaussian noise), the
+  :class:`~.effects.ForwardModel` that holds them by stage, and :func:`~.effects.forward_model`;
+  it re-exports :mod:`.forward`, the import path for plugin effects.
 
-The simulator (:mod:`nirspi_pipe.sources.simulator`) applies the chain the runner built from the config.
+The simulator (:mod:`nirspi_pipe.sources.simulator`) runs the forward model the runner built from
+the config.
 """

@@ -1,76 +1,123 @@
-"""The forward model as a chain of physical effects (paper §§3–5, Eqs. 5–12).
+"""The forward model in typed stages (paper §§3–5, Eqs. 5–12): the built-in effects and the chain.
 
-The simulator (:class:`nirspi_pipe.sources.simulator.Simulator`) is an ordered tuple of effects;
-:func:`forward_model` builds the chain that the config groups ``fog``, ``illumination`` and
-``detector`` enable. An effect that is off is not in the chain, so it costs nothing.
+The simulator (:class:`nirspi_pipe.sources.simulator.Simulator`) runs a :class:`ForwardModel`;
+:func:`forward_model` builds the one that the config groups ``fog``, ``illumination`` and
+``detector`` enable. An effect that is off is not in it, so it costs nothing.
 
-The effect interface
---------------------
-An effect is any object with
+The stages
+----------
+The model runs in typed stages (:mod:`nirspi_pipe.physics.forward` defines the hand-offs and the
+protocols; they are re-exported here, the import path for plugins)::
 
-* ``name: str`` — listed, in chain order, in the record (``info.source.effects``);
-* ``apply(signal: Signal, exposure: Exposure) -> Signal`` — one pure step;
+    image effects ─► measure ─► reading effects ─► read-out ─► output effects
+    ImageState        Readings                      Output
 
-and optionally ``domain`` (``"image"``, ``"readings"`` (default) or ``"output"``: where
-:func:`forward_model` places an extra effect), ``streams: tuple[int, ...]`` (the random streams
-it draws from, :meth:`Exposure.rng`) and ``dark_readings: bool`` (it needs LEDs-off reference
-readings).
-:class:`Effect` is the :class:`typing.Protocol`. A new effect (device optics, an LED droop, rain)
-is one small frozen dataclass and one config (see docs/plugins.md).
+1. **image** (:class:`ImageEffect`: ``apply(ImageState, Exposure) -> ImageState``): ``image_e``
+   (e⁻ per pixel from the active light) and the fog (:class:`FogPath`: round-trip optical depth per
+   pixel, and its per-reading scale when the fog fluctuates);
+2. :func:`measure`: the split patterns measure ``image_e ⊙ e^{−τ}``;
+3. **readings** (:class:`ReadingEffect`: ``apply(Readings, Exposure) -> Readings``): ``pos_e``/
+   ``neg_e`` (e⁻ per reading of the split pattern pair) and the ambient charge
+   (:class:`AmbientCharge`);
+4. the read-out (:class:`ReadOut`: the photodiode, :class:`DetectorReadout`; without one,
+   :func:`ideal_readout`: relative radiance);
+5. **output** (:class:`OutputEffect`: ``apply(Output, Exposure) -> Output``): ``y_pos``/``y_neg``
+   in detector units (ADC counts, or relative radiance for the ideal detector) with their ``gain``.
 
-The signal passes through three domains, in order; an effect works in one of them and moves the
-signal on with :meth:`Signal.measured` or :meth:`Signal.read_out` when it needs to:
+Every effect has a ``name`` and declares its stage (``domain``); image and reading effects declare
+``in_reference`` (part of the noise-free reference the normalised metrics score against,
+:meth:`ForwardModel.reference_e`), and may declare ``streams: tuple[int, ...]`` (the random
+streams they draw from, :meth:`Exposure.rng`). A new effect (device optics, an LED droop, rain) is
+one small frozen dataclass and one config (docs/plugins.md).
 
-1. **image**: ``image_e`` (e⁻ per pixel from the active light), ``optical_depth`` (round-trip,
-   per pixel) and its per-reading scale (fog fluctuation);
-2. **readings**: ``pos_e``/``neg_e`` (e⁻ per reading of the split pattern pair) and the
-   background charge ``bg_pos``/``bg_neg``/``bg_dark``;
-3. **output**: ``y_pos``/``y_neg`` in detector units (ADC counts, or relative radiance for the
-   ideal detector) with their ``gain``.
+Built-in effects, in the order :func:`forward_model` chains them (name, class, what enables it,
+whether it is in the reference):
 
-Built-in effects, in the order :func:`forward_model` chains them:
+* image stage
 
-======================  ==========================  ==============================================
-effect                  enabled by                  what it does
-======================  ==========================  ==============================================
-``budget``              ``detector=ingaas``          1/r² fall-off per pixel, LED power, lens, QE
-                                                     (Eqs. 10–11): :class:`Illumination`
-``fog``                 ``fog=chamber|measured``     e^{−2βr} per pixel, round trip (Eq. 6):
-                                                     :class:`FogAttenuation`
-``fog_fluctuation``     ``fog.fluctuation_rel > 0``  β(t) = β f(t) per reading: :class:`FogFluctuation`
-``fog_trend``           ``fog.trend_rel != 0``       β(t) = β (1 + rel t/T): :class:`FogTrend`
-``backscatter``         ``fog.backscatter_gain > 0`` veil of the lit fog (Eq. 12): :class:`Backscatter`
-``led_droop``           ``source.effects.led_droop…``  LED power droop per reading: :class:`LedDroop`
-``background``          ``illumination.klux > 0``    ambient charge (Eqs. 7, 10–11):
-                                                     :class:`BackgroundLight`
-``background_drift``    ``illumination.drift…``      drift, flicker, wander: :class:`BackgroundDrift`
-``detector``            ``detector=ingaas``          shot/dark/read noise, saturation, ADC:
-                                                     :class:`DetectorReadout`
-``gaussian_noise``      ``source.effects.noise_rel``  idealised Gaussian noise: :class:`GaussianNoise`
-======================  ==========================  ==============================================
+  - ``budget``, :class:`Illumination` (``detector=ingaas``): 1/r² fall-off per pixel, LED power,
+    lens, QE (Eqs. 10–11); in the reference;
+  - ``fog``, :class:`FogAttenuation` (``fog=chamber|measured``): e^{−2βr} per pixel, round trip
+    (Eq. 6); in the reference;
+  - ``fog_fluctuation``, :class:`FogFluctuation` (``fog.fluctuation_rel > 0``): β(t) = β f(t)
+    per reading; not in the reference;
+  - ``fog_trend``, :class:`FogTrend` (``fog.trend_rel != 0``): β(t) = β (1 + rel t/T); not in
+    the reference;
+
+* readings stage
+
+  - ``backscatter``, :class:`Backscatter` (``fog.backscatter_gain > 0``): veil of the lit fog
+    (Eq. 12); in the reference (its steady veil);
+  - ``led_droop``, :class:`LedDroop` (``source.effects.led_droop_rel != 0``): LED power droop per
+    reading; not in the reference;
+  - ``background``, :class:`BackgroundLight` (``illumination.klux > 0``): ambient charge
+    (Eqs. 7, 10–11); not in the reference (it cancels in the split difference);
+  - ``background_drift``, :class:`BackgroundDrift` (``illumination.drift…``): drift, flicker,
+    wander; not in the reference;
+
+* read-out: ``detector``, :class:`DetectorReadout` (``detector=ingaas``): shot/dark/read noise,
+  saturation, ADC;
+* output stage: ``gaussian_noise``, :class:`GaussianNoise` (``source.effects.noise_rel > 0``):
+  idealised Gaussian noise.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from functools import cached_property
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar, Literal, cast
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.patterns.hadamard import fwht2
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.detector import Photodiode
+from nirspi_pipe.physics.forward import (
+    STAGES,
+    AmbientCharge,
+    AnyEffect,
+    Effect,
+    Exposure,
+    FogPath,
+    ImageEffect,
+    ImageState,
+    Output,
+    OutputEffect,
+    ReadingEffect,
+    Readings,
+    ReadOut,
+    ReferenceReadingEffect,
+    ideal_readout,
+    measure,
+    modulated_split,
+    split_measure,
+    stage_of,
+)
 from nirspi_pipe.physics.light import Background
 
 __all__ = [
-    "Effect",
+    # the stages (nirspi_pipe.physics.forward)
     "Exposure",
     "FogPath",
-    "Signal",
+    "ImageState",
+    "AmbientCharge",
+    "Readings",
+    "Output",
+    "Effect",
+    "ImageEffect",
+    "ReadingEffect",
+    "ReferenceReadingEffect",
+    "ReadOut",
+    "OutputEffect",
+    "AnyEffect",
+    "STAGES",
+    "stage_of",
+    "measure",
+    "ideal_readout",
+    "split_measure",
+    "modulated_split",
+    # the built-in effects and the chain
     "Illumination",
     "FogAttenuation",
     "FogFluctuation",
@@ -81,259 +128,9 @@ __all__ = [
     "BackgroundDrift",
     "DetectorReadout",
     "GaussianNoise",
+    "ForwardModel",
     "forward_model",
-    "split_measure",
-    "modulated_split",
 ]
-
-
-def split_measure(radiance: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free split measurements of ``radiance`` for the given flat pattern indices.
-
-    Pattern ``P_k`` (±1) is shown as ``(1 + P_k)/2`` and ``(1 − P_k)/2``; with ``c_k = Σ P_k O``
-    (Eq. 1, α = 1) and ``S = Σ O`` the two readings are ``(S + c_k)/2`` and ``(S − c_k)/2``.
-    Units: radiance × pixels. Cost ``O(N log N)`` for all patterns at once.
-    """
-    coeffs = fwht2(radiance).ravel()[np.asarray(indices, dtype=np.int64)]
-    total = float(radiance.sum())
-    return 0.5 * (total + coeffs), 0.5 * (total - coeffs)
-
-
-def modulated_split(
-    base: np.ndarray, x: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray, indices: np.ndarray, tol: float = 1e-12
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split readings of ``base ⊙ exp(−c x)`` where the scalar ``c`` changes per reading.
-
-    ``pos_k = Σ (1 + P_k)/2 ⊙ base ⊙ e^{−c_pos[k] x}``, ``neg_k`` likewise with ``(1 − P_k)/2``
-    and ``c_neg[k]``. This is how a fog density that fluctuates during the acquisition
-    (``β(t) = β f(t)``) acts on every pattern without building the patterns: around the
-    base-weighted mean ``x₀``, ``e^{−c x} = e^{−c x₀} Σ_j (−c)^j (x − x₀)^j / j!``, one transform per
-    term, truncated when the remainder bound is below ``tol`` (a handful of terms in practice).
-    When ``|c (x − x₀)|`` exceeds 8 the series is replaced by exact transforms at 65 levels of
-    ``c`` with linear interpolation between them.
-    """
-    import math
-
-    idx = np.asarray(indices, dtype=np.int64)
-    c_pos = np.asarray(c_pos, dtype=np.float64)
-    c_neg = np.asarray(c_neg, dtype=np.float64)
-    w = np.abs(base)
-    x = np.where(w > 0, x, 0.0)
-    x0 = float((w * x).sum() / w.sum()) if w.sum() > 0 else 0.0
-    dx = np.where(w > 0, x - x0, 0.0)
-    cmax = float(max(np.abs(c_pos).max(initial=0.0), np.abs(c_neg).max(initial=0.0)))
-    amp = cmax * float(np.abs(dx).max(initial=0.0))
-    if amp <= 8.0:
-        pos = np.zeros(idx.size)
-        neg = np.zeros(idx.size)
-        term = base.astype(np.float64)
-        w_pos = np.ones(idx.size)  # (−c)^j, updated in place
-        w_neg = np.ones(idx.size)
-        j = 0
-        while True:
-            f = fwht2(term).ravel()[idx]
-            s = float(term.sum())
-            pos += w_pos * (s + f)
-            neg += w_neg * (s - f)
-            bound = amp ** (j + 1) / math.factorial(j + 1) * math.exp(amp)
-            if bound < tol or j >= 60:
-                break
-            j += 1
-            term = term * dx / j
-            w_pos *= -c_pos
-            w_neg *= -c_neg
-        pos *= 0.5
-        neg *= 0.5
-        return pos * np.exp(-c_pos * x0), neg * np.exp(-c_neg * x0)
-    both = np.concatenate([c_pos, c_neg])
-    levels = np.linspace(both.min(), both.max(), 65)
-    f_lv = np.empty((levels.size, idx.size))
-    s_lv = np.empty(levels.size)
-    for i, c in enumerate(levels):
-        img = base * np.exp(-c * x)
-        f_lv[i] = fwht2(img).ravel()[idx]
-        s_lv[i] = img.sum()
-
-    def interp(c: np.ndarray, sign: float) -> np.ndarray:
-        pos_in = np.clip(np.searchsorted(levels, c) - 1, 0, levels.size - 2)
-        t = (c - levels[pos_in]) / np.maximum(levels[pos_in + 1] - levels[pos_in], 1e-300)
-        k = np.arange(idx.size)
-        lo = 0.5 * (s_lv[pos_in] + sign * f_lv[pos_in, k])
-        hi = 0.5 * (s_lv[pos_in + 1] + sign * f_lv[pos_in + 1, k])
-        return (1 - t) * lo + t * hi
-
-    return interp(c_pos, 1.0), interp(c_neg, -1.0)
-
-
-# --------------------------------------------------------------------------------------------
-# What flows through the chain
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Exposure:
-    """What is fixed during one acquisition; every effect may read it, none changes it.
-
-    Attributes:
-        scene: the rendered scene.
-        indices: ``(m,)`` flat pattern indices, in measurement order.
-        n: pattern side (pixels).
-        t_pos, t_neg: ``(m,)`` times of the positive/negative half-pattern readings, s.
-        t_dark: ``(n_dark,)`` times of the LEDs-off reference readings, s.
-        budget: the camera's photon budget (Eqs. 10–11); the default one for an ideal detector.
-        rngs: the independent random streams of the effects (:meth:`rng`).
-        rng_main: the source's own generator (the idealised Gaussian noise draws from it).
-    """
-
-    scene: Any
-    indices: np.ndarray
-    n: int
-    t_pos: np.ndarray
-    t_neg: np.ndarray
-    t_dark: np.ndarray
-    budget: PhotonBudget
-    rngs: tuple[np.random.Generator, ...] = ()
-    rng_main: np.random.Generator | None = None
-
-    @property
-    def m(self) -> int:
-        """Number of ±1 measurements (pattern pairs)."""
-        return int(self.indices.size)
-
-    @property
-    def n_dark(self) -> int:
-        """Number of LEDs-off reference readings."""
-        return int(self.t_dark.size)
-
-    @property
-    def readings(self) -> int:
-        """All readings taken: ``2 m + n_dark``."""
-        return 2 * self.m + self.n_dark
-
-    @cached_property
-    def ref_e(self) -> float:
-        """e⁻ per unit relative radiance per pixel at the scene's nominal distance in clear air."""
-        return float(self.budget.white_electrons(float(self.scene.distance_m))) / (self.n * self.n)
-
-    @cached_property
-    def range_m(self) -> np.ndarray:
-        """``(n, n)`` distance from the camera to the object along each pixel's ray, m (inf off it)."""
-        u, v = self.scene.camera.pixel_coords(1)
-        finite = np.isfinite(self.scene.depth_m)
-        return np.where(finite, self.scene.depth_m * np.sqrt(1.0 + u[..., 0] ** 2 + v[..., 0] ** 2), np.inf)
-
-    def rng(self, stream: int) -> np.random.Generator:
-        """Random stream ``stream`` (0: fog fluctuation, 1: background drift, 2: detector; a
-        plugin effect takes its own number >= 3 and declares it in ``streams``)."""
-        if stream >= len(self.rngs):
-            raise IndexError(f"random stream {stream} was not declared by any effect in the chain")
-        return self.rngs[stream]
-
-
-@dataclass(frozen=True)
-class FogPath:
-    """The fog between camera and object, as the fog effect set it up.
-
-    Attributes:
-        beta_per_m: extinction coefficient β, 1/m.
-        path_m: ``(n, n)`` fog path along each ray, ``min(range, extent)``, m.
-        extent_m: fog path length of the chamber, m.
-        albedo: single-scattering albedo ``Q_sca/Q_ext``.
-    """
-
-    beta_per_m: float
-    path_m: np.ndarray
-    extent_m: float
-    albedo: float
-
-
-@dataclass(frozen=True)
-class Signal:
-    """The acquisition in progress (see the module docstring for the three domains).
-
-    Charges are photoelectrons (e⁻). ``derived`` collects the physical quantities for the record;
-    ``conditions`` the keyword conditions of Algorithm A1 (:func:`range_model.max_distance_m`).
-    """
-
-    image_e: np.ndarray
-    optical_depth: np.ndarray | None = None
-    depth_scale_pos: np.ndarray | None = None
-    depth_scale_neg: np.ndarray | None = None
-    medium: FogPath | None = None
-    pos_e: np.ndarray | None = None
-    neg_e: np.ndarray | None = None
-    background_e: float = 0.0
-    bg_pos: float | np.ndarray | None = None
-    bg_neg: float | np.ndarray | None = None
-    bg_dark: float | np.ndarray | None = None
-    y_pos: np.ndarray | None = None
-    y_neg: np.ndarray | None = None
-    gain: float = 1.0
-    noise_e: float = 0.0
-    saturated: int = 0
-    derived: Mapping[str, Any] = field(default_factory=dict)
-    conditions: Mapping[str, float] = field(default_factory=dict)
-
-    def with_derived(self, **values: Any) -> Signal:
-        """The same signal with more quantities for the record."""
-        return replace(self, derived={**self.derived, **values})
-
-    @property
-    def beta_per_m(self) -> float:
-        """β of the medium, 1/m (0 in clear air)."""
-        return self.medium.beta_per_m if self.medium is not None else 0.0
-
-    def measured(self, exposure: Exposure) -> Signal:
-        """Move from the image domain to readings: the split patterns measure the attenuated
-        image (``image_e ⊙ e^{−τ}``, with a per-reading scale of ``τ`` when the fog fluctuates)."""
-        if self.pos_e is not None:
-            return self
-        idx = exposure.indices
-        if self.optical_depth is None:
-            pos, neg = split_measure(self.image_e, idx)
-        elif self.depth_scale_pos is None or self.depth_scale_neg is None:
-            pos, neg = split_measure(self.image_e * np.exp(-self.optical_depth), idx)
-        else:
-            pos, neg = modulated_split(
-                self.image_e, self.optical_depth, self.depth_scale_pos, self.depth_scale_neg, idx
-            )
-        return replace(self, pos_e=pos, neg_e=neg)
-
-    @property
-    def signal_mean_e(self) -> float:
-        """Mean active-light charge per reading (before background), e⁻."""
-        if self.pos_e is None or self.neg_e is None or self.pos_e.size == 0:
-            return 0.0
-        return float(0.5 * (self.pos_e.mean() + self.neg_e.mean()))
-
-    def total_e(self) -> tuple[np.ndarray, np.ndarray]:
-        """Charge per reading, active light plus background, e⁻ (after :meth:`measured`)."""
-        if self.pos_e is None or self.neg_e is None:
-            raise RuntimeError("total_e() before measured()")
-        if self.bg_pos is None or self.bg_neg is None:
-            return self.pos_e, self.neg_e
-        return self.pos_e + self.bg_pos, self.neg_e + self.bg_neg
-
-    def read_out(self, exposure: Exposure) -> Signal:
-        """Move to the output domain. Without a detector effect the readings are relative
-        radiance: charge divided by :attr:`Exposure.ref_e`, gain 1, no noise."""
-        if self.y_pos is not None:
-            return self
-        s = self.measured(exposure)
-        pos, neg = s.total_e()
-        ref = exposure.ref_e
-        return replace(s, y_pos=pos / ref, y_neg=neg / ref, gain=1.0)
-
-
-@runtime_checkable
-class Effect(Protocol):
-    """One physical effect of the forward model (module docstring). ``name`` may be a class
-    attribute (``name: ClassVar[str] = "rain"``) or a field."""
-
-    @property
-    def name(self) -> str: ...
-
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal: ...
 
 
 def _check_rel(key: str, value: float, lo: float, hi: float, what: str) -> None:
@@ -342,7 +139,7 @@ def _check_rel(key: str, value: float, lo: float, hi: float, what: str) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# The built-in effects
+# The built-in effects: image stage
 # --------------------------------------------------------------------------------------------
 
 
@@ -350,22 +147,22 @@ def _check_rel(key: str, value: float, lo: float, hi: float, what: str) -> None:
 class Illumination:
     """The active light and photon budget: each pixel gets ``ρ N_white(r)/n²`` e⁻ with the
     1/r² fall-off of its own range ``r`` (Eqs. 10–11). Without it (ideal detector) every pixel
-    gets ``ρ N_white(z_nom)/n²``: no fall-off across the object."""
+    gets ``ρ N_white(z_nom)/n²``: no fall-off across the object. In the reference."""
 
     budget: PhotonBudget = field(default_factory=PhotonBudget)
 
     name: ClassVar[str] = "budget"
-    #: part of the noise-free static image the metrics compare against (``Simulator.reference_image``)
-    reference: ClassVar[bool] = True
+    domain: ClassVar[Literal["image"]] = "image"
+    in_reference: ClassVar[bool] = True
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         r = exposure.range_m
         finite = np.isfinite(r)
         n2 = exposure.n * exposure.n
         img = (
             exposure.scene.radiance * np.where(finite, self.budget.white_electrons(np.where(finite, r, 1.0)), 0.0) / n2
         )
-        return replace(signal, image_e=img)
+        return replace(image, image_e=img)
 
 
 @dataclass(frozen=True)
@@ -373,44 +170,60 @@ class FogAttenuation:
     """Beer–Lambert on the round trip through the fog: optical depth ``2 β min(r, extent)`` per
     pixel (Eq. 6). The fog fills the chamber from the camera to ``extent`` (35 cm, §4); beyond it
     the air is clear. ``fog`` is a fog model of :mod:`nirspi_pipe.physics.fog` (``extinction_per_m``,
-    ``extent_m``, ``derived()``)."""
+    ``extent_m``, ``derived()``). In the reference."""
 
     fog: Any
 
     name: ClassVar[str] = "fog"
-    reference: ClassVar[bool] = True
+    domain: ClassVar[Literal["image"]] = "image"
+    in_reference: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not hasattr(type(self.fog), "extinction_per_m") or not hasattr(self.fog, "extent_m"):
             raise ConfigError("fog", self.fog, "a fog model exposing extinction_per_m and extent_m (conf/fog)")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         fog = self.fog
         beta = float(fog.extinction_per_m)
         r = exposure.range_m
         path = np.minimum(r, float(fog.extent_m))  # the fog path of each ray (inf off the object)
         x = np.where(np.isfinite(r), 2.0 * beta * np.where(np.isfinite(path), path, 0.0), 0.0)
         albedo = float(getattr(fog, "single_scattering_albedo", 1.0))
-        medium = FogPath(beta, np.minimum(r, fog.extent_m), float(fog.extent_m), albedo)
+        medium = FogPath(
+            beta_per_m=beta,
+            path_m=np.minimum(r, fog.extent_m),
+            extent_m=float(fog.extent_m),
+            albedo=albedo,
+            optical_depth=x,
+        )
         cond = {
-            **signal.conditions,
+            **image.conditions,
             "backscatter_gain": float(getattr(fog, "backscatter_gain", 0.0)),
             "fog_extent_m": float(fog.extent_m),
             "albedo": albedo,
         }
         derived = fog.derived() if hasattr(fog, "derived") else {"beta_per_m": beta}
-        return replace(signal, optical_depth=x, medium=medium, conditions=cond).with_derived(**derived)
+        return replace(image, medium=medium, conditions=cond).with_derived(**derived)
+
+
+def _fog_of(image: ImageState, effect: str) -> FogPath:
+    if image.medium is None:
+        raise ValueError(f"{effect} must follow the fog effect in the chain")
+    return image.medium
 
 
 @dataclass(frozen=True)
 class FogFluctuation:
     """The fog density changes during the acquisition: ``β(t) = β f(t)`` with ``f = 1 + OU``
-    (Ornstein–Uhlenbeck of relative std ``rel`` and correlation time ``time_s``), per reading."""
+    (Ornstein–Uhlenbeck of relative std ``rel`` and correlation time ``time_s``), per reading.
+    Not in the reference (it changes during the acquisition)."""
 
     rel: float
     time_s: float = 0.05
 
     name: ClassVar[str] = "fog_fluctuation"
+    domain: ClassVar[Literal["image"]] = "image"
+    in_reference: ClassVar[bool] = False
     streams: ClassVar[tuple[int, ...]] = (0,)
 
     def __post_init__(self) -> None:
@@ -418,14 +231,13 @@ class FogFluctuation:
         if not np.isfinite(self.time_s) or self.time_s <= 0:
             raise ConfigError("fluctuation_time_s", self.time_s, "a correlation time in s > 0")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         from nirspi_pipe.physics.timevarying import fog_factor
 
-        if signal.optical_depth is None:
-            raise ValueError("fog_fluctuation must follow the fog effect in the chain")
+        med = _fog_of(image, "fog_fluctuation")
         m = exposure.m
         f_all = fog_factor(np.concatenate([exposure.t_pos, exposure.t_neg]), exposure.rng(0), self.rel, self.time_s)
-        return replace(signal, depth_scale_pos=f_all[:m], depth_scale_neg=f_all[m:]).with_derived(
+        return replace(image, medium=replace(med, fluctuation=(f_all[:m], f_all[m:]))).with_derived(
             fog_factor_std=float(np.std(f_all))
         )
 
@@ -435,64 +247,45 @@ class FogTrend:
     """The fog density trends during the acquisition: ``β(t) = β (1 + rel · t/T)`` per reading,
     linear from the first reading (t = 0) to the last (t = T), multiplying any fluctuation. A
     multiplicative drift: its error depends on the image, and the scan order decides which
-    coefficients see the early and the late density (issue 11). ``rel`` is ``fog.trend_rel``."""
+    coefficients see the early and the late density (issue 11). ``rel`` is ``fog.trend_rel``.
+    Not in the reference."""
 
     rel: float
 
     name: ClassVar[str] = "fog_trend"
+    domain: ClassVar[Literal["image"]] = "image"
+    in_reference: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
         _check_rel("trend_rel", self.rel, -0.9, 10.0, "a relative change over the acquisition in [-0.9, 10]")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
-        if signal.optical_depth is None:
-            raise ValueError("fog_trend must follow the fog effect in the chain")
+    def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
+        med = _fog_of(image, "fog_trend")
         t_end = float(max(exposure.t_neg.max(initial=0.0), exposure.t_dark.max(initial=0.0)))
         scale = 1.0 / t_end if t_end > 0 else 0.0
         f_pos = 1.0 + self.rel * exposure.t_pos * scale
         f_neg = 1.0 + self.rel * exposure.t_neg * scale
-        if signal.depth_scale_pos is not None and signal.depth_scale_neg is not None:
-            f_pos, f_neg = f_pos * signal.depth_scale_pos, f_neg * signal.depth_scale_neg
-        return replace(signal, depth_scale_pos=f_pos, depth_scale_neg=f_neg).with_derived(fog_trend_rel=self.rel)
+        if med.fluctuation is not None:
+            f_pos, f_neg = f_pos * med.fluctuation[0], f_neg * med.fluctuation[1]
+        return replace(image, medium=replace(med, fluctuation=(f_pos, f_neg))).with_derived(fog_trend_rel=self.rel)
 
 
-@dataclass(frozen=True)
-class LedDroop:
-    """The LED array's output droops as the junctions warm during the acquisition:
-    ``P(t) = P₀ (1 + rel (1 − e^{−t/τ}))`` (``rel < 0``: droop), on the active light of every
-    reading (object and fog veil; not the background). InGaAsP LEDs lose output with junction
-    temperature (a negative temperature coefficient of optical power, e.g. Thorlabs LED1550E
-    datasheet); the amount and τ here are study values (``source.effects.led_droop_rel``,
-    ``led_droop_time_s``), not measured on the paper's camera."""
-
-    rel: float
-    time_s: float = 0.05
-
-    name: ClassVar[str] = "led_droop"
-
-    def __post_init__(self) -> None:
-        _check_rel("led_droop_rel", self.rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
-        if not np.isfinite(self.time_s) or self.time_s <= 0:
-            raise ConfigError("led_droop_time_s", self.time_s, "a thermal time constant in s > 0")
-
-    def factor(self, t_s: np.ndarray) -> np.ndarray:
-        """Relative LED power at times ``t_s`` (s), dimensionless."""
-        return 1.0 + self.rel * -np.expm1(-np.asarray(t_s, dtype=np.float64) / self.time_s)
-
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
-        s = signal.measured(exposure)
-        assert s.pos_e is not None and s.neg_e is not None
-        return replace(s, pos_e=s.pos_e * self.factor(exposure.t_pos), neg_e=s.neg_e * self.factor(exposure.t_neg))
+# --------------------------------------------------------------------------------------------
+# The built-in effects: readings stage
+# --------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class Backscatter:
     """The veil of light scattered back by the lit fog (Eq. 12): ``κ N_white(1 m) (1 − e^{−β ℓ})``
-    on every reading, with ``ℓ`` the fog path of each pixel and κ = ``gain``."""
+    on every reading, with ``ℓ`` the fog path of each pixel and κ = ``gain``. In the reference:
+    its steady veil is added per pixel (:meth:`reference_e`)."""
 
     gain: float
 
     name: ClassVar[str] = "backscatter"
+    domain: ClassVar[Literal["readings"]] = "readings"
+    in_reference: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         _check_rel("backscatter_gain", self.gain, 0.0, np.inf, "a factor >= 0")
@@ -505,25 +298,62 @@ class Backscatter:
         veil = backscatter(self.gain, white_1m, medium.beta_per_m, medium.path_m)
         return np.asarray(veil, dtype=np.float64) * np.ones(exposure.scene.radiance.shape)
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
-        med = signal.medium
+    def reference_e(self, image_e: np.ndarray, image: ImageState, exposure: Exposure) -> np.ndarray:
+        """The reference with the steady veil (:meth:`veil_e`) added per pixel, e⁻."""
+        if image.medium is None:
+            return image_e
+        return image_e + self.veil_e(image.medium, exposure)
+
+    def apply(self, readings: Readings, exposure: Exposure) -> Readings:
+        med = readings.medium
         if med is None:
             raise ValueError("backscatter must follow the fog effect in the chain")
         idx = exposure.indices
         white_1m = float(exposure.budget.white_electrons(1.0)) / (exposure.n * exposure.n)
         shape = exposure.scene.radiance.shape
-        s = signal.measured(exposure)
-        if s.depth_scale_pos is None or s.depth_scale_neg is None:
+        if med.fluctuation is None:
             veil_pos, veil_neg = split_measure(self.veil_e(med, exposure), idx)
         else:  # Eq. (12) with β(t): κ N_white(1 m) (1 − e^{−β(t) ℓ})
             k = np.full(shape, self.gain * white_1m)
             a_pos, a_neg = split_measure(k, idx)
-            b_pos, b_neg = modulated_split(k, med.beta_per_m * med.path_m, s.depth_scale_pos, s.depth_scale_neg, idx)
+            b_pos, b_neg = modulated_split(k, med.beta_per_m * med.path_m, *med.fluctuation, idx)
             veil_pos, veil_neg = a_pos - b_pos, a_neg - b_neg
-        assert s.pos_e is not None and s.neg_e is not None
         per_pattern = float(0.5 * (veil_pos.mean() + veil_neg.mean())) if exposure.m else 0.0
-        return replace(s, pos_e=s.pos_e + veil_pos, neg_e=s.neg_e + veil_neg).with_derived(
+        return replace(readings, pos_e=readings.pos_e + veil_pos, neg_e=readings.neg_e + veil_neg).with_derived(
             backscatter_photons_per_pattern=per_pattern
+        )
+
+
+@dataclass(frozen=True)
+class LedDroop:
+    """The LED array's output droops as the junctions warm during the acquisition:
+    ``P(t) = P₀ (1 + rel (1 − e^{−t/τ}))`` (``rel < 0``: droop), on the active light of every
+    reading (object and fog veil; not the background). InGaAsP LEDs lose output with junction
+    temperature (a negative temperature coefficient of optical power, e.g. Thorlabs LED1550E
+    datasheet); the amount and τ here are study values (``source.effects.led_droop_rel``,
+    ``led_droop_time_s``), not measured on the paper's camera. Not in the reference."""
+
+    rel: float
+    time_s: float = 0.05
+
+    name: ClassVar[str] = "led_droop"
+    domain: ClassVar[Literal["readings"]] = "readings"
+    in_reference: ClassVar[bool] = False
+
+    def __post_init__(self) -> None:
+        _check_rel("led_droop_rel", self.rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
+        if not np.isfinite(self.time_s) or self.time_s <= 0:
+            raise ConfigError("led_droop_time_s", self.time_s, "a thermal time constant in s > 0")
+
+    def factor(self, t_s: np.ndarray) -> np.ndarray:
+        """Relative LED power at times ``t_s`` (s), dimensionless."""
+        return 1.0 + self.rel * -np.expm1(-np.asarray(t_s, dtype=np.float64) / self.time_s)
+
+    def apply(self, readings: Readings, exposure: Exposure) -> Readings:
+        return replace(
+            readings,
+            pos_e=readings.pos_e * self.factor(exposure.t_pos),
+            neg_e=readings.neg_e * self.factor(exposure.t_neg),
         )
 
 
@@ -531,17 +361,20 @@ class Backscatter:
 class BackgroundLight:
     """Ambient light (Eqs. 7, 10–11): the same charge on every reading, from the scene's mean
     reflectance (object and surround, seen through the fog's airlight by Koschmieder when the
-    fog effect is in the chain before it). ``background`` is a
-    :class:`~nirspi_pipe.physics.light.Background`."""
+    fog effect is in the chain). ``background`` is a
+    :class:`~nirspi_pipe.physics.light.Background`. Not in the reference: a steady background
+    cancels in the split difference."""
 
     background: Background
 
     name: ClassVar[str] = "background"
+    domain: ClassVar[Literal["readings"]] = "readings"
+    in_reference: ClassVar[bool] = False
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def apply(self, readings: Readings, exposure: Exposure) -> Readings:
         from nirspi_pipe.physics.fog import koschmieder_radiance
 
-        bg, scene, med = self.background, exposure.scene, signal.medium
+        bg, scene, med = self.background, exposure.scene, readings.medium
         cov = scene.coverage
         if med is not None:
             path = np.where(np.isfinite(med.path_m), med.path_m, 0.0)
@@ -551,14 +384,10 @@ class BackgroundLight:
             obj, wall = scene.reflectance, np.asarray(bg.surround_reflectance)
         refl = float(np.mean(cov * obj + (1.0 - cov) * wall))
         bg_e = float(exposure.budget.ambient_electrons(bg.photon_irradiance, refl))
-        s = signal.measured(exposure)
         return replace(
-            s,
-            background_e=bg_e,
-            bg_pos=bg_e,
-            bg_neg=bg_e,
-            bg_dark=bg_e,
-            conditions={**s.conditions, "photon_irradiance": float(bg.photon_irradiance)},
+            readings,
+            ambient=AmbientCharge.steady(bg_e),
+            conditions={**readings.conditions, "photon_irradiance": float(bg.photon_irradiance)},
         ).with_derived(klux=float(bg.klux), background_irradiance_w_m2=float(bg.irradiance_w_m2))
 
 
@@ -566,7 +395,7 @@ class BackgroundLight:
 class BackgroundDrift:
     """The background level changes during the acquisition: ``1 + drift·t + flicker·sin(2πft + φ)
     + OU`` per reading (:func:`~nirspi_pipe.physics.timevarying.background_factor`), so it no
-    longer cancels exactly in ``y_pos − y_neg``."""
+    longer cancels exactly in ``y_pos − y_neg``. Not in the reference."""
 
     drift_rel_per_s: float = 0.0
     flicker_rel: float = 0.0
@@ -575,12 +404,15 @@ class BackgroundDrift:
     wander_time_s: float = 0.1
 
     name: ClassVar[str] = "background_drift"
+    domain: ClassVar[Literal["readings"]] = "readings"
+    in_reference: ClassVar[bool] = False
     streams: ClassVar[tuple[int, ...]] = (1,)
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def apply(self, readings: Readings, exposure: Exposure) -> Readings:
         from nirspi_pipe.physics.timevarying import background_factor
 
-        if signal.bg_pos is None:
+        amb = readings.ambient
+        if amb is None:
             raise ValueError("background_drift must follow the background effect in the chain")
         m = exposure.m
         fac = background_factor(
@@ -592,17 +424,22 @@ class BackgroundDrift:
             self.wander_rel,
             self.wander_time_s,
         )
-        bg_e = signal.background_e
-        return replace(
-            signal, bg_pos=bg_e * fac[:m], bg_neg=bg_e * fac[m : 2 * m], bg_dark=bg_e * fac[2 * m :]
-        ).with_derived(background_factor_std=float(np.std(fac)))
+        bg_e = amb.level_e
+        drifting = replace(amb, pos=bg_e * fac[:m], neg=bg_e * fac[m : 2 * m], dark=bg_e * fac[2 * m :])
+        return replace(readings, ambient=drifting).with_derived(background_factor_std=float(np.std(fac)))
+
+
+# --------------------------------------------------------------------------------------------
+# The read-out and the output stage
+# --------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
 class DetectorReadout:
     """The InGaAs photodiode reads every reading: shot, dark and read noise, pedestal, saturation
     (counted and warned about, never hidden) and ADC (:class:`~nirspi_pipe.physics.detector.Photodiode`).
-    Also takes the LEDs-off reference readings and records Algorithm A1's range."""
+    Also takes the LEDs-off reference readings and records Algorithm A1's range. The read-out
+    step (:class:`ReadOut`) between the reading and the output stages."""
 
     detector: Photodiode
 
@@ -610,13 +447,12 @@ class DetectorReadout:
     streams: ClassVar[tuple[int, ...]] = (2,)
     dark_readings: ClassVar[bool] = True
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def read(self, readings: Readings, exposure: Exposure) -> Output:
         det = self.detector
         rng = exposure.rng(2)
-        s = signal.measured(exposure)
-        pos_e, neg_e = s.total_e()
+        pos_e, neg_e = readings.total_e()
         m, n_dark = exposure.m, exposure.n_dark
-        signal_mean = s.signal_mean_e
+        signal_mean = readings.signal_mean_e
         epc = det.electrons_per_count
         y_pos, sat_pos = det.read(pos_e, rng)
         y_neg, sat_neg = det.read(neg_e, rng)
@@ -626,12 +462,12 @@ class DetectorReadout:
             dark_electrons=float(det.dark_electrons),
             electrons_per_count=float(epc),
             led_count=int(exposure.budget.led_count),
-            noise_photons_per_pattern=float(det.noise_e(signal_mean + s.background_e)),
+            noise_photons_per_pattern=float(det.noise_e(signal_mean + readings.background_e)),
         )
         if det.full_scale_e is not None:
             derived["full_scale_e"] = float(det.full_scale_e)
         if n_dark:
-            bg_dark = 0.0 if s.bg_dark is None else s.bg_dark
+            bg_dark = 0.0 if readings.ambient is None else readings.ambient.dark
             dark_counts, sat_dark = det.read(np.broadcast_to(bg_dark, (n_dark,)) + 0.0, rng)
             saturated += int(sat_dark.sum())
             if m:
@@ -644,17 +480,18 @@ class DetectorReadout:
                 f"{det.full_scale_e:.3g} e-); reduce klux, LED power or move the object away",
                 stacklevel=2,
             )
-        derived.update(self._range(exposure, s))
-        return replace(
-            s,
+        derived.update(self._range(exposure, readings))
+        return Output(
             y_pos=y_pos,
             y_neg=y_neg,
             gain=exposure.ref_e / epc,
-            saturated=saturated,
+            readings=readings,
             noise_e=float(derived["noise_photons_per_pattern"]),
-        ).with_derived(**derived)
+            saturated=saturated,
+            derived={**readings.derived, **derived},
+        )
 
-    def _range(self, exposure: Exposure, signal: Signal) -> dict[str, float]:
+    def _range(self, exposure: Exposure, readings: Readings) -> dict[str, float]:
         """Alg. A1 for this configuration and the object's mean reflectance."""
         from nirspi_pipe.physics.range_model import max_distance_m
 
@@ -663,7 +500,7 @@ class DetectorReadout:
         if not obj.any():
             return {}
         refl = float(np.clip(scene.reflectance[obj].mean(), 0.0, 1.0))
-        cond = {"beta_per_m": signal.beta_per_m, **signal.conditions}
+        cond = {"beta_per_m": readings.beta_per_m, **readings.conditions}
         return {"range_max_m": max_distance_m(refl, self.detector, **cond), "range_reflectance": refl}
 
 
@@ -675,24 +512,113 @@ class GaussianNoise:
     noise_rel: float
 
     name: ClassVar[str] = "gaussian_noise"
+    domain: ClassVar[Literal["output"]] = "output"
 
     def __post_init__(self) -> None:
         _check_rel("noise_rel", self.noise_rel, 0.0, np.inf, "a relative noise level >= 0")
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
-        s = signal.read_out(exposure)
+    def apply(self, output: Output, exposure: Exposure) -> Output:
         rng = exposure.rng_main if exposure.rng_main is not None else np.random.default_rng(0)
-        assert s.y_pos is not None and s.y_neg is not None
-        sigma = self.noise_rel * 0.5 * float(exposure.scene.radiance.sum()) * s.gain
-        y_pos = s.y_pos + rng.normal(0.0, sigma, s.y_pos.shape)
-        y_neg = s.y_neg + rng.normal(0.0, sigma, s.y_neg.shape)
-        noise_e = float(np.hypot(s.noise_e, sigma * (exposure.ref_e / s.gain)))
-        return replace(s, y_pos=y_pos, y_neg=y_neg, noise_e=noise_e).with_derived(noise_sigma=float(sigma))
+        sigma = self.noise_rel * 0.5 * float(exposure.scene.radiance.sum()) * output.gain
+        y_pos = output.y_pos + rng.normal(0.0, sigma, output.y_pos.shape)
+        y_neg = output.y_neg + rng.normal(0.0, sigma, output.y_neg.shape)
+        noise_e = float(np.hypot(output.noise_e, sigma * (exposure.ref_e / output.gain)))
+        return replace(output, y_pos=y_pos, y_neg=y_neg, noise_e=noise_e).with_derived(noise_sigma=float(sigma))
 
 
 # --------------------------------------------------------------------------------------------
-# Building the chain from the config groups
+# The chain
 # --------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ForwardModel:
+    """The forward model in its stages (module docstring), each a tuple of effects of its own
+    protocol, so an effect can only stand where its type fits; the constructor also checks each
+    effect's declared stage (:func:`stage_of`), a one-line :class:`ConfigError` naming the slot.
+
+    Attributes:
+        image: image effects, in order (e.g. ``budget``, ``fog``, ``rain``).
+        readings: reading effects, in order (e.g. ``backscatter``, ``background``).
+        readout: the read-out (the photodiode, :class:`DetectorReadout`); None: the ideal one,
+            relative radiance (:func:`ideal_readout`).
+        output: output effects, in order (e.g. ``gaussian_noise``).
+    """
+
+    image: tuple[ImageEffect, ...] = ()
+    readings: tuple[ReadingEffect, ...] = ()
+    readout: ReadOut | None = None
+    output: tuple[OutputEffect, ...] = ()
+
+    def __post_init__(self) -> None:
+        for stage in STAGES:
+            effects = tuple(getattr(self, stage))
+            for i, effect in enumerate(effects):
+                if stage_of(effect, f"{stage}.{i}") != stage:
+                    raise ConfigError(f"{stage}.{i}", effect, f"an effect of the {stage} stage (domain {stage!r})")
+            object.__setattr__(self, stage, effects)  # a list from a config becomes the tuple
+        if self.readout is not None and not isinstance(self.readout, ReadOut):
+            raise ConfigError("readout", self.readout, "a read-out with a name and read(readings, exposure)")
+
+    @property
+    def effects(self) -> tuple[Effect, ...]:
+        """Every step, in the order they act (the read-out between readings and output)."""
+        readout: tuple[Effect, ...] = () if self.readout is None else (self.readout,)
+        return (*self.image, *self.readings, *readout, *self.output)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """Names of the steps, in the order they act (the record's ``info.source.effects``)."""
+        return tuple(e.name for e in self.effects)
+
+    @property
+    def n_streams(self) -> int:
+        """Number of random streams the steps declare (``streams``): the highest one plus 1."""
+        return max((s + 1 for e in self.effects for s in getattr(e, "streams", ())), default=0)
+
+    @property
+    def dark_readings(self) -> bool:
+        """Whether a step needs the LEDs-off reference readings (the physical detector)."""
+        return any(getattr(e, "dark_readings", False) for e in self.effects)
+
+    @property
+    def budget(self) -> PhotonBudget:
+        """The camera's photon budget: the illumination effect's, or the default one."""
+        return next((e.budget for e in self.image if isinstance(e, Illumination)), PhotonBudget())
+
+    def start(self, exposure: Exposure) -> ImageState:
+        """The image before any effect: the scene radiance at ``ref_e`` e⁻ per unit, per pixel."""
+        return ImageState(image_e=exposure.scene.radiance * exposure.ref_e)
+
+    def run(self, exposure: Exposure) -> Output:
+        """One acquisition: image effects, :func:`measure`, reading effects, read-out, output
+        effects."""
+        image = self.start(exposure)
+        for image_effect in self.image:
+            image = image_effect.apply(image, exposure)
+        readings = measure(image, exposure)
+        for reading_effect in self.readings:
+            readings = reading_effect.apply(readings, exposure)
+        output = ideal_readout(readings, exposure) if self.readout is None else self.readout.read(readings, exposure)
+        for output_effect in self.output:
+            output = output_effect.apply(output, exposure)
+        return output
+
+    def reference_e(self, exposure: Exposure) -> np.ndarray:
+        """``(n, n)`` the noise-free, static image, e⁻ per pixel: exactly the effects that declare
+        ``in_reference``. The image effects act on the scene with ``exposure`` (give it
+        :meth:`Exposure.static`: no readings), the fog attenuates it steadily
+        (:meth:`ImageState.steady_e`), then each reading effect adds its steady contribution
+        (:meth:`ReferenceReadingEffect.reference_e`, e.g. the backscatter veil)."""
+        image = self.start(exposure)
+        for image_effect in self.image:
+            if image_effect.in_reference:
+                image = image_effect.apply(image, exposure)
+        img = image.steady_e()
+        for reading_effect in self.readings:
+            if reading_effect.in_reference:
+                img = cast(ReferenceReadingEffect, reading_effect).reference_e(img, image, exposure)
+        return img
 
 
 def _active(model: Any) -> bool:
@@ -704,56 +630,53 @@ def forward_model(
     illumination: Background | None = None,
     detector: Any = None,
     noise_rel: float = 0.0,
-    extra: Sequence[Effect] = (),
+    extra: Sequence[AnyEffect] = (),
     led_droop_rel: float = 0.0,
     led_droop_time_s: float = 0.05,
-) -> tuple[Effect, ...]:
-    """The ordered chain of the effects that the models enable (off effects are left out).
+) -> ForwardModel:
+    """The forward model of the effects that the models enable (off effects are left out).
 
     Args:
         fog: a fog model (``fog=chamber|measured``; ``NoFog`` or None: clear air).
         illumination: the background light (0 kLux or None: none).
-        detector: ``Photodiode`` (budget + readout effects) or ``IdealDetector``/None.
+        detector: ``Photodiode`` (budget effect + read-out) or ``IdealDetector``/None.
         noise_rel: idealised Gaussian noise, relative (0: none).
         led_droop_rel, led_droop_time_s: LED power droop during the acquisition (:class:`LedDroop`;
             0: none).
-        extra: further effects (plugins), in the order given, each placed by its ``domain``:
-            ``"image"`` after the fog attenuation (before anything is measured), ``"readings"``
-            (the default) after the background light and before the detector, ``"output"`` at
-            the end.
+        extra: further effects (plugins), each placed in the stage it declares (``domain``), in
+            the order given: ``"image"`` after the fog effects, ``"readings"`` after the
+            background light, ``"output"`` at the end. An effect that declares no stage, or not
+            its protocol, is a :class:`ConfigError` naming ``extra.<i>``.
     """
     if detector is not None and not hasattr(detector, "physical"):
         raise ConfigError("detector", detector, "a detector from conf/detector (ideal, ingaas)")
     _check_rel("noise_rel", noise_rel, 0.0, np.inf, "a relative noise level >= 0")
-    placed: dict[str, list[Effect]] = {"image": [], "readings": [], "output": []}
-    for effect in extra:
-        where = getattr(effect, "domain", "readings")
-        if not isinstance(effect, Effect) or where not in placed:
-            raise ConfigError(
-                "extra", effect, "effects with a name, apply(signal, exposure) and domain image, readings or output"
-            )
-        placed[where].append(effect)
+    placed: dict[str, list[Any]] = {stage: [] for stage in STAGES}
+    for i, effect in enumerate(extra):
+        placed[stage_of(effect, f"extra.{i}")].append(effect)
     _check_rel("led_droop_rel", led_droop_rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
     physical = bool(getattr(detector, "physical", False))
-    chain: list[Effect] = []
+    image: list[ImageEffect] = []
+    readings: list[ReadingEffect] = []
+    output: list[OutputEffect] = []
     if physical:
-        chain.append(Illumination(detector.budget))
+        image.append(Illumination(detector.budget))
     if _active(fog):
-        chain.append(FogAttenuation(fog))
+        image.append(FogAttenuation(fog))
         if float(getattr(fog, "fluctuation_rel", 0.0)) > 0:
-            chain.append(FogFluctuation(float(fog.fluctuation_rel), float(fog.fluctuation_time_s)))
+            image.append(FogFluctuation(float(fog.fluctuation_rel), float(fog.fluctuation_time_s)))
         if float(getattr(fog, "trend_rel", 0.0)) != 0:
-            chain.append(FogTrend(float(fog.trend_rel)))
-    chain += placed["image"]
+            image.append(FogTrend(float(fog.trend_rel)))
+    image += placed["image"]
     if _active(fog) and float(getattr(fog, "backscatter_gain", 0.0)) > 0:
-        chain.append(Backscatter(float(fog.backscatter_gain)))
+        readings.append(Backscatter(float(fog.backscatter_gain)))
     if led_droop_rel != 0:
-        chain.append(LedDroop(float(led_droop_rel), float(led_droop_time_s)))
+        readings.append(LedDroop(float(led_droop_rel), float(led_droop_time_s)))
     if _active(illumination):
         assert illumination is not None
-        chain.append(BackgroundLight(illumination))
+        readings.append(BackgroundLight(illumination))
         if illumination.time_varying:
-            chain.append(
+            readings.append(
                 BackgroundDrift(
                     illumination.drift_rel_per_s,
                     float(illumination.flicker_rel or 0.0),
@@ -762,10 +685,13 @@ def forward_model(
                     illumination.wander_time_s,
                 )
             )
-    chain += placed["readings"]
-    if physical:
-        chain.append(DetectorReadout(detector))
+    readings += placed["readings"]
     if noise_rel > 0:
-        chain.append(GaussianNoise(float(noise_rel)))
-    chain += placed["output"]
-    return tuple(chain)
+        output.append(GaussianNoise(float(noise_rel)))
+    output += placed["output"]
+    return ForwardModel(
+        image=tuple(image),
+        readings=tuple(readings),
+        readout=DetectorReadout(detector) if physical else None,
+        output=tuple(output),
+    )

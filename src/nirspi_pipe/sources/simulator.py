@@ -1,13 +1,16 @@
 """Source ``simulator``: the NIR-SPI camera in the fog chamber (paper §§3–5, Eqs. 5–12).
 
-The simulator is the ordered chain of the physical effects that the config enables, and of
-nothing else (:mod:`nirspi_pipe.physics.effects`; docs/architecture.md draws the chain). The
-runner builds the chain from the ``fog``, ``illumination`` and ``detector`` groups
-(``source.effects`` in conf/source/simulator.yaml, Hydra's recursive instantiation) and hands it
-to :class:`Simulator`; the simulator never builds an effect. ``fog=none``, ``illumination=none``
-(0 kLux) and ``detector=ideal`` put nothing in the chain: no Mie call, no fog array, no noise
-draw. With an empty chain the readings are the split Hadamard measurements of the scene radiance
-and the reconstruction equals it to rounding.
+The simulator runs the forward model that the config enables, and nothing else, in its typed
+stages: image effects, the measurement, reading effects, the read-out, output effects
+(:mod:`nirspi_pipe.physics.effects`; docs/architecture.md draws them). The runner builds the
+:class:`~nirspi_pipe.physics.effects.ForwardModel` from the ``fog``, ``illumination`` and
+``detector`` groups (``source.effects`` in conf/source/simulator.yaml, Hydra's recursive
+instantiation) and hands it to :class:`Simulator`; the simulator never builds an effect.
+``fog=none``, ``illumination=none`` (0 kLux) and ``detector=ideal`` put nothing in it: no Mie
+call, no fog array, no noise draw. With an empty model the readings are the split Hadamard
+measurements of the scene radiance and the reconstruction equals it to rounding. The reference
+the normalised metrics score against (``Acquisition.reference``) is formed by exactly the effects
+that declare ``in_reference`` (:meth:`Simulator.reference_image`).
 
 Split convention: each ±1 pattern ``P_k`` is shown as ``(1 + P_k)/2`` then ``(1 − P_k)/2``, one
 pattern period apart (``1/pattern_rate_hz``), so a changing background does not cancel exactly
@@ -21,7 +24,7 @@ ideal one (``gain = 1``). ``Acquisition.coefficients()`` is therefore always rel
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -29,11 +32,8 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.effects import (
-    Backscatter,
-    Effect,
     Exposure,
-    Illumination,
-    Signal,
+    ForwardModel,
     modulated_split,
     split_measure,
 )
@@ -56,17 +56,19 @@ def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
 
 @dataclass(frozen=True)
 class Simulator:
-    """Simulated single-pixel camera: the ordered chain ``effects`` applied to the scene.
+    """Simulated single-pixel camera: the forward model ``effects`` applied to the scene.
 
     Attributes:
-        effects: the chain, in the order the effects act (:func:`~nirspi_pipe.physics.effects.forward_model`
-            builds it from the fog, illumination and detector models).
+        effects: the forward model in its typed stages (:class:`~nirspi_pipe.physics.effects.ForwardModel`;
+            :func:`~nirspi_pipe.physics.effects.forward_model` builds it from the fog, illumination
+            and detector models).
         pattern_rate_hz: patterns shown per second; each ±1 measurement takes two.
-        dark_readings: LEDs-off reference readings taken before the patterns when an effect of
-            the chain asks for them (the physical detector).
+        dark_readings: LEDs-off reference readings taken before the patterns when a step of the
+            model asks for them (the physical detector).
     """
 
-    effects: tuple[Effect, ...] = ()
+    # not a schema key: the simulator option sets it (source.effects: forward_model(...))
+    effects: ForwardModel = field(default_factory=ForwardModel, metadata={"config": False})
     pattern_rate_hz: float = 1000.0
     dark_readings: int = 16
 
@@ -77,55 +79,36 @@ class Simulator:
             raise ConfigError("pattern_rate_hz", self.pattern_rate_hz, "a rate in Hz > 0")
         if int(self.dark_readings) != self.dark_readings or not 0 <= self.dark_readings <= 100000:
             raise ConfigError("dark_readings", self.dark_readings, "an integer from 0 to 100000")
-        chain = tuple(self.effects)
-        for effect in chain:
-            if not isinstance(effect, Effect):
-                raise ConfigError("effects", effect, "effects with a name and apply(signal, exposure)")
-        object.__setattr__(self, "effects", chain)  # a list from a config becomes the tuple
+        if not isinstance(self.effects, ForwardModel):
+            raise ConfigError(
+                "effects", self.effects, "a forward model (forward_model(...), conf/source/simulator.yaml)"
+            )
 
     @property
     def effect_names(self) -> tuple[str, ...]:
-        """Names of the effects of the chain, in the order they act."""
-        return tuple(e.name for e in self.effects)
+        """Names of the steps of the model, in the order they act."""
+        return self.effects.names
 
     @property
     def budget(self) -> PhotonBudget:
         """The camera's photon budget: the illumination effect's, or the default one."""
-        return next((e.budget for e in self.effects if isinstance(e, Illumination)), PhotonBudget())
+        return self.effects.budget
 
     def reference_image(self, scene: Scene) -> np.ndarray:
         """``(n, n)`` the noise-free, static image this camera forms of ``scene``, relative radiance.
 
-        The image-domain effects of the chain that declare ``reference = True`` (the 1/r²
-        fall-off of the photon budget, the fog's round-trip transmission, the device optics) act
-        on the scene radiance, and the backscatter veil (Eq. 12) is added per pixel; effects that
-        change during the acquisition (fog fluctuation, background drift, LED droop, …) and noise
-        do not. Steady background light cancels in the split difference and does not appear.
-        Divided by the clear-air gain at the nominal distance, as the solver's image is. Works at
-        any resolution (the metrics render the scene again on an upscaled grid).
+        Exactly the effects that declare ``in_reference = True`` form it
+        (:meth:`~nirspi_pipe.physics.effects.ForwardModel.reference_e`): the image effects (the
+        1/r² fall-off of the photon budget, the fog's round-trip transmission, a plugin's rain or
+        device optics) act on the scene radiance, and the backscatter veil (Eq. 12) is added per
+        pixel; effects that change during the acquisition (fog fluctuation, background drift, LED
+        droop, …), the read-out and noise do not. Steady background light cancels in the split
+        difference and does not appear. Divided by the clear-air gain at the nominal distance, as
+        the solver's image is. Works at any resolution (the metrics render the scene again on an
+        upscaled grid).
         """
-        n = int(scene.radiance.shape[0])
-        empty = np.zeros(0)
-        exposure = Exposure(
-            scene=scene,
-            indices=np.zeros(0, dtype=np.int64),
-            n=n,
-            t_pos=empty,
-            t_neg=empty,
-            t_dark=empty,
-            budget=self.budget,
-        )
-        signal = Signal(image_e=scene.radiance * exposure.ref_e)
-        veil = None
-        for effect in self.effects:
-            if isinstance(effect, Backscatter) and signal.medium is not None:
-                veil = effect.veil_e(signal.medium, exposure)
-            elif getattr(effect, "reference", False):
-                signal = effect.apply(signal, exposure)
-        img = signal.image_e if signal.optical_depth is None else signal.image_e * np.exp(-signal.optical_depth)
-        if veil is not None:
-            img = img + veil
-        return np.asarray(img / exposure.ref_e, dtype=np.float64)
+        exposure = Exposure.static(scene, self.budget)
+        return np.asarray(self.effects.reference_e(exposure) / exposure.ref_e, dtype=np.float64)
 
     def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Measure ``scene`` with the patterns ``indices``, in that order (see module docstring)."""
@@ -135,10 +118,11 @@ class Simulator:
             raise NirspiError(f"scene rendered at {scene.radiance.shape}, patterns are {n}x{n}")
         idx = np.asarray(indices, dtype=np.int64)
         m = idx.size
-        n_dark = int(self.dark_readings) if any(getattr(e, "dark_readings", False) for e in self.effects) else 0
+        model = self.effects
+        n_dark = int(self.dark_readings) if model.dark_readings else 0
         period = 1.0 / self.pattern_rate_hz
         t_pos = (n_dark + 2.0 * np.arange(m)) * period
-        n_streams = max((s + 1 for e in self.effects for s in getattr(e, "streams", ())), default=0)
+        n_streams = model.n_streams
         exposure = Exposure(
             scene=scene,
             indices=idx,
@@ -150,25 +134,22 @@ class Simulator:
             rngs=tuple(_spawn(rng, max(n_streams, 3))) if n_streams else (),
             rng_main=rng,
         )
-        signal = Signal(image_e=scene.radiance * exposure.ref_e)
-        for effect in self.effects:
-            signal = effect.apply(signal, exposure)
-        signal = signal.read_out(exposure)
-        assert signal.y_pos is not None and signal.y_neg is not None
-        beta = signal.beta_per_m
-        signal_mean = signal.signal_mean_e
+        output = model.run(exposure)
+        readings = output.readings
+        beta = readings.beta_per_m
+        signal_mean = readings.signal_mean_e
         derived: dict[str, Any] = {
             "background_irradiance_w_m2": 0.0,
             "noise_sigma": 0.0,
-            **signal.derived,
+            **output.derived,
             "beta_per_m": beta,
             "transmittance_roundtrip": float(np.exp(-2.0 * beta * float(scene.distance_m))),
-            "background_photons_per_pattern": signal.background_e,
+            "background_photons_per_pattern": readings.background_e,
             "signal_photons_per_pattern": signal_mean,
-            "saturated_patterns": signal.saturated,
-            "saturated_fraction": signal.saturated / max(exposure.readings, 1),
+            "saturated_patterns": output.saturated,
+            "saturated_fraction": output.saturated / max(exposure.readings, 1),
         }
-        noise_e = signal.noise_e
+        noise_e = output.noise_e
         if noise_e > 0 and signal_mean > 0:
             snr_db = 20.0 * np.log10(signal_mean / noise_e)
         else:
@@ -178,9 +159,9 @@ class Simulator:
         return Acquisition(
             n=n,
             indices=idx,
-            y_pos=np.asarray(signal.y_pos, dtype=np.float64),
-            y_neg=np.asarray(signal.y_neg, dtype=np.float64),
-            gain=float(signal.gain),
+            y_pos=np.asarray(output.y_pos, dtype=np.float64),
+            y_neg=np.asarray(output.y_neg, dtype=np.float64),
+            gain=float(output.gain),
             truth=scene,
             timestamps_s=t_pos,
             medium=Medium(beta, float(derived["background_irradiance_w_m2"])),

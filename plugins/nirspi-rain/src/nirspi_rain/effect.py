@@ -6,21 +6,23 @@ the specific attenuation is commonly modelled by Carbonneau's power law in the r
 F.2106 and used across the FSO literature); it is nearly independent of the wavelength in the
 near infrared because raindrops (0.1–5 mm) are far larger than 1.55 µm.
 
-The effect acts in the image domain (before the patterns measure anything): each pixel's
-active light is multiplied by ``e^{−2 β_rain ℓ}`` with ``ℓ = min(range, extent)`` the rain path
-along its ray (the round trip, as for fog, Eq. 6 of the paper).
+The effect is an image effect (``domain = "image"``: before the patterns measure anything): each
+pixel's active light is multiplied by ``e^{−2 β_rain ℓ}`` with ``ℓ = min(range, extent)`` the rain
+path along its ray (the round trip, as for fog, Eq. 6 of the paper). A steady physical attenuation,
+it is part of the noise-free reference the normalised metrics score against
+(``in_reference = True``), as the fog's transmission is.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.physics.effects import Exposure, Signal
+from nirspi_pipe.physics.effects import Exposure, ImageState
 
 __all__ = ["Rain", "rain_extinction_per_m", "CARBONNEAU_K_DB_PER_KM", "CARBONNEAU_ALPHA"]
 
@@ -50,7 +52,8 @@ class Rain:
     extent_mm: float = 350.0
 
     name: ClassVar[str] = "rain"
-    domain: ClassVar[str] = "image"  # forward_model places it after the fog attenuation
+    domain: ClassVar[Literal["image"]] = "image"  # an image effect: forward_model places it after the fog
+    in_reference: ClassVar[bool] = True  # a steady attenuation: in the reference the metrics score against
 
     def __post_init__(self) -> None:
         if not math.isfinite(self.rate_mm_per_h) or not 0.0 <= self.rate_mm_per_h <= 500.0:
@@ -63,10 +66,14 @@ class Rain:
         """β of the rain, 1/m."""
         return rain_extinction_per_m(self.rate_mm_per_h)
 
-    def apply(self, signal: Signal, exposure: Exposure) -> Signal:
+    def transmittance(self, exposure: Exposure) -> np.ndarray:
+        """``(n, n)`` round-trip transmittance of the rain per pixel, ``e^{−2 β_rain ℓ}`` (1 off the object)."""
         r = exposure.range_m
         path = np.where(np.isfinite(r), np.minimum(r, self.extent_mm * 1e-3), 0.0)
+        return np.exp(-2.0 * self.extinction_per_m * path)
+
+    def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         beta = self.extinction_per_m
-        return replace(signal, image_e=signal.image_e * np.exp(-2.0 * beta * path)).with_derived(
+        return replace(image, image_e=image.image_e * self.transmittance(exposure)).with_derived(
             rain_beta_per_m=beta, rain_rate_mm_per_h=float(self.rate_mm_per_h)
         )
