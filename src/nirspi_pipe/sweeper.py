@@ -449,10 +449,18 @@ class NirspiSweeperBase(Sweeper):
     # -- composition ----------------------------------------------------------------------------
 
     def _is_group(self, name: str) -> bool:
-        """Whether ``name`` (``scene``, ``hydra/launcher``) is a config group (public loader API)."""
+        """Whether ``name`` (``scene``, ``hydra/launcher``) is a config group (public loader API),
+        or one the sweep's config chose an option of: ``experiment`` and ``mechanism`` are groups
+        of the search path that ``conf/config.yaml`` adds, which the loader does not list (each of
+        scan_order's 480 jobs, ``mechanism=...``, was composed in full: 53 s of keying)."""
         parent, _, leaf = name.rpartition("/")
         if parent not in self._groups:
-            self._groups[parent] = set(self.hydra_context.config_loader.list_groups(parent))
+            groups = set(self.hydra_context.config_loader.list_groups(parent))
+            for chosen in self.config.hydra.runtime.choices if self.config is not None else ():
+                above, _, group = str(chosen).rpartition("/")
+                if above == parent:
+                    groups.add(group)
+            self._groups[parent] = groups
         return leaf in self._groups[parent]
 
     def compose(self, overrides: list[str]) -> Any:
