@@ -448,10 +448,18 @@ class NirspiSweeperBase(Sweeper):
     # -- composition ----------------------------------------------------------------------------
 
     def _is_group(self, name: str) -> bool:
-        """Whether ``name`` (``scene``, ``hydra/launcher``) is a config group (public loader API)."""
+        """Whether ``name`` (``scene``, ``hydra/launcher``) is a config group (public loader API),
+        or one the sweep's config chose an option of: ``experiment`` and ``mechanism`` are groups
+        of the search path that ``conf/config.yaml`` adds, which the loader does not list (each of
+        scan_order's 480 jobs, ``mechanism=...``, was composed in full: 53 s of keying)."""
         parent, _, leaf = name.rpartition("/")
         if parent not in self._groups:
-            self._groups[parent] = set(self.hydra_context.config_loader.list_groups(parent))
+            groups = set(self.hydra_context.config_loader.list_groups(parent))
+            for chosen in self.config.hydra.runtime.choices if self.config is not None else ():
+                above, _, group = str(chosen).rpartition("/")
+                if above == parent:
+                    groups.add(group)
+            self._groups[parent] = groups
         return leaf in self._groups[parent]
 
     def compose(self, overrides: list[str]) -> Any:
@@ -473,8 +481,9 @@ class NirspiSweeperBase(Sweeper):
         interpolations unresolved) and set the plain values on a copy before resolving, as Hydra
         does. Anything unusual (a value that is a mapping, a key the config does not have, a
         mapping replaced by a value) falls back to :meth:`compose`, which reports errors as
-        Hydra does. ``tests/test_sweeper.py`` holds that the keys agree with :meth:`compose` for
-        every shipped experiment.
+        Hydra does. ``tests/test_sweeper_equivalence.py`` holds that the configs agree with
+        Hydra's ``compose`` on jobs drawn from every shipped experiment's grid (``nirspi-bench
+        compose --check-all``: on every job).
         """
         import copy
 
@@ -508,6 +517,7 @@ class NirspiSweeperBase(Sweeper):
             return None
         structural: list[str] = []
         updates: list[Any] = []
+        plain_texts: list[str] = []
         task: list[str] = []
         for ov, text in zip(parsed, overrides, strict=True):
             if not ov.is_hydra_override():
@@ -520,7 +530,14 @@ class NirspiSweeperBase(Sweeper):
             )
             if plain:
                 updates.append(ov)
+                plain_texts.append(text)
             else:
+                if plain_texts and not ov.is_hydra_override() and not self._is_group(ov.key_or_group):
+                    # Hydra applies ``key=value``, ``+key``, ``++key`` and ``~key`` in their order
+                    # (``seed=3 ++seed=5`` is 5): the plain ones before this one are composed with it
+                    structural.extend(plain_texts)
+                    updates.clear()
+                    plain_texts.clear()
                 structural.append(text)
         return tuple(structural), updates, task
 
