@@ -59,7 +59,7 @@ def sweeper_for(loader: Any, experiment: str, arguments: Sequence[str] = ()) -> 
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from nirspi_pipe.sweeper import NirspiSweeperBase
+    from nirspi_pipe.app.sweeper import NirspiSweeperBase
 
     cfg = loader.load_configuration("config", [f"+experiment={experiment}", *arguments], run_mode=RunMode.MULTIRUN)
     node = cast("dict[str, Any]", OmegaConf.to_container(cfg.hydra.sweeper, resolve=False))
@@ -71,14 +71,14 @@ def sweeper_for(loader: Any, experiment: str, arguments: Sequence[str] = ()) -> 
 
 
 def hydra_job(overrides: Sequence[str]) -> Any:
-    """A job as Hydra's public ``compose`` makes it: a :class:`~nirspi_pipe.sweeper.ComposedJob`
+    """A job as Hydra's public ``compose`` makes it: a :class:`~nirspi_pipe.app.sweeper.ComposedJob`
     (the config resolved by OmegaConf without the ``hydra`` node, the group choices without
     ``hydra/*``, ``hydra.overrides.task``), or the exception composing or resolving raised.
     Call it inside :func:`hydra_session`."""
     from hydra import compose
     from omegaconf import OmegaConf, open_dict, read_write
 
-    from nirspi_pipe.sweeper import ComposedJob
+    from nirspi_pipe.app.sweeper import ComposedJob
 
     try:
         cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
@@ -96,7 +96,7 @@ def fast_job(sweeper: Any, overrides: Sequence[str], bases: dict[Any, Any]) -> A
     """A job as the sweeper composes it to key and run it (``bases``: its cache of composed
     structural override sets, shared by the jobs of a sweep), or the exception it raised."""
     try:
-        return sweeper._compose(list(overrides), bases)  # noqa: SLF001 - the code under test
+        return sweeper._compose(list(overrides), bases)
     except Exception as exc:  # noqa: BLE001 - compared as such
         return exc
 
@@ -148,16 +148,16 @@ def difference(fast: Any, hydra: Any) -> str | None:
 
 def _measure(loader: Any, name: str, sample: int, check_all: bool) -> tuple[list[str], int]:
     sweeper = sweeper_for(loader, name)
-    grid = sweeper._expand([f"+experiment={name}"])  # noqa: SLF001
+    grid = sweeper._expand([f"+experiment={name}"])
     fallbacks = 0
-    full = sweeper._composed  # noqa: SLF001
+    full = sweeper._composed
 
     def counted(overrides: list[str]) -> Any:
         nonlocal fallbacks
         fallbacks += 1
         return full(overrides)
 
-    sweeper._composed = counted  # noqa: SLF001 - count the jobs composed in full
+    sweeper._composed = counted
     bases: dict[Any, Any] = {}
     t0 = time.perf_counter()
     for job in grid:
