@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from skimage.restoration import denoise_tv_chambolle
 
 from nirspi_pipe.metrics import psnr
@@ -13,7 +15,18 @@ from nirspi_pipe.physics.detector import Photodiode
 from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import ImageTarget
-from nirspi_pipe.solvers.crossval import HOLDOUT_STRIDE, MIN_MEASUREMENTS, holdout
+from nirspi_pipe.solvers.crossval import (
+    CV_BUDGET_SOLVES,
+    CV_MIN_ITER,
+    GRID_POINTS_EXACT,
+    GRID_POINTS_NOISY,
+    GRID_STEP,
+    HOLDOUT_STRIDE,
+    MIN_MEASUREMENTS,
+    cv_iterations,
+    holdout,
+    weight_grid,
+)
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver, tv_prox
 from nirspi_pipe.solvers.fwht import FWHTSolver
 from nirspi_pipe.sources.simulator import Simulator
@@ -104,3 +117,70 @@ def test_full_sampling_noise_free_stays_exact() -> None:
     out = FistaTVSolver().solve(acq)
     assert out.info["lam_rule"] == "exact"
     assert psnr(scene.radiance, out.data) > 100.0
+
+
+@pytest.mark.parametrize("case", ["free", "device"])
+def test_training_fits_stay_within_the_budget(case: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 26, "the weight choice costs ≤ 5× one solve", counted in FISTA iterations (a
+    deterministic proxy of time; ``nirspi-bench fista --auto`` times it): the training fits
+    together run at most ``CV_BUDGET_SOLVES × max_iter`` image-iterations with a prox."""
+    scene = ImageTarget().render(Camera(resolution=N))
+    effects = forward_model(illumination=Background(klux=15.0), detector=Photodiode()) if case == "device" else None
+    sim = Simulator(effects=effects) if effects is not None else Simulator()
+    acq = sim.acquire(scene, Zigzag(0.25).select(N), N, np.random.default_rng(0))
+    counted: list[int] = []
+    inner = FistaTVSolver._fista
+
+    def counting(self, fwd, adj, y, n, scale, big_l, lam, x0=None, max_iter=None, tv_iter=None):  # type: ignore[no-untyped-def]
+        x, its, stop = inner(self, fwd, adj, y, n, scale, big_l, lam, x0, max_iter, tv_iter)
+        if max_iter is not None:  # the training fits; the final solve runs to the solver's own max_iter
+            counted.append(its * int(np.count_nonzero(lam)))
+        return x, its, stop
+
+    monkeypatch.setattr(FistaTVSolver, "_fista", counting)
+    solver = FistaTVSolver()
+    out = solver.solve(acq)
+    assert out.info["lam_rule"] == "cv" and out.info["lam"] > 0
+    assert out.info["cv_weights_tried"] == out.info["cv_grid_points"] + 2  # the refinement ran
+    assert len(counted) == 2 * out.info["cv_fits"]  # coarse batch and refinement, (probe) each
+    assert sum(counted) <= CV_BUDGET_SOLVES * solver.max_iter
+    assert sum(counted) >= 0.8 * CV_BUDGET_SOLVES * solver.max_iter  # and uses it
+
+
+@given(
+    weights=st.integers(min_value=0, max_value=40),
+    noisy=st.booleans(),
+    max_iter=st.integers(min_value=1, max_value=2000),
+)
+def test_cv_iterations_share_the_budget(weights: int, noisy: bool, max_iter: int) -> None:
+    grid = np.r_[0.0, np.ones(weights)]
+    its = cv_iterations(grid, noisy, max_iter)
+    total = its * (weights + 2) * (2 if noisy else 1)
+    assert its >= CV_MIN_ITER
+    assert its == CV_MIN_ITER or total <= CV_BUDGET_SOLVES * max_iter
+
+
+def test_weight_grid_is_half_decades_below_the_top() -> None:
+    exact, noisy = weight_grid(0.4, 0.0), weight_grid(0.4, 0.5)
+    assert exact[0] == 0.0 and noisy[0] == 0.0
+    assert exact.size == GRID_POINTS_EXACT + 1 and noisy.size == GRID_POINTS_NOISY + 1
+    assert np.isclose(exact[-1], 0.1) and np.isclose(noisy[-1], 0.5)  # 0.25 rms; 1 σ_px
+    assert np.allclose(exact[2:] / exact[1:-1], GRID_STEP) and np.allclose(noisy[2:] / noisy[1:-1], GRID_STEP)
+    assert weight_grid(0.0, 0.0).tolist() == [0.0]
+
+
+def test_zero_weight_members_skip_the_prox_and_leave_the_others_unchanged() -> None:
+    scene = ImageTarget().render(Camera(resolution=16))
+    acq = Simulator().acquire(scene, Zigzag(0.25).select(16), 16, np.random.default_rng(0))
+    both = FistaTVSolver(lam=0.01).solve(acq).data
+    from nirspi_pipe.solvers.fista_tv import _batch_operator
+
+    y = np.asarray(acq.coefficients(), dtype=np.float64)
+    f, a = _batch_operator(acq)
+    solver = FistaTVSolver()
+    batch, _, _ = solver._fista(f, a, np.stack([y, y]), 16, 256.0, 1.0, np.array([0.0, 0.01]), max_iter=100)
+    alone, _, _ = solver._fista(f, a, y[None], 16, 256.0, 1.0, np.array([0.01]), max_iter=100)
+    assert np.abs(batch[1] - alone[0]).max() < 1e-12
+    assert np.abs(alone[0] - both).max() < 1e-12
+    zero_filled = FWHTSolver().solve(acq).data
+    assert np.abs(batch[0] - zero_filled).max() < 1e-9  # λ = 0: least squares, exact in a step

@@ -17,7 +17,7 @@ from nirspi_pipe.solvers.common import (
     measurement_operator,
     relative_residual,
 )
-from nirspi_pipe.solvers.crossval import CV_MAX_ITER, CV_TV_ITER, MIN_MEASUREMENTS, cv_weight, weight_grid
+from nirspi_pipe.solvers.crossval import MIN_MEASUREMENTS, cv_iterations, cv_weight, weight_grid
 from nirspi_pipe.solvers.noise import estimate_noise, sure_weight
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -117,6 +117,7 @@ def choose_weight(
     forward,
     fit=None,
     predict=None,
+    max_iter: int = 100,
 ) -> tuple[float, dict[str, object]]:
     """The TV weight by the documented rule, shared by ``fista_tv`` and the plugin's ``admm_tv``.
 
@@ -128,13 +129,13 @@ def choose_weight(
     * undersampled, with ``fit``/``predict`` given (``fista_tv``) and at least
       ``MIN_MEASUREMENTS``: hold-out cross-validation over a grid
       (:func:`~nirspi_pipe.solvers.crossval.cv_weight`, ``rule: cv``), noisy or not; the record
-      has the grid index ``cv_index`` and the fits on the training set (``cv_fit``, not recorded)
-      for a warm start;
+      has the chosen weight's fit on the training set (``cv_fit``, not recorded) for a warm start;
     * undersampled otherwise (``admm_tv``, or too few measurements): SURE (σ > 0) or 0, at least
       ``lam_floor`` (``rule: floor`` when the floor wins).
 
     ``scale`` is the data term's normalisation ``s`` (``½‖Ax − y‖²/s``), so the pixel noise is
-    ``σ/√s``.
+    ``σ/√s``; ``max_iter`` is one solve's iterations, which sets the training fits' budget
+    (:func:`~nirspi_pipe.solvers.crossval.cv_iterations`).
     """
     if not isinstance(lam, str):
         return float(lam), {"lam": float(lam), "lam_rule": "fixed"}
@@ -148,10 +149,11 @@ def choose_weight(
         # image rms level: ‖Aᵀy/s‖/√N; pixel noise σ/√s
         x_rms = rms * np.sqrt(len(y)) / np.sqrt(scale * acquisition.n_pixels) if scale > 0 else 0.0
         grid = weight_grid(x_rms, sigma / np.sqrt(scale) if scale > 0 else 0.0)
-        best, fits, extra = cv_weight(fit, predict, y, acquisition.n_pixels, sigma, grid)
+        its = cv_iterations(grid, sigma > 0, max_iter)
+        chosen, start, extra = cv_weight(fit, predict, y, acquisition.n_pixels, sigma, grid, its)
         info.update(extra)
-        info.update(lam=float(grid[best]), lam_rule="cv", cv_index=best, cv_fit=fits[best])
-        return float(grid[best]), info
+        info.update(lam=chosen, lam_rule="cv", cv_fit=start)
+        return chosen, info
     floor = float(lam_floor) if undersampled else 0.0
     if exact:
         chosen, rule = 0.0, "exact"
@@ -239,9 +241,15 @@ class FistaTVSolver:
         p = np.zeros((batch, 2, n, n))
         stop, it = "max_iter", 0
         inner = self.tv_iter if tv_iter is None else tv_iter
+        live = lam > 0
+        prox_all, prox_any = bool(live.all()), bool(live.any())
         for it in range(1, (self.max_iter if max_iter is None else max_iter) + 1):  # noqa: B007 - returned
             grad = (adj(fwd(z.reshape(batch, -1)) - y) / scale).reshape(batch, n, n)
-            x_new, p = tv_prox(z - step * grad, weight, p, inner)
+            x_new = z - step * grad
+            if prox_all:
+                x_new, p = tv_prox(x_new, weight, p, inner)
+            elif prox_any:  # λ = 0 members: the prox is the identity, skip its cost
+                x_new[live], p[live] = tv_prox(x_new[live], weight[live], p[live], inner)
             if self.nonneg:
                 x_new = np.maximum(x_new, 0.0)
             t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
@@ -267,12 +275,9 @@ class FistaTVSolver:
             return Image2D(np.zeros((n, n)), info={"iterations": 0, "stop_reason": "zero_operator"})
         fwd, adj = _batch_operator(acquisition)
 
-        def fit(rows: np.ndarray, data: np.ndarray, lams: np.ndarray) -> np.ndarray:
+        def fit(rows: np.ndarray, data: np.ndarray, lams: np.ndarray, iterations: int) -> np.ndarray:
             f, a = _batch_operator(acquisition, rows)
-            its = min(self.max_iter, CV_MAX_ITER)
-            return self._fista(f, a, data, n, scale, big_l, lams, max_iter=its, tv_iter=min(self.tv_iter, CV_TV_ITER))[
-                0
-            ]
+            return self._fista(f, a, data, n, scale, big_l, lams, max_iter=iterations)[0]
 
         def predict(images: np.ndarray, rows: np.ndarray) -> np.ndarray:
             return _batch_operator(acquisition, rows)[0](images.reshape(images.shape[0], -1))
@@ -281,7 +286,7 @@ class FistaTVSolver:
             return self._fista(fwd, adj, data[None, :], n, scale, big_l, np.array([lam]))[0][0]
 
         lam, weight_info = choose_weight(
-            self.lam, self.lam_floor, acquisition, y, scale, solve_for, op.matvec, fit, predict
+            self.lam, self.lam_floor, acquisition, y, scale, solve_for, op.matvec, fit, predict, self.max_iter
         )
         x0 = weight_info.pop("cv_fit", None)
         if lam == 0.0 and not hadamard:
