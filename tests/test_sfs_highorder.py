@@ -29,14 +29,12 @@ from nirspi_pipe.types import Camera, Image2D
 ATOL_PX = 1e-9  # numpy and OpenCL do the same operations in the same order (FP_CONTRACT off)
 
 
-def _solve(kind, n, slope, backend="numpy"):
+def _solve(kind, n, slope):
+    """Relative RMS depth error of the numpy second-order solver (OpenCL parity: tests/test_parity.py)."""
     length, z_true, f, ev = kind(n)
     fixed = ev & (z_true <= z_true[ev].min() + 1e-12)  # the pixel(s) nearest the camera
     problem = SweepProblem(f, fixed, np.where(fixed, z_true, BIG))
-    if backend == "numpy":
-        res = solve_numpy(problem, "second_order", 1e-6, 400, slope_average=slope)
-    else:
-        res = ocl.solve_opencl(problem, "second_order", 1e-6, 400, slope_average=slope)
+    res = solve_numpy(problem, "second_order", 1e-6, 400, slope_average=slope)
     assert res.converged and np.isfinite(res.z).all()
     return float(np.sqrt(np.mean((res.z - z_true)[ev] ** 2))) / length
 

@@ -33,7 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     stage = PowerCrust()  # builds: compiles or loads the kernels, imports nothing later
     weld = max(stage.weld_factor, 0.5 * min(stage.remesh_edge_factor, 1.0))
     crusts = []
-    for scan, scene in itertools.product(["basic", "hilbert", "zigzag", "spiral"], ["sphere", "torus", "cube", "u_shape"]):
+    for scan, scene in itertools.product(
+        ["basic", "hilbert", "zigzag", "spiral"], ["sphere", "torus", "cube", "u_shape"]
+    ):
         r = nirspi_pipe.run(["+experiment=table6", f"scan={scan}", f"scene={scene}", "illumination.klux=5", "seed=0"])
         pts = np.round(np.asarray(r.products.cloud.points_m) / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
         sp = sample_spacing(pts)

@@ -37,8 +37,17 @@ def run_shape(shape: str, resolution: int, sfs: str, extra: list[str]) -> tuple[
     # noise-free 64² by default, as documented (the default run became the noisy device model in
     # issue 11; these keep the table's setting); ``extra`` may override any of them
     noise_free = ["preset=off", "fog=none", "illumination=none", "detector=ideal"]
-    overrides = [*noise_free, f"scene={shape}", f"sfs={sfs}", "itof=cw4", "fusion=itof", "surface=power_crust",
-                 "metrics=full", f"camera.resolution={resolution}", *extra]
+    overrides = [
+        *noise_free,
+        f"scene={shape}",
+        f"sfs={sfs}",
+        "itof=cw4",
+        "fusion=itof",
+        "surface=power_crust",
+        "metrics=full",
+        f"camera.resolution={resolution}",
+        *extra,
+    ]
     with initialize_config_module("nirspi_pipe.conf", version_base="1.3"):
         cfg = compose("config", overrides=overrides)
     try:
