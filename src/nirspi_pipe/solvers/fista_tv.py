@@ -1,4 +1,4 @@
-"""Solver ``fista_tv``: FISTA on least squares plus total variation (Beck & Teboulle 2009), with a
+"""Solver ``fista_tv``: monotone FISTA on least squares plus total variation (Beck & Teboulle 2009), with a
 weight chosen from the data: SURE at full sampling (:mod:`nirspi_pipe.solvers.noise`), hold-out
 cross-validation when undersampled (:mod:`nirspi_pipe.solvers.crossval`)."""
 
@@ -60,6 +60,16 @@ def tv_prox(v: np.ndarray, weight: np.ndarray, p: np.ndarray, iters: int) -> tup
         norm += 1.0
         p = (p - _TAU * g) / norm[:, None]
     return out, p
+
+
+def total_variation(v: np.ndarray) -> np.ndarray:
+    """Isotropic TV of each image of a batch ``(B, n, n)``: the sum over pixels of the norm of the
+    forward differences (0 past the last row/column), the TV whose prox :func:`tv_prox` is."""
+    gr = np.zeros_like(v)
+    gc = np.zeros_like(v)
+    gr[:, :-1, :] = v[:, 1:, :] - v[:, :-1, :]
+    gc[:, :, :-1] = v[:, :, 1:] - v[:, :, :-1]
+    return np.sum(np.sqrt(gr * gr + gc * gc), axis=(1, 2))
 
 
 @functools.lru_cache(maxsize=8)
@@ -175,9 +185,12 @@ class FistaTVSolver:
     calibrated measurements and ``s`` the mean non-zero eigenvalue of ``AᵀA``,
     ``‖A‖_F²/min(m, N)`` (``= N`` for ±1 Hadamard patterns, so a full acquisition's data term is
     ``½‖x − x_true‖²``); ``λ`` is then the ROF weight of an image in relative radiance whatever the
-    patterns (0/1, ±1, split). FISTA: a gradient step on the data term, then the TV proximal step
-    (isotropic TV, Chambolle's projection, :func:`tv_prox`, ``tv_iter`` inner iterations from the
-    previous step's dual), with Nesterov momentum. Starts from ``Aᵀy/s``.
+    patterns (0/1, ±1, split). Monotone FISTA (MFISTA, Beck & Teboulle 2009b): a gradient step on
+    the data term, then the TV proximal step (isotropic TV, Chambolle's projection, :func:`tv_prox`,
+    ``tv_iter`` inner iterations from the previous step's dual), with Nesterov momentum; a step that
+    would raise the objective is not taken (the momentum still uses it). Plain FISTA with this
+    inexact, warm-started prox diverged at large λ (``tests/test_crossval.py``). Starts from
+    ``Aᵀy/s``.
 
     ``lam: auto`` (default) sets λ from the data (:func:`choose_weight`): SURE at full sampling,
     hold-out cross-validation undersampled; λ = 0 with explicit patterns is solved by LSQR to its
@@ -243,20 +256,32 @@ class FistaTVSolver:
         inner = self.tv_iter if tv_iter is None else tv_iter
         live = lam > 0
         prox_all, prox_any = bool(live.all()), bool(live.any())
+
+        def objective(v: np.ndarray) -> np.ndarray:
+            r = fwd(v.reshape(batch, -1)) - y
+            return 0.5 * np.sum(r * r, axis=1) / scale + lam * total_variation(v)
+
+        f_x = objective(x)
         for it in range(1, (self.max_iter if max_iter is None else max_iter) + 1):  # noqa: B007 - returned
             grad = (adj(fwd(z.reshape(batch, -1)) - y) / scale).reshape(batch, n, n)
-            x_new = z - step * grad
+            u = z - step * grad
             if prox_all:
-                x_new, p = tv_prox(x_new, weight, p, inner)
+                u, p = tv_prox(u, weight, p, inner)
             elif prox_any:  # λ = 0 members: the prox is the identity, skip its cost
-                x_new[live], p[live] = tv_prox(x_new[live], weight[live], p[live], inner)
+                u[live], p[live] = tv_prox(u[live], weight[live], p[live], inner)
             if self.nonneg:
-                x_new = np.maximum(x_new, 0.0)
+                u = np.maximum(u, 0.0)
+            # MFISTA (Beck & Teboulle 2009b): keep the better of the step u and x, so the objective
+            # never rises; with a warm-started inexact prox, plain FISTA diverged at large λ
+            # (tests/test_crossval.py::test_fista_tv_decreases_its_objective_at_large_weights)
+            f_u = objective(u)
+            better = f_u <= f_x
+            x_new = np.where(better[:, None, None], u, x)
             t_new = 0.5 * (1.0 + np.sqrt(1.0 + 4.0 * t * t))
-            z = x_new + ((t - 1.0) / t_new) * (x_new - x)  # Nesterov momentum (FISTA)
-            change = np.sqrt(np.sum((x_new - x) ** 2, axis=(1, 2)))
+            z = x_new + (t / t_new) * (u - x_new) + ((t - 1.0) / t_new) * (x_new - x)
+            change = np.sqrt(np.sum((u - x) ** 2, axis=(1, 2)))
             norm = np.sqrt(np.sum(x_new**2, axis=(1, 2)))
-            x, t = x_new, t_new
+            x, t, f_x = x_new, t_new, np.where(better, f_u, f_x)
             if np.all(change <= self.tol * norm):
                 stop = "converged"
                 break
