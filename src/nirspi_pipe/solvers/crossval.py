@@ -167,17 +167,19 @@ def cv_weight(
     y_t = y[train]
     probe = np.random.default_rng(seed).standard_normal(y_t.size) if sigma > 0 else None
     eps = eps_rel * sigma
+    per_held = (n_pixels - m) / held.size / float(n_pixels) ** 2  # a held-out error → the score
 
     def score(lams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         x = fit(train, np.broadcast_to(y_t, (lams.size, y_t.size)), lams, iterations)
-        res_t = np.sum((predict(x, train) - y_t) ** 2, axis=1)
+        fitted_t = predict(x, train)
+        res_t = np.sum((fitted_t - y_t) ** 2, axis=1)
         sq_h = (predict(x, held) - y[held]) ** 2
         err_h = np.sum(sq_h, axis=1) - held.size * sigma**2
         if probe is not None:
             x1 = fit(train, np.broadcast_to(y_t + eps * probe, (lams.size, y_t.size)), lams, iterations)
-            div = (predict(x1, train) - predict(x, train)) @ probe / eps
+            div = (predict(x1, train) - fitted_t) @ probe / eps
             res_t = res_t - train.size * sigma**2 + 2.0 * sigma**2 * div
-        return (res_t + err_h * (n_pixels - m) / held.size) / float(n_pixels) ** 2, x, sq_h
+        return res_t / float(n_pixels) ** 2 + err_h * per_held, x, sq_h
 
     lams = np.asarray(grid, np.float64)
     scores, x, sq = score(lams)
@@ -198,7 +200,7 @@ def cv_weight(
     # best noise-free results at 25 %, only grass's (26.79 → 26.69 dB; brick's choice passed it),
     # and under the device's noise it chose λ = 0 too often (10 %: −0.65 dB mean over 30
     # acquisitions of 10 other scikit-image images).
-    diff = (sq_best - sq[0]) * (n_pixels - m) / held.size / float(n_pixels) ** 2
+    diff = (sq_best - sq[0]) * per_held
     se = float(np.sqrt(held.size) * np.std(diff, ddof=1)) if held.size > 1 else 0.0
     gain = float(scores[0]) - chosen
     info = {
