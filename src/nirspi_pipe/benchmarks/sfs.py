@@ -21,7 +21,9 @@ scikit-fmm``).
 from __future__ import annotations
 
 import argparse
+import functools
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -66,23 +68,38 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--schemes", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
     parser.add_argument("--backends", nargs="+", default=["numpy", "opencl"], choices=["numpy", "opencl"])
+    parser.add_argument("--device", default="auto", help="OpenCL device: auto, cpu, gpu or P:D (nirspi_pipe.accel)")
+    parser.add_argument(
+        "--local-sizes",
+        nargs="+",
+        default=["device"],
+        help="work-items of the OpenCL sweeping kernels: 'device' (what a stage uses: 1 on a CPU, the "
+        "longest diagonal on a GPU) and/or numbers; each is one opencl row",
+    )
+    parser.add_argument("--no-fmm", action="store_true", help="skip scikit-fmm (and its ratio columns)")
     ns = parser.parse_args(argv)
-    try:
-        import skfmm
-    except ImportError:
-        print(
-            "nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
-            "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm)"
-        )
-        return 2
+    skfmm: Any = None
+    if not ns.no_fmm:
+        try:
+            import skfmm
+        except ImportError:
+            print(
+                "nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
+                "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm), or pass --no-fmm"
+            )
+            return 2
     solvers: dict[str, Callable[..., SweepResult]] = {"numpy": solve_numpy}
     if "opencl" in ns.backends:
-        from nirspi_pipe.sfs.opencl import opencl_available, solve_opencl
+        from nirspi_pipe.sfs.opencl import device_name, opencl_available, solve_opencl
 
         needed = {SOLVERS[label][0] for label in ns.schemes}
-        if all(opencl_available(scheme) for scheme in needed):
-            solvers["opencl"] = solve_opencl
-    ok_cl = "opencl" in solvers
+        if all(opencl_available(scheme, ns.device) for scheme in needed):
+            print(f"OpenCL device: {device_name(ns.device)}")
+            for lsz in ns.local_sizes:
+                local = None if lsz == "device" else int(lsz)
+                key = "opencl" if lsz == "device" else f"opencl@{lsz}"
+                solvers[key] = functools.partial(solve_opencl, local_size=local, device=ns.device)
+    ok_cl = any(k.startswith("opencl") for k in solvers)
     header = (
         f"{'size':>6} {'solver':<26} {'ms':>9} {'sweeps':>6} {'rmse px':>8} {'t/fmm2':>7} {'t/fmm1':>7} {'e/fmm2':>7}"
     )
@@ -91,17 +108,17 @@ def main(argv: list[str]) -> int:
     for n in ns.sizes:
         f, fixed, z_true, mask, phi, z_src = sphere_problem(n)
         speed = 1.0 / f
-        refs = {}
-        for order in (2, 1):
+        refs = {2: (float("nan"), float("nan")), 1: (float("nan"), float("nan"))}
+        for order in (2, 1) if skfmm is not None else ():
             t = median_time_s(lambda: skfmm.travel_time(phi, speed, order=order), ns.repeat)
             z = np.abs(np.asarray(skfmm.travel_time(phi, speed, order=order))) + z_src
             refs[order] = (t, _rmse(z, z_true, mask))
             print(f"{n:>4}^2 {'scikit-fmm order ' + str(order):<26} {t * 1e3:>9.2f} {'-':>6} {refs[order][1]:>8.3f}")
         problem = SweepProblem(f, fixed, np.where(fixed, z_true, BIG))
-        for backend in ns.backends:
-            if backend not in solvers:
-                print(f"{n:>4}^2 {backend:<26} unavailable: no OpenCL device builds float64 kernels here")
-                continue
+        names = [k for b in ns.backends for k in solvers if k == b or k.startswith(b + "@")]
+        if "opencl" in ns.backends and not ok_cl:
+            print(f"{n:>4}^2 {'opencl':<26} unavailable: no OpenCL device builds float64 kernels here")
+        for backend in names:
             for label in ns.schemes:
                 scheme, slope = SOLVERS[label]
                 solve = solvers[backend]
@@ -114,7 +131,7 @@ def main(argv: list[str]) -> int:
                 err = _rmse(res.z, z_true, mask)
                 r2, r1 = t / refs[2][0], t / refs[1][0]
                 name = f"{label}/{backend}"
-                for order, ratio in ((2, r2), (1, r1)):
+                for order, ratio in ((2, r2), (1, r1)) if skfmm is not None else ():
                     key = f"{name} vs scikit-fmm order {order}"
                     meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
                     best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
@@ -122,7 +139,8 @@ def main(argv: list[str]) -> int:
                     f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
                     f" {err / refs[2][1]:>7.3f}{'' if res.converged else '  (not converged)'}"
                 )
-    print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
+    if skfmm is not None:
+        print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
     for key, v in best.items():
         print(f"  {key}: {'meets the target at every size' if v == 0.0 else 'misses the target'}")
     if not ok_cl and "opencl" in ns.backends:

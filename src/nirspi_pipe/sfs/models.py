@@ -22,6 +22,9 @@ Shared keys (all stages):
 * ``median_px``: odd median-filter window applied to the image first (0 = off); use it against
   salt noise.
 * ``scheme``, ``backend``, ``tol`` (pixel units), ``max_sweeps``.
+* ``device``: the OpenCL device of ``backend`` ``auto``/``opencl``: ``auto`` (``PYOPENCL_CTX``,
+  else the first GPU, else the first device), ``cpu``, ``gpu`` or ``<platform>:<device>`` by
+  index (:mod:`nirspi_pipe.accel`). The record's ``info.sfs.device`` names the one used.
 * ``slope_average`` (orthographic stages, ``scheme: second_order`` only): ``cos2`` (slopes
   averaged along the upwind edges with cos²θ linear, see :mod:`nirspi_pipe.sfs.second_order`)
   or ``node`` (the pixel's own slope: fast marching's order 2).
@@ -181,13 +184,19 @@ def prepare_image(
 
 
 def _run(
-    problem: SweepProblem, scheme: str, backend: str, tol: float, max_sweeps: int, slope_average: str = "cos2"
+    problem: SweepProblem,
+    scheme: str,
+    backend: str,
+    tol: float,
+    max_sweeps: int,
+    slope_average: str = "cos2",
+    device: str = "auto",
 ) -> SweepResult:
     if backend == "opencl":
         from nirspi_pipe.sfs.opencl import solve_opencl
 
         try:
-            return solve_opencl(problem, scheme, tol, max_sweeps, slope_average=slope_average)
+            return solve_opencl(problem, scheme, tol, max_sweeps, slope_average=slope_average, device=device)
         except Exception as exc:  # turned into a one-line user error
             if type(exc).__module__.startswith("pyopencl") or isinstance(exc, RuntimeError):
                 lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
@@ -201,7 +210,14 @@ def _run(
 
 
 def singular_depths(
-    f: np.ndarray, prep: Prepared, scheme: str, backend: str, tol: float, max_sweeps: int, slope_average: str
+    f: np.ndarray,
+    prep: Prepared,
+    scheme: str,
+    backend: str,
+    tol: float,
+    max_sweeps: int,
+    slope_average: str,
+    device: str = "auto",
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Consistent depths (pixel pitches) of the singular points, one per connected singular
     region: the maximal-solution choice from the occluding contour.
@@ -242,7 +258,7 @@ def singular_depths(
         )
         return depth, info
     problem = SweepProblem(rhs=np.where(seeds, 1.0, np.maximum(f, 1e-12)), fixed=seeds, init=np.where(seeds, 0.0, BIG))
-    h = _run(problem, scheme, backend, tol, max_sweeps, slope_average).z
+    h = _run(problem, scheme, backend, tol, max_sweeps, slope_average, device).z
     h_k = np.asarray(ndimage.median(np.where(h < 0.5 * BIG, h, np.nan), src_lab, np.arange(1, n_src + 1)))
     lifted, spread = 0, 0.0
     for o in multi:
@@ -297,13 +313,31 @@ def _finish(
     return DepthMap(depth_m=depth, mask=valid, metric=False, info=info)
 
 
-def _resolve(backend: str, model: int, scheme: str, slope_average: str = "cos2") -> str:
-    """The back end a solve uses; ``auto`` is ``opencl`` when a device builds the kernel."""
+def _resolve(
+    backend: str, model: int, scheme: str, slope_average: str = "cos2", device: str = "auto", size: int = 64
+) -> str:
+    """The back end a solve of image side ``size`` uses; ``auto`` is ``opencl`` when a device
+    builds the kernel and OpenCL was measured faster there (:func:`nirspi_pipe.accel.choose`)."""
     if backend == "numpy":
         return "numpy"
     from nirspi_pipe.sfs.opencl import resolve_backend
 
-    return resolve_backend(backend, model, scheme, slope_average)
+    return resolve_backend(backend, model, scheme, slope_average, device, size)
+
+
+def _device_info(backend: str, device: str) -> dict[str, Any]:
+    """The record's ``device`` (and ``device_requested``) of a solve on ``backend``."""
+    if backend != "opencl":
+        return {"device": "cpu (numpy)", "device_requested": device}
+    from nirspi_pipe.sfs.opencl import device_name
+
+    return {"device": device_name(device), "device_requested": device}
+
+
+def _check_device(obj: Any) -> None:
+    from nirspi_pipe.accel import check_device
+
+    check_device(obj.device)
 
 
 def _effective_scheme(scheme: str, shape: tuple[int, int]) -> str:
@@ -337,6 +371,7 @@ class LaxFriedrichsSFS:
     # configs, job keys and derived seeds of the other SFS options stay as they were.
     slope_average: str = field(default="cos2", metadata={"config": False})
     singular: str = "maximal"
+    device: str = "auto"
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -354,12 +389,15 @@ class LaxFriedrichsSFS:
             raise ConfigError("singular", self.singular, ", ".join(SINGULAR_CHOICES))
         if self.slope_average not in SLOPE_AVERAGES:
             raise ConfigError("slope_average", self.slope_average, ", ".join(SLOPE_AVERAGES))
+        _check_device(self)
         self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
 
-    def effective_backend(self) -> str:
-        """The back end a solve uses: ``auto`` is ``opencl`` when a device builds the kernel,
-        else ``numpy`` (cached per process; the record's ``info.sfs.backend`` says which)."""
-        return _resolve(self.backend, 0, self.scheme, self.slope_average)
+    def effective_backend(self, size: int = 64) -> str:
+        """The back end a solve of image side ``size`` uses: ``auto`` is ``opencl`` when a device
+        builds the kernel and OpenCL was measured faster on it at that size
+        (:func:`nirspi_pipe.accel.choose`), else ``numpy`` (the record's ``info.sfs.backend`` says
+        which, ``info.sfs.device`` on which device)."""
+        return _resolve(self.backend, 0, self.scheme, self.slope_average, self.device, size)
 
     def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
         """``cos θ`` from the normalised radiance; Lambertian: ``I/albedo`` itself."""
@@ -375,15 +413,21 @@ class LaxFriedrichsSFS:
         c = np.clip(self.cos_incidence(prep.norm), self.min_intensity, 1.0)
         f = np.sqrt(1.0 / (c * c) - 1.0)  # eikonal speed |∇z|, Alg. A2 line 17 with I for Z
         scheme = _effective_scheme(self.scheme, f.shape)
-        backend = _resolve(self.backend, 0, scheme, self.slope_average)
+        backend = _resolve(self.backend, 0, scheme, self.slope_average, self.device, max(f.shape))
         z_src, sing = np.zeros(f.shape), dict[str, Any]()
         if self.singular == "maximal":
             z_src, sing = singular_depths(
-                f, prep, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average
+                f, prep, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average, self.device
             )
         problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, z_src, BIG))
-        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average)
-        extra = {"focal_px": float(camera.focal_px), "backend_requested": self.backend, **self._model_info(), **sing}
+        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average, self.device)
+        extra = {
+            "focal_px": float(camera.focal_px),
+            "backend_requested": self.backend,
+            **_device_info(backend, self.device),
+            **self._model_info(),
+            **sing,
+        }
         if scheme == "second_order":
             extra["slope_average"] = self.slope_average
         return _finish(res.z, prep, res, type(self).__name__, extra, backend, scheme)
@@ -484,6 +528,7 @@ class PerspectiveSFS:
     min_intensity: float = 0.05
     source_tol: float = 1e-3
     median_px: int = 0
+    device: str = "auto"
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -499,11 +544,13 @@ class PerspectiveSFS:
         _check_common(self, ("lax_friedrichs",))
         if not isinstance(self.falloff, bool):
             raise ConfigError("falloff", self.falloff, "true or false")
+        _check_device(self)
         self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
 
-    def effective_backend(self) -> str:
-        """The back end a solve uses (``auto``: ``opencl`` when a device builds the kernel)."""
-        return _resolve(self.backend, 2 if self.falloff else 1, self.scheme)
+    def effective_backend(self, size: int = 64) -> str:
+        """The back end a solve of image side ``size`` uses (``auto``: as
+        :meth:`LaxFriedrichsSFS.effective_backend`)."""
+        return _resolve(self.backend, 2 if self.falloff else 1, self.scheme, "cos2", self.device, size)
 
     def solve(self, image: Image2D, camera: Camera) -> DepthMap:
         """Depth (pixel pitches at the nearest point, 0 there) from ``image`` seen by ``camera``."""
@@ -531,8 +578,8 @@ class PerspectiveSFS:
             model = 1
         problem = SweepProblem(rhs=rhs, fixed=fixed, init=init, model=model, xhat=xh, yhat=yh, focal_px=f)
         scheme = self.scheme
-        backend = self.effective_backend()
-        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps))
+        backend = self.effective_backend(max(rows, cols))
+        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), device=self.device)
         w = np.where(prep.mask, res.z, np.nan)
         valid = prep.mask & (res.z < 0.5 * BIG)
         z_rel = np.zeros_like(res.z)
@@ -543,4 +590,5 @@ class PerspectiveSFS:
         depth = np.where(valid, depth, BIG)
         extra = {"focal_px": f, "falloff": bool(self.falloff)}
         extra["backend_requested"] = self.backend
+        extra.update(_device_info(backend, self.device))
         return _finish(depth, prep, res, "PerspectiveSFS", extra, backend, scheme)

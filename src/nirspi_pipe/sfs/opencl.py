@@ -2,16 +2,27 @@
 
 The whole solve — every round of four sweeps, the KOQ boundary rule and the convergence test —
 runs in one kernel launch on a single work-group. Work-items share the cells of one
-anti-diagonal and meet at a barrier before the next diagonal, which is exactly the dependency
-structure of the numpy path (:mod:`nirspi_pipe.sfs.sweeping`), so both do the same arithmetic in
-the same order. ``FP_CONTRACT`` is off so that no fused multiply-adds change the rounding: the two
-back ends agree to ~1e-12 pixel (tested at 1e-9).
+anti-diagonal and meet at a barrier before the next diagonal: the parallel sweeping order of
+Detrixhe, Gibou & Min (J. Comput. Phys. 2013), which is exactly the dependency structure of the
+numpy path (:mod:`nirspi_pipe.sfs.sweeping`), so both do the same arithmetic in the same order.
+``FP_CONTRACT`` is off so that no fused multiply-adds change the rounding: the two back ends agree
+to ~1e-12 pixel (tested at 1e-9), whatever the number of work-items (the cells of a diagonal never
+read each other: tests/test_parity.py runs 1, 8, 64 and the device's own).
+
+How many work-items (:func:`default_local_size`): on a CPU device one, the serial sweep, which
+PoCL compiles into a plain loop (the fastest there: docs/sfs.md has the numbers); on a GPU one per
+cell of the longest diagonal, ``min(rows, cols)`` rounded up to a warp (32) and capped by the
+kernel's work-group limit, so every diagonal is one parallel step. One work-group keeps the
+solve to one launch (no per-diagonal launch latency: a round of a 256² grid is 2044 diagonals);
+grids wider than the work-group limit loop over the diagonal inside each step.
 
 A kernel is compiled twice: when its program is built (cached on disk) and, by PoCL, at its first
 launch with a given local size (the work-group function, ~0.1–0.4 s here with a cold
 ``~/.cache/pocl``). :func:`warm_up`, called when an SFS stage is built, does both: it builds the
 program and launches each kernel of the solve once on a 4×4 problem with the solve's local
 sizes, so that neither compilation falls inside a timed solve.
+
+The device is a spec of :mod:`nirspi_pipe.accel` (``auto``, ``cpu``, ``gpu``, ``P:D``).
 """
 
 from __future__ import annotations
@@ -25,9 +36,13 @@ from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
 __all__ = ["solve_opencl", "opencl_available"]
 
-#: Work-items of the sweeping kernels (``fsm``, ``fsm2``) in a stage's solve: on a CPU device one
-#: is fastest (:func:`solve_opencl`), and :func:`warm_up` launches with it.
+#: Work-items of the sweeping kernels (``fsm``, ``fsm2``) on a CPU device: one is fastest there
+#: (:func:`default_local_size`), and :func:`warm_up` launches with it.
 LOCAL_SIZE = 1
+
+#: Work-items of a GPU's sweeping work-group are a multiple of this (NVIDIA's warp; AMD's
+#: wavefront is 32 or 64, a multiple of 32 either way).
+GPU_WARP = 32
 
 #: Work-group size of ``edges2`` (one work-item per pixel, the global size padded to a multiple;
 #: the kernel returns past ``R*C``). Fixed rather than left to the driver: PoCL picks the local
@@ -306,39 +321,55 @@ __kernel void fsm(__global double *z, __global const double *rhs,
 """
 
 
-@lru_cache(maxsize=1)
-def _context():
+def _context(device: str = "auto") -> tuple[Any, Any]:
+    """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`)."""
+    from nirspi_pipe.accel import opencl_context
+
+    return opencl_context(device)
+
+
+@lru_cache(maxsize=16)
+def _program(model: int, scheme: int, device: str = "auto"):
     import pyopencl as cl
 
-    platforms = cl.get_platforms()
-    for platform in platforms:
-        for device in platform.get_devices():
-            if "fp64" in device.extensions:
-                ctx = cl.Context([device])
-                return ctx, cl.CommandQueue(ctx)
-    raise RuntimeError("no OpenCL device with float64 (cl_khr_fp64) support")
-
-
-@lru_cache(maxsize=8)
-def _program(model: int, scheme: int):
-    import pyopencl as cl
-
-    ctx, _ = _context()
+    ctx, _ = _context(device)
     src = _KERNEL % {"big": BIG}
     prg = cl.Program(ctx, src).build(options=[f"-DMODEL={model}", f"-DSCHEME={scheme}"])
     return cl.Kernel(prg, "fsm")
 
 
-@lru_cache(maxsize=2)
-def _program2(cos2: int):
+@lru_cache(maxsize=4)
+def _program2(cos2: int, device: str = "auto"):
     """``(fsm2, edges2, local size of edges2)`` (at most :data:`EDGES_LOCAL_SIZE`)."""
     import pyopencl as cl
 
-    ctx, _ = _context()
+    ctx, _ = _context(device)
     prg = cl.Program(ctx, kernel2_source()).build(options=[f"-DCOS2={int(cos2)}"])
     edges = cl.Kernel(prg, "edges2")
     most = edges.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, ctx.devices[0])
     return cl.Kernel(prg, "fsm2"), edges, max(1, min(EDGES_LOCAL_SIZE, int(most)))
+
+
+def default_local_size(kernel: Any, device: str, rows: int, cols: int) -> int:
+    """Work-items of the sweeping kernel for an ``rows × cols`` grid on ``device``.
+
+    A CPU device gets :data:`LOCAL_SIZE` (1: PoCL compiles the serial sweep into a plain loop,
+    the fastest there, measured in docs/sfs.md). A GPU gets one work-item per cell of the longest
+    anti-diagonal, ``min(rows, cols)``, rounded up to a multiple of :data:`GPU_WARP` and capped by
+    the kernel's largest work-group: the cells of one diagonal are independent (Detrixhe, Gibou &
+    Min 2013), so each diagonal is one parallel step between two barriers of the work-group.
+    """
+    import pyopencl as cl
+
+    from nirspi_pipe.accel import is_gpu
+
+    ctx, _ = _context(device)
+    dev = ctx.devices[0]
+    if not is_gpu(dev):
+        return LOCAL_SIZE
+    most = int(kernel.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, dev))
+    want = -(-max(1, min(rows, cols)) // GPU_WARP) * GPU_WARP
+    return max(1, min(most, want))
 
 
 def kernel2_source() -> str:
@@ -349,40 +380,46 @@ def kernel2_source() -> str:
     return _KERNEL2 % {k: float(v) for k, v in consts.items()}
 
 
-def opencl_available(scheme: str = "godunov") -> bool:
-    """True when pyopencl finds a float64-capable device that builds the sweeping kernel for
-    ``scheme`` (PoCL fails on CPUs its LLVM does not know, e.g. ``unknown target CPU
-    'generic'``)."""
+def opencl_available(scheme: str = "godunov", device: str = "auto") -> bool:
+    """True when pyopencl finds a float64-capable device (``device``,
+    :func:`nirspi_pipe.accel.opencl_device`) that builds the sweeping kernel for ``scheme`` (PoCL
+    fails on CPUs its LLVM does not know, e.g. ``unknown target CPU 'generic'``)."""
     try:
         if scheme == "second_order":
-            _program2(1)
+            _program2(1, device)
         else:
-            _program(0, 1)
+            _program(0, 1, device)
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return False
     return True
 
 
-def warm_up(model: int, scheme: str, slope_average: str = "cos2", local_size: int = LOCAL_SIZE) -> bool:
+def warm_up(
+    model: int, scheme: str, slope_average: str = "cos2", local_size: int | None = None, device: str = "auto"
+) -> bool:
     """Build (or fetch from the on-disk caches) the exact kernels a solve with ``model`` and
     ``scheme`` will launch, and launch each once on a 4×4 problem with the solve's local sizes
     (:func:`_warm_launch`), so that compilation is never part of a stage's time; True when that
     works, False on any failure (the caller falls back to numpy). Once per process and program.
-    Called by the SFS stages' ``__post_init__``."""
+    ``local_size`` None: the device's (:func:`default_local_size`; on a GPU it grows with the
+    grid, and NVIDIA's driver compiles once per program, not per local size). Called by the SFS
+    stages' ``__post_init__``."""
     cos2 = slope_average if scheme == "second_order" else "cos2"  # the others ignore it
     try:
         if scheme == "second_order":
-            kernels: Any = _program2(int(cos2 == "cos2"))
+            kernels: Any = _program2(int(cos2 == "cos2"), device)
+            sweep = kernels[0]
         else:
-            kernels = _program(int(model), 0 if scheme == "lax_friedrichs" else 1)
-        _warm_launch(int(model), scheme, cos2, int(max(1, local_size)), kernels)
+            kernels = sweep = _program(int(model), 0 if scheme == "lax_friedrichs" else 1, device)
+        lsz = default_local_size(sweep, device, 64, 64) if local_size is None else int(max(1, local_size))
+        _warm_launch(int(model), scheme, cos2, lsz, kernels, device)
     except Exception:  # noqa: BLE001 - any failure means "not available"
         return False
     return True
 
 
 @lru_cache(maxsize=16)
-def _warm_launch(model: int, scheme: str, slope_average: str, local_size: int, kernels: Any) -> None:
+def _warm_launch(model: int, scheme: str, slope_average: str, local_size: int, kernels: Any, device: str) -> None:
     """Run :func:`solve_opencl` once on a 4×4 problem: the buffers, pyopencl's argument setter
     and PoCL's per-local-size work-group function of every kernel the solve launches (``fsm``;
     ``edges2`` and ``fsm2``) are made here. ``kernels`` (the built program's, what the solve
@@ -397,18 +434,33 @@ def _warm_launch(model: int, scheme: str, slope_average: str, local_size: int, k
     init = np.where(fixed, 0.0, 1.0 if model == 2 else BIG)
     coords = (np.arange(n) + 0.5 - n / 2) / (2.0 * n)
     problem = SweepProblem(np.full((n, n), 1.5), fixed, init, model, coords, coords, 2.0 * n)
-    solve_opencl(problem, scheme, max_sweeps=4, local_size=local_size, slope_average=slope_average)
+    solve_opencl(problem, scheme, max_sweeps=4, local_size=local_size, slope_average=slope_average, device=device)
 
 
-def resolve_backend(backend: str, model: int, scheme: str, slope_average: str = "cos2") -> str:
-    """``auto`` → ``opencl`` when a device builds and runs this solve's kernels (:func:`warm_up`), else
-    ``numpy``; ``numpy``/``opencl`` are returned as given (``opencl`` warmed up)."""
+def resolve_backend(
+    backend: str, model: int, scheme: str, slope_average: str = "cos2", device: str = "auto", size: int = 64
+) -> str:
+    """``auto`` → ``opencl`` when a device builds and runs this solve's kernels (:func:`warm_up`)
+    and the measured choice for that device and image side ``size`` is OpenCL
+    (:func:`nirspi_pipe.accel.choose`), else ``numpy``; ``numpy``/``opencl`` are returned as given
+    (``opencl`` warmed up)."""
     if backend == "numpy":
         return backend
-    ok = warm_up(model, scheme, slope_average)
+    ok = warm_up(model, scheme, slope_average, device=device)
     if backend == "auto":
-        return "opencl" if ok else "numpy"
+        if not ok:
+            return "numpy"
+        from nirspi_pipe.accel import choose
+
+        return choose("sfs", _context(device)[0].devices[0], size)[0]
     return backend
+
+
+def device_name(device: str = "auto") -> str:
+    """The record's name of the device ``device`` names (``platform / device (GPU|CPU)``)."""
+    from nirspi_pipe.accel import device_label
+
+    return device_label(_context(device)[0].devices[0])
 
 
 def solve_opencl(
@@ -416,24 +468,27 @@ def solve_opencl(
     scheme: str = "lax_friedrichs",
     tol: float = 1e-4,
     max_sweeps: int = 2000,
-    local_size: int = LOCAL_SIZE,
+    local_size: int | None = None,
     slope_average: str = "cos2",
+    device: str = "auto",
 ) -> SweepResult:
     """Same contract as :func:`nirspi_pipe.sfs.sweeping.solve_numpy`, on an OpenCL device.
 
-    ``local_size`` work-items share each anti-diagonal. On a CPU device one work-item (the
-    default) is fastest: the kernel is then plain compiled Gauss–Seidel and skips the
-    barrier bookkeeping. ``slope_average`` is used by ``scheme="second_order"`` only.
+    ``local_size`` work-items share each anti-diagonal (None: :func:`default_local_size`, one on
+    a CPU device, where the kernel is then plain compiled Gauss–Seidel and skips the barrier
+    bookkeeping; the longest diagonal on a GPU). Every local size gives the same bits: the cells
+    of one diagonal never read each other. ``slope_average`` is used by
+    ``scheme="second_order"`` only; ``device`` is a spec of :mod:`nirspi_pipe.accel`.
     """
     import pyopencl as cl
 
     if scheme == "second_order":
-        return _solve_second_order(problem, tol, max_sweeps, local_size, slope_average)
+        return _solve_second_order(problem, tol, max_sweeps, local_size, slope_average, device)
 
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
-    ctx, queue = _context()
-    kernel = _program(int(problem.model), 0 if scheme == "lax_friedrichs" else 1)
+    ctx, queue = _context(device)
+    kernel = _program(int(problem.model), 0 if scheme == "lax_friedrichs" else 1, device)
     rows, cols = problem.rhs.shape
     upd = ~problem.fixed
     if scheme == "lax_friedrichs":
@@ -458,7 +513,7 @@ def solve_opencl(
     out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
     sx, sy = problem.sigmas()
     max_rounds = max(1, -(-int(max_sweeps) // 4))
-    lsz = int(max(1, local_size))
+    lsz = default_local_size(kernel, device, rows, cols) if local_size is None else int(max(1, local_size))
     kernel(
         queue,
         (lsz,),
@@ -481,7 +536,7 @@ def solve_opencl(
 
 
 def _solve_second_order(
-    problem: SweepProblem, tol: float, max_sweeps: int, local_size: int, slope_average: str
+    problem: SweepProblem, tol: float, max_sweeps: int, local_size: int | None, slope_average: str, device: str
 ) -> SweepResult:
     """``scheme="second_order"`` on the OpenCL device (kernel ``fsm2``)."""
     import pyopencl as cl
@@ -493,8 +548,8 @@ def _solve_second_order(
     if slope_average not in SLOPE_AVERAGES:
         raise ValueError(f"slope_average {slope_average!r} not in {SLOPE_AVERAGES}")
     cos2 = slope_average == "cos2"
-    ctx, queue = _context()
-    kernel, edges, edges_lsz = _program2(int(cos2))
+    ctx, queue = _context(device)
+    kernel, edges, edges_lsz = _program2(int(cos2), device)
     rows, cols = problem.rhs.shape
     rhs = np.ascontiguousarray(np.minimum(problem.rhs, F_MAX), np.float64)
     mf = cl.mem_flags
@@ -517,7 +572,7 @@ def _solve_second_order(
     out = np.zeros(3)
     out_buf = cl.Buffer(ctx, mf.WRITE_ONLY, out.nbytes)
     max_rounds = max(1, -(-int(max_sweeps) // 4))
-    lsz = int(max(1, local_size))
+    lsz = default_local_size(kernel, device, rows, cols) if local_size is None else int(max(1, local_size))
     kernel(
         queue,
         (lsz,),
