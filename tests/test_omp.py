@@ -82,3 +82,37 @@ def test_engine_gram_and_projection_equal_the_dense_products(basis: str) -> None
         np.testing.assert_allclose(engine.gram(p, support), a[:, support].T @ a[:, p], atol=1e-12)
     r = rng.standard_normal(indices.size)
     np.testing.assert_allclose(engine.correlate(r), a.T @ r, atol=1e-12)
+
+
+def _device_or_skip() -> None:
+    from nirspi_pipe.errors import NirspiError
+    from nirspi_pipe.solvers.omp_opencl import opencl_context
+
+    try:
+        opencl_context()
+    except NirspiError as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.mark.parametrize(("basis", "normalize", "tol"), [("dct", False, 0.0), ("haar", True, 0.0), ("dct", False, 0.2)])
+def test_device_batch_equals_numpy_one_by_one(basis: str, normalize: bool, tol: float) -> None:
+    """Issue 33: the device OMP solves a batch of problems with the same patterns in one go;
+    each equals the numpy solve to 1e-10 with the same atoms and stop reason (a zero problem, a
+    tolerance met early and the atom budget included)."""
+    from nirspi_pipe.solvers.omp import omp_hadamard_batch
+
+    _device_or_skip()
+    n = 16
+    indices, _ = _case(n, 0.3, 7)
+    rng = np.random.default_rng(1)
+    ys = rng.standard_normal((4, indices.size))
+    ys[2] = 0.0
+    images, infos = omp_hadamard_batch(ys, n, indices, basis, max_atoms=25, tol=tol, normalize=normalize)
+    stops = set()
+    for y, image, info in zip(ys, images, infos):
+        want, winfo = omp_hadamard(y, n, indices, basis=basis, max_atoms=25, tol=tol, normalize=normalize)
+        assert (info["iterations"], info["stop_reason"]) == (winfo["iterations"], winfo["stop_reason"])
+        assert info["relative_residual"] == pytest.approx(winfo["relative_residual"], abs=1e-12)
+        assert np.max(np.abs(image - want)) <= 1e-10
+        stops.add(info["stop_reason"])
+    assert "zero_measurements" in stops

@@ -23,9 +23,10 @@ makes the ``numpy`` and ``opencl`` back ends, whose sums round differently, pick
 and agree to ``1e-5``.
 
 Back ends: ``numpy`` (the reference) and ``opencl`` (:mod:`nirspi_pipe.solvers.omp_opencl`,
-pyopencl, float64; PoCL on the CPU here), which runs the correlation ``Mᵀ R M`` and the
-synthesis ``M S Mᵀ`` in OpenCL kernels. The selection rule, the bookkeeping and the final
-triangular solve are shared host code.
+pyopencl, float64; PoCL on the CPU here), which runs this same algorithm, selection and factor
+update included, on the device from the first correlation to the coefficients, with no read-back
+per atom, and solves a batch of problems with the same patterns in one go
+(:func:`omp_hadamard_batch`).
 """
 
 from __future__ import annotations
@@ -242,9 +243,8 @@ def omp_core(
     """
     size = colnorm.size
     ny = float(np.linalg.norm(y))
-    usable = colnorm > 1e-12 * float(colnorm.max())
     # selection weight; 0 for atoms already chosen or invisible (score 0 is never picked)
-    weight = np.where(usable, 1.0 / np.where(usable, colnorm, 1.0), 0.0) if normalize else usable.astype(np.float64)
+    weight = selection_weight(colnorm, normalize)
     aty = engine.correlate(y)
     g = aty.copy()  # Aᵀ r, updated per atom
     # L⁻¹ stored as Uᵀ, U upper triangular packed by columns: column j of U (row j of L⁻¹) is
@@ -301,8 +301,10 @@ def omp_hadamard(
     tol: float = 1e-6,
     backend: str = "numpy",
     normalize: bool = False,
+    device: str = "auto",
 ) -> tuple[np.ndarray, dict]:
     """OMP for Hadamard measurements ``y`` at flat ``indices``; returns ``(image, info)``.
+    ``backend`` ``opencl`` solves on the device ``device`` names (:mod:`nirspi_pipe.accel`).
 
     ``image`` is ``n × n`` in the units of ``y`` per pixel (relative radiance for calibrated
     coefficients); ``info`` has ``iterations`` (atoms chosen), ``stop_reason``,
@@ -327,19 +329,68 @@ def omp_hadamard(
     m2 = m_mat * m_mat
     colnorm = np.sqrt(np.maximum((m2[rows].T @ m2[cols]).ravel(), 0.0))  # ‖A[:, p]‖
 
-    engine: OmpBackend
-    if backend == "numpy":
-        engine = NumpyOmpBackend(m_mat, rows, cols, k_max)
+    if backend == "opencl":
+        from nirspi_pipe.solvers.omp_opencl import DeviceOmp
+
+        engine_cl = DeviceOmp(m_mat, rows, cols, colnorm, k_max, device)
+        coeffs_b, atoms, stops, resids = engine_cl.solve(y[None, :], selection_weight(colnorm, normalize), tol)
+        coeffs, k, stop, res = coeffs_b[0], int(atoms[0]), stops[0], float(resids[0])
     else:
-        from nirspi_pipe.solvers.omp_opencl import OpenCLOmpBackend
-
-        engine = OpenCLOmpBackend(m_mat, rows, cols, k_max)
-
-    coeffs, k, stop, res = omp_core(np.asarray(y, np.float64), engine, colnorm, k_max, tol, normalize)
+        engine = NumpyOmpBackend(m_mat, rows, cols, k_max)
+        coeffs, k, stop, res = omp_core(np.asarray(y, np.float64), engine, colnorm, k_max, tol, normalize)
     s = coeffs.reshape(n, n)
     image = b.T @ s @ b  # X = Bᵀ S B
     info.update(iterations=k, stop_reason=stop, relative_residual=res)
     return image, info
+
+
+def selection_weight(colnorm: np.ndarray, normalize: bool) -> np.ndarray:
+    """OMP's selection weight per atom (:func:`omp_core`): ``1/‖a_p‖`` (``normalize``) or 1 for
+    the atoms the measurements see, 0 for the invisible ones (score 0 is never picked)."""
+    usable = colnorm > 1e-12 * float(colnorm.max())
+    if normalize:
+        return np.where(usable, 1.0 / np.where(usable, colnorm, 1.0), 0.0)
+    return usable.astype(np.float64)
+
+
+def omp_hadamard_batch(
+    ys: np.ndarray,
+    n: int,
+    indices: np.ndarray,
+    basis: str = "dct",
+    max_atoms: int = 1000,
+    tol: float = 1e-6,
+    normalize: bool = False,
+    device: str = "auto",
+) -> tuple[np.ndarray, list[dict]]:
+    """OMP of ``B`` independent problems measured with the same patterns (``ys``: ``(B, m)``, one
+    row per problem: tiles, the images of a sweep) in one device solve, every kernel launch
+    serving all of them (:class:`~nirspi_pipe.solvers.omp_opencl.DeviceOmp`). Returns the images
+    ``(B, n, n)`` and one ``info`` per problem, each what :func:`omp_hadamard` gives."""
+    from nirspi_pipe.solvers.omp_opencl import DeviceOmp
+
+    ys = np.atleast_2d(np.asarray(ys, np.float64))
+    idx = np.asarray(indices, dtype=np.int64)
+    rows, cols = idx // n, idx % n
+    b = basis_matrix(basis, n)
+    m_mat = np.ascontiguousarray(sylvester(n) @ b.T)
+    k_max = int(max(1, min(max_atoms, idx.size, n * n)))
+    m2 = m_mat * m_mat
+    colnorm = np.sqrt(np.maximum((m2[rows].T @ m2[cols]).ravel(), 0.0))
+    engine = DeviceOmp(m_mat, rows, cols, colnorm, k_max, device)
+    coeffs, atoms, stops, resids = engine.solve(ys, selection_weight(colnorm, normalize), tol)
+    images = b.T @ coeffs.reshape(-1, n, n) @ b
+    infos = [
+        {
+            "backend": "opencl",
+            "basis": basis,
+            "iterations": int(k),
+            "stop_reason": stop,
+            "relative_residual": float(res),
+        }
+        for k, stop, res in zip(atoms, stops, resids)
+    ]
+    return images, infos
 
 
 class DenseOmpBackend:
@@ -406,8 +457,12 @@ class OMPSolver:
         sparsity: atoms at most, as a fraction of the measurements ``m`` (0, 1].
         max_atoms: hard cap on atoms (cost grows as ``atoms · (n³ + m · atoms)``); null = none.
         tol: stop when ``‖r‖ ≤ tol · ‖y‖``.
-        backend: ``auto`` (OpenCL on a GPU, else numpy), ``numpy`` (reference) or ``opencl``
-            (pyopencl, float64).
+        backend: ``auto`` (OpenCL where it was measured faster than numpy on the device at this
+            size, :func:`nirspi_pipe.accel.choose`; numpy where nothing was measured, and on
+            PoCL's CPU device), ``numpy`` (reference) or ``opencl`` (pyopencl, float64, the
+            whole solve on the device).
+        device: the OpenCL device: ``auto``, ``cpu``, ``gpu`` or ``<platform>:<device>``
+            (:mod:`nirspi_pipe.accel`; ``auto`` honours ``PYOPENCL_CTX``).
     """
 
     basis: str = "dct"
@@ -416,8 +471,11 @@ class OMPSolver:
     tol: float = 1e-6
     backend: str = "auto"
     normalize: bool = False
+    device: str = "auto"
 
     def __post_init__(self) -> None:
+        from nirspi_pipe.accel import check_device
+
         if self.basis not in ("dct", "haar"):
             raise ConfigError("basis", self.basis, "dct or haar")
         if not (0.0 < float(self.sparsity) <= 1.0):
@@ -428,19 +486,36 @@ class OMPSolver:
             raise ConfigError("tol", self.tol, "a relative tolerance in [0, 1)")
         if self.backend not in ("auto", "numpy", "opencl"):
             raise ConfigError("backend", self.backend, "auto, numpy or opencl")
+        check_device(self.device)
         if self.backend == "opencl":
             from nirspi_pipe.solvers.omp_opencl import opencl_context
 
-            opencl_context()  # build the kernels now (or fail in one line), never inside a timed solve
+            opencl_context(self.device)  # build the kernels now (or fail in one line), never inside a timed solve
 
-    def effective_backend(self) -> str:
-        """``auto``: ``opencl`` on a GPU that builds the kernels, else ``numpy`` — on PoCL's CPU
-        device OpenCL OMP is slower than numpy (``nirspi-bench omp``; docs/reconstruction.md)."""
+    def effective_backend(self, size: int = 64) -> str:
+        """The back end of a solve of an ``size × size`` image. ``auto``: ``opencl`` where a device
+        builds the kernels and OpenCL OMP was measured faster than numpy on it at that size
+        (:func:`nirspi_pipe.accel.choose`), else ``numpy``: on PoCL's CPU device the device OMP is
+        slower than numpy (``nirspi-bench omp --opencl``; docs/reconstruction.md)."""
         if self.backend != "auto":
             return self.backend
-        from nirspi_pipe.solvers.omp_opencl import gpu_available
+        from nirspi_pipe.accel import choose
+        from nirspi_pipe.solvers.omp_opencl import opencl_context
 
-        return "opencl" if gpu_available() else "numpy"
+        try:
+            ctx, _, _ = opencl_context(self.device)
+        except Exception:  # noqa: BLE001 - no working device: numpy
+            return "numpy"
+        return choose("omp", ctx.devices[0], int(size))[0]
+
+    def device_name(self, backend: str) -> str:
+        """The record's name of the device a solve on ``backend`` ran on."""
+        if backend != "opencl":
+            return "cpu (numpy)"
+        from nirspi_pipe.accel import device_label
+        from nirspi_pipe.solvers.omp_opencl import opencl_context
+
+        return device_label(opencl_context(self.device)[0].devices[0])
 
     def atoms(self, m: int) -> int:
         """Atom budget for ``m`` measurements."""
@@ -459,7 +534,9 @@ class OMPSolver:
                 float(self.tol),
                 bool(self.normalize),
             )
+            info.update(device="cpu (numpy)", device_requested=self.device)
             return Image2D(image, info=info)
+        backend = self.effective_backend(acquisition.n)
         image, info = omp_hadamard(
             y,
             acquisition.n,
@@ -467,7 +544,9 @@ class OMPSolver:
             basis=self.basis,
             max_atoms=self.atoms(len(y)),
             tol=float(self.tol),
-            backend=self.effective_backend(),
+            backend=backend,
             normalize=bool(self.normalize),
+            device=self.device,
         )
+        info.update(device=self.device_name(backend), device_requested=self.device, backend_requested=self.backend)
         return Image2D(image, info=info)
