@@ -45,7 +45,86 @@ def test_sfs_kernel_is_built_at_construction(sphere_image) -> None:  # type: ign
 
 
 def test_omp_auto_is_numpy_on_cpu_devices() -> None:
-    from nirspi_pipe.solvers.omp_opencl import gpu_available
+    """Issue 33: ``auto`` is what was measured faster on the device, numpy on PoCL's CPU device
+    (the device OMP is slower there) and wherever nothing was measured."""
+    from nirspi_pipe.accel import choose, is_gpu
+    from nirspi_pipe.solvers.omp_opencl import gpu_available, opencl_context
 
-    assert OMPSolver().effective_backend() == ("opencl" if gpu_available() else "numpy")
     assert OMPSolver(backend="numpy").effective_backend() == "numpy"
+    if not ocl.opencl_available():
+        assert OMPSolver().effective_backend() == "numpy"
+        return
+    dev = opencl_context()[0].devices[0]
+    for size in (8, 64, 128):
+        assert OMPSolver().effective_backend(size) == choose("omp", dev, size)[0]
+    if not gpu_available() and not is_gpu(dev):
+        assert OMPSolver().effective_backend(128) == "numpy"
+
+
+def test_auto_follows_the_measured_table(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A row of the user's table (``nirspi-bench gpu --write-table``) decides ``auto`` for that
+    device, stage and size; the nearest measured size at or below is used."""
+    from nirspi_pipe import accel
+
+    class Dev:
+        name = "Some Device"
+
+    monkeypatch.setenv("NIRSPI_DEVICE_TABLE", str(tmp_path / "t.json"))
+    accel.load_table.cache_clear()
+    try:
+        assert accel.choose("omp", Dev(), 64)[0] == accel.DEFAULT_CHOICE["omp"]
+        accel.write_table({"Some Device": {"omp": {32: "numpy", 128: "opencl"}, "sfs": {64: "numpy"}}})
+        assert accel.choose("omp", Dev(), 64)[0] == "numpy"
+        assert accel.choose("omp", Dev(), 128)[0] == "opencl"
+        assert accel.choose("omp", Dev(), 512)[0] == "opencl"
+        assert accel.choose("omp", Dev(), 8)[0] == "numpy"  # below every row: the smallest one's
+        assert accel.choose("sfs", Dev(), 256) == ("numpy", "measured on Some Device at 64²")
+        (tmp_path / "t.json").write_text("{not json")
+        accel.load_table.cache_clear()
+        assert accel.choose("sfs", Dev(), 256)[0] == accel.DEFAULT_CHOICE["sfs"]  # a broken file is ignored
+    finally:
+        monkeypatch.delenv("NIRSPI_DEVICE_TABLE")
+        accel.load_table.cache_clear()
+
+
+@pytest.mark.parametrize("bad", ["GPU", "1", "0:x", "", 3, "cuda"])
+def test_device_spec_is_checked_in_one_line(bad) -> None:  # type: ignore[no-untyped-def]
+    from nirspi_pipe.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="device=.*allowed: auto, cpu, gpu"):
+        OMPSolver(device=bad)
+    with pytest.raises(ConfigError, match="device=.*allowed: auto, cpu, gpu"):
+        LaxFriedrichsSFS(device=bad)
+
+
+def test_pyopencl_ctx_names_the_device_and_a_missing_one_fails_in_one_line(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from nirspi_pipe import accel
+    from nirspi_pipe.errors import NirspiError
+
+    if not ocl.opencl_available():
+        pytest.skip("no OpenCL device here")
+    import pyopencl as cl
+
+    last = len(cl.get_platforms()) - 1
+    accel.opencl_device.cache_clear()
+    try:
+        monkeypatch.setenv("PYOPENCL_CTX", f"{last}:0")
+        assert accel.opencl_device("auto") == cl.get_platforms()[last].get_devices()[0]
+        assert accel.opencl_device(f"{last}:0") == cl.get_platforms()[last].get_devices()[0]
+        monkeypatch.setenv("PYOPENCL_CTX", "99:0")
+        accel.opencl_device.cache_clear()  # read once per process
+        with pytest.raises(NirspiError, match="PYOPENCL_CTX='99:0': no such OpenCL device"):
+            accel.opencl_device("auto")
+        with pytest.raises(NirspiError, match="no such OpenCL device"):
+            accel.opencl_device("7:3")
+    finally:
+        accel.opencl_device.cache_clear()
+
+
+def test_record_names_backend_and_device(sphere_image) -> None:  # type: ignore[no-untyped-def]
+    image, cam = sphere_image
+    out = LaxFriedrichsSFS(scheme="godunov", backend="numpy").solve(image, cam)
+    assert out.info["device"] == "cpu (numpy)" and out.info["device_requested"] == "auto"
+    if ocl.opencl_available():
+        out = LaxFriedrichsSFS(scheme="godunov", backend="opencl", device="auto").solve(image, cam)
+        assert out.info["backend"] == "opencl" and " / " in out.info["device"]
