@@ -176,6 +176,83 @@ def fsrcnn_forward(image: np.ndarray, weights: FsrcnnWeights) -> np.ndarray:
     return y
 
 
+#: ``upscale.backend`` of ``upscale=fsrcnn``: numpy (float64, the reference) or torch (float32).
+BACKENDS = ("numpy", "torch")
+#: ``upscale.device`` of the torch back end: ``auto`` is CUDA when torch sees a GPU, else the CPU.
+DEVICES = ("auto", "cpu", "cuda")
+
+
+def torch_device(device: str) -> str:
+    """The torch device (``cpu``/``cuda``) for ``upscale.device``; :class:`NirspiError` (one
+    line) for ``cuda`` where torch has no CUDA, :class:`ConfigError` without torch."""
+    from nirspi_pipe.errors import NirspiError
+
+    if device not in DEVICES:
+        raise ConfigError("device", device, ", ".join(DEVICES))
+    try:
+        import torch
+    except ImportError:
+        raise ConfigError(
+            "backend", "torch", "numpy, or torch once installed (pip install 'nirspi-pipe[train]')"
+        ) from None
+    cuda = bool(torch.cuda.is_available())
+    if device == "cuda" and not cuda:
+        raise NirspiError(
+            f"upscale.device=cuda: torch {torch.__version__} sees no CUDA GPU here; use upscale.device=cpu or auto"
+        )
+    return "cuda" if device == "cuda" or (device == "auto" and cuda) else "cpu"
+
+
+class _Tf32:
+    """Allow or forbid TF32 in CUDA matmuls and cuDNN convolutions for one call, then restore
+    torch's settings as they were (``torch.backends.cuda.matmul.allow_tf32``,
+    ``torch.backends.cudnn.allow_tf32``)."""
+
+    def __init__(self, torch: Any, on: bool) -> None:
+        self.torch, self.on = torch, bool(on)
+
+    def __enter__(self) -> None:
+        b = self.torch.backends
+        self.saved = (b.cuda.matmul.allow_tf32, b.cudnn.allow_tf32)
+        b.cuda.matmul.allow_tf32 = self.on
+        b.cudnn.allow_tf32 = self.on
+
+    def __exit__(self, *exc: object) -> None:
+        b = self.torch.backends
+        b.cuda.matmul.allow_tf32, b.cudnn.allow_tf32 = self.saved
+
+
+def fsrcnn_forward_torch(
+    image: np.ndarray, weights: FsrcnnWeights, device: str = "cpu", tf32: bool = False
+) -> np.ndarray:
+    """:func:`fsrcnn_forward` with torch's float32 layers on ``device`` (``cpu``/``cuda``), as
+    ``nirspi-train-fsrcnn`` runs the network; float64 out. ``tf32``: allow TensorFloat-32 in
+    cuDNN's convolutions (faster on Ampere and later, error ~1e-3 against numpy instead of ~1e-6,
+    measured on an H200: docs/gpu.md); off by default, restored after the call."""
+    import torch
+    from torch.nn import functional as F
+
+    from nirspi_pipe.upscale.bicubic import bicubic
+
+    def f32(a: np.ndarray) -> Any:
+        return torch.from_numpy(np.array(a, dtype=np.float32)).to(device)  # a writable float32 copy
+
+    s, pad = weights.scale, weights.border
+    lr = np.asarray(image, dtype=np.float64)
+    x = torch.from_numpy(np.pad(lr, pad, mode="symmetric").astype(np.float32))[None, None].to(device)
+    with torch.no_grad(), _Tf32(torch, tf32):
+        for layer in weights.layers:
+            x = F.conv2d(x, f32(layer.w), f32(layer.b), padding=layer.w.shape[-1] // 2)
+            x = F.prelu(x, f32(layer.alpha))
+        y = F.conv_transpose2d(
+            x, f32(weights.deconv_w), f32(weights.deconv_b), stride=s, padding=DECONV_PADDING, output_padding=s - 1
+        )
+        out = y[0, 0].cpu().numpy().astype(np.float64)
+    h, wd = lr.shape
+    out = out[pad * s : pad * s + h * s, pad * s : pad * s + wd * s]
+    return out + bicubic(lr, s) if weights.residual else out
+
+
 def save_weights(path: str | Path, weights: FsrcnnWeights) -> None:
     """Write ``weights`` as a compressed float32 ``.npz`` (no pickles; ``meta`` as JSON text)."""
     arrays: dict[str, Any] = {}  # Any: numpy types savez(**kwds) as arrays or allow_pickle: bool
@@ -328,20 +405,42 @@ class FSRCNN:
             (``fsrcnn_x4_led8.npz``: ×4 for the 8 × 8 LED device); null uses the packaged
             ``fsrcnn_x{scale}.npz`` (trained on 64² inputs).
         clip: clip the result to the physical range [0, 1].
+        backend: ``numpy`` (float64, the reference) or ``torch`` (float32 layers, optional extra
+            ``train``; parity 1e-5 with TF32 off, tests/test_parity.py).
+        device: torch back end only: ``auto`` (CUDA when torch sees a GPU, else the CPU),
+            ``cpu`` or ``cuda`` (one-line error where there is no CUDA).
+        tf32: torch on CUDA only: allow TensorFloat-32 convolutions (faster; max error 1.3e-3
+            against numpy instead of 1.5e-6, measured on an H200: docs/gpu.md). Off by default.
     """
 
     scale: int = 2
     weights: str | None = None
     clip: bool = True
+    backend: str = "numpy"
+    device: str = "auto"
+    tf32: bool = False
 
     def __post_init__(self) -> None:
         check_scale(self.scale)
+        if self.backend not in BACKENDS:
+            raise ConfigError("backend", self.backend, ", ".join(BACKENDS))
+        if self.device not in DEVICES:
+            raise ConfigError("device", self.device, ", ".join(DEVICES))
+        if not isinstance(self.tf32, bool):
+            raise ConfigError("tf32", self.tf32, "true or false")
+        if self.backend == "torch":
+            torch_device(self.device)  # torch installed, CUDA there if asked: fail at build time
         load_weights(int(self.scale), self.weights)  # fail at build time, not after the solver
 
     def upscale(self, image: Image2D) -> Image2D:
         net = load_weights(int(self.scale), self.weights)
         x = as_finite_image(image.data, "fsrcnn")
-        y = fsrcnn_forward(x, net)
+        if self.backend == "torch":
+            dev = torch_device(self.device)
+            y = fsrcnn_forward_torch(x, net, dev, bool(self.tf32) and dev == "cuda")
+        else:
+            dev = "cpu"
+            y = fsrcnn_forward(x, net)
         if not np.all(np.isfinite(y)):  # cannot happen with finite weights; never pass NaN on
             warnings.warn("upscale=fsrcnn: non-finite output replaced by 0", stacklevel=2)
             y = np.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
@@ -361,5 +460,8 @@ class FSRCNN:
             "m": m,
             "residual": net.residual,
             "n_params": net.n_params,
+            "backend": self.backend,
+            "device": dev,
+            "tf32": bool(self.tf32) and dev == "cuda",
         }
         return Image2D(y, info=info)
