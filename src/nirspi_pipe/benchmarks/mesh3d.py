@@ -48,6 +48,10 @@ def _remesher_ratio(cloud, surface, repeat: int) -> str:
 
     if not isinstance(surface, PowerCrust) or surface.remesh_iterations == 0:
         return ""
+    try:
+        import pymeshlab  # noqa: F401 - only whether it imports (not on every GPU machine)
+    except ImportError:
+        return "  (compiled / pymeshlab remeshing: not measured, pymeshlab is not installed)"
     pts = np.round(np.asarray(cloud.points_m) / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
     sp = sample_spacing(pts)
     v, f, _ = power_crust(pts, surface.labelling, surface.box_factor, surface.weld_factor, sp)

@@ -81,7 +81,9 @@ def main(argv: list[str]) -> int:
     skfmm: Any = None
     if not ns.no_fmm:
         try:
-            import skfmm
+            import skfmm as _skfmm
+
+            skfmm = _skfmm
         except ImportError:
             print(
                 "nirspi-bench sfs: scikit-fmm is not installed; install it with\n"
