@@ -94,8 +94,9 @@ def _device_or_skip() -> None:
         pytest.skip(str(exc))
 
 
+@pytest.mark.parametrize("mode", ["kernels", "workgroup"])
 @pytest.mark.parametrize(("basis", "normalize", "tol"), [("dct", False, 0.0), ("haar", True, 0.0), ("dct", False, 0.2)])
-def test_device_batch_equals_numpy_one_by_one(basis: str, normalize: bool, tol: float) -> None:
+def test_device_batch_equals_numpy_one_by_one(basis: str, normalize: bool, tol: float, mode: str) -> None:
     """Issue 33: the device OMP solves a batch of problems with the same patterns in one go;
     each equals the numpy solve to 1e-10 with the same atoms and stop reason (a zero problem, a
     tolerance met early and the atom budget included)."""
@@ -107,7 +108,9 @@ def test_device_batch_equals_numpy_one_by_one(basis: str, normalize: bool, tol: 
     rng = np.random.default_rng(1)
     ys = rng.standard_normal((4, indices.size))
     ys[2] = 0.0
-    images, infos = omp_hadamard_batch(ys, n, indices, basis, max_atoms=25, tol=tol, normalize=normalize)
+    images, infos = omp_hadamard_batch(
+        ys, n, indices, basis, max_atoms=25, tol=tol, normalize=normalize, opencl_mode=mode
+    )
     stops = set()
     for y, image, info in zip(ys, images, infos):
         want, winfo = omp_hadamard(y, n, indices, basis=basis, max_atoms=25, tol=tol, normalize=normalize)

@@ -302,9 +302,11 @@ def omp_hadamard(
     backend: str = "numpy",
     normalize: bool = False,
     device: str = "auto",
+    opencl_mode: str | None = None,
 ) -> tuple[np.ndarray, dict]:
     """OMP for Hadamard measurements ``y`` at flat ``indices``; returns ``(image, info)``.
-    ``backend`` ``opencl`` solves on the device ``device`` names (:mod:`nirspi_pipe.accel`).
+    ``backend`` ``opencl`` solves on the device ``device`` names (:mod:`nirspi_pipe.accel`), laid
+    out as ``opencl_mode`` says (:meth:`~nirspi_pipe.solvers.omp_opencl.DeviceOmp.solve`).
 
     ``image`` is ``n × n`` in the units of ``y`` per pixel (relative radiance for calibrated
     coefficients); ``info`` has ``iterations`` (atoms chosen), ``stop_reason``,
@@ -333,7 +335,9 @@ def omp_hadamard(
         from nirspi_pipe.solvers.omp_opencl import DeviceOmp
 
         engine_cl = DeviceOmp(m_mat, rows, cols, colnorm, k_max, device)
-        coeffs_b, atoms, stops, resids = engine_cl.solve(y[None, :], selection_weight(colnorm, normalize), tol)
+        coeffs_b, atoms, stops, resids = engine_cl.solve(
+            y[None, :], selection_weight(colnorm, normalize), tol, opencl_mode
+        )
         coeffs, k, stop, res = coeffs_b[0], int(atoms[0]), stops[0], float(resids[0])
     else:
         engine = NumpyOmpBackend(m_mat, rows, cols, k_max)
@@ -362,6 +366,7 @@ def omp_hadamard_batch(
     tol: float = 1e-6,
     normalize: bool = False,
     device: str = "auto",
+    opencl_mode: str | None = None,
 ) -> tuple[np.ndarray, list[dict]]:
     """OMP of ``B`` independent problems measured with the same patterns (``ys``: ``(B, m)``, one
     row per problem: tiles, the images of a sweep) in one device solve, every kernel launch
@@ -378,7 +383,7 @@ def omp_hadamard_batch(
     m2 = m_mat * m_mat
     colnorm = np.sqrt(np.maximum((m2[rows].T @ m2[cols]).ravel(), 0.0))
     engine = DeviceOmp(m_mat, rows, cols, colnorm, k_max, device)
-    coeffs, atoms, stops, resids = engine.solve(ys, selection_weight(colnorm, normalize), tol)
+    coeffs, atoms, stops, resids = engine.solve(ys, selection_weight(colnorm, normalize), tol, opencl_mode)
     images = b.T @ coeffs.reshape(-1, n, n) @ b
     infos = [
         {

@@ -251,9 +251,167 @@ __kernel void synth(__global const double *M, __global const int *rows, __global
     }
     R[b * n * n + r + cols[t]] = acc;
 }
+/* The whole solve of one problem in one work-group, one launch for all atoms (and one work-group
+   per problem of a batch): the steps of the kernels above, separated by barriers. No launch per
+   atom, which on a GPU costs more than a small problem's arithmetic. */
+__kernel void omp_wg(__global const double *M, __global const int *rows, __global const int *cols,
+                     __global const double *colnorm, __global const double *y, __global double *g,
+                     __global double *wgt, __global double *aty, __global double *R, __global double *T,
+                     __global double *Lr, __global double *Lc, __global double *cv, __global double *wv,
+                     __global double *zv, __global double *ss, __global int *sup, __global int *st,
+                     __global double *sd, const int n, const int m, const int K, const double tol,
+                     __local double *red, __local int *redi) {
+    const int lid = get_local_id(0), L = get_local_size(0), b = get_group_id(0);
+    const int N = n * n;
+    __global int *s = st + b * SI;
+    __global double *d8 = sd + b * SD;
+    __global double *Rb = R + b * N, *Tb = T + b * N, *gb = g + b * N, *wb = wgt + b * N, *ab = aty + b * N;
+    __global double *Lrb = Lr + (long)b * K * K, *Lcb = Lc + (long)b * K * K;
+    __global double *c = cv + b * K, *w = wv + b * K, *z = zv + b * K, *sb = ss + b * K;
+    __global int *sp = sup + b * K;
+    for (int e = lid; e < N; e += L) Rb[e] = 0.0;
+    barrier(CLK_GLOBAL_MEM_FENCE);
+    for (int t = lid; t < m; t += L) Rb[rows[t] * n + cols[t]] = y[b * m + t];
+    barrier(CLK_GLOBAL_MEM_FENCE);
+    for (int e = lid; e < N; e += L) {
+        const int a = e / n, j = e - (e / n) * n;
+        double acc = 0.0;
+        for (int i = 0; i < n; ++i) acc += M[i * n + a] * Rb[i * n + j];
+        Tb[e] = acc;
+    }
+    barrier(CLK_GLOBAL_MEM_FENCE);
+    for (int e = lid; e < N; e += L) {
+        const int a = e / n, cc = e - (e / n) * n;
+        double acc = 0.0;
+        for (int j = 0; j < n; ++j) acc += Tb[a * n + j] * M[j * n + cc];
+        gb[e] = acc;
+        ab[e] = acc;
+    }
+    while (1) {
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        const int stopped = s[1], k = s[0];
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        if (stopped) break;
+        /* pick */
+        double best = 0.0;
+        for (int e = lid; e < N; e += L) best = fmax(best, fabs(gb[e]) * wb[e]);
+        red[lid] = best;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int h = L / 2; h > 0; h >>= 1) {
+            if (lid < h) red[lid] = fmax(red[lid], red[lid + h]);
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        best = red[0];
+        const int found = best > 0.0;
+        const double thr = best * (1.0 - TIE_RTOL);
+        int first = N;
+        for (int e = lid; e < N && found; e += L) {
+            if (fabs(gb[e]) * wb[e] >= thr) { first = e; break; }
+        }
+        redi[lid] = first;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int h = L / 2; h > 0; h >>= 1) {
+            if (lid < h) redi[lid] = min(redi[lid], redi[lid + h]);
+            barrier(CLK_LOCAL_MEM_FENCE);
+        }
+        const int p = found ? redi[0] : 0;
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        if (lid == 0) {
+            s[3] = 0;
+            if (!found) s[1] = 2;
+            else { s[2] = p; wb[p] = 0.0; }
+        }
+        if (!found) continue; /* uniform; the loop top sees the stop */
+        /* gram: c_j = a_{s_j} . a_p, one work-item per support atom */
+        const int ap = p / n, bp = p - (p / n) * n;
+        for (int j = lid; j < k; j += L) {
+            const int q = sp[j], aq = q / n, bq = q - (q / n) * n;
+            double acc = 0.0;
+            for (int t = 0; t < m; ++t) {
+                const int r = rows[t] * n, cc = cols[t] * n;
+                acc += (M[r + aq] * M[cc + bq]) * (M[r + ap] * M[cc + bp]);
+            }
+            c[j] = acc;
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        /* tri */
+        const double a2 = colnorm[p] * colnorm[p];
+        double ww = 0.0, wz = 0.0;
+        for (int i = lid; i < k; i += L) {
+            double acc = 0.0;
+            for (int j = 0; j <= i; ++j) acc += Lcb[j * K + i] * c[j];
+            w[i] = acc;
+            ww += acc * acc;
+            wz += acc * z[i];
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        ww = wg_sum(red, ww, lid, L);
+        wz = wg_sum(red, wz, lid, L);
+        const double d2 = a2 - ww;
+        if (!(d2 > 1e-20 * a2)) continue; /* uniform: the atom is skipped */
+        const double d = sqrt(d2), minv = -1.0 / d;
+        const double zk = (ab[p] - wz) / d;
+        for (int j = lid; j < k; j += L) {
+            double acc = 0.0;
+            for (int i = j; i < k; ++i) acc += w[i] * Lrb[i * K + j];
+            const double r = acc * minv;
+            Lrb[k * K + j] = r;
+            Lcb[j * K + k] = r;
+            sb[j] += zk * r;
+        }
+        int upd = 0;
+        {
+            const double r = 1.0 / d;
+            const double z2 = d8[0] + zk * zk;
+            const double ny = d8[2];
+            const double res = sqrt(fmax(ny * ny - z2, 0.0)) / ny;
+            upd = !(res <= tol) && k + 1 < K;
+            barrier(CLK_GLOBAL_MEM_FENCE);
+            if (lid == 0) {
+                Lrb[k * K + k] = r;
+                Lcb[k * K + k] = r;
+                sb[k] += zk * r;
+                z[k] = zk;
+                sp[k] = p;
+                d8[0] = z2;
+                d8[1] = zk;
+                s[0] = k + 1;
+                if (res <= tol) s[1] = 3;
+                else if (k + 1 >= K) s[1] = 1;
+                else s[3] = 1;
+            }
+        }
+        if (!upd) continue;
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        /* synth: q_k on the measured cells */
+        for (int t = lid; t < m; t += L) {
+            const int r = rows[t] * n, cc = cols[t] * n;
+            double acc = 0.0;
+            for (int j = 0; j <= k; ++j) {
+                const int q = sp[j], aq = q / n, bq = q - (q / n) * n;
+                acc += Lrb[k * K + j] * (M[r + aq] * M[cc + bq]);
+            }
+            Rb[r + cols[t]] = acc;
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        for (int e = lid; e < N; e += L) {
+            const int a = e / n, j = e - (e / n) * n;
+            double acc = 0.0;
+            for (int i = 0; i < n; ++i) acc += M[i * n + a] * Rb[i * n + j];
+            Tb[e] = acc;
+        }
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        for (int e = lid; e < N; e += L) {
+            const int a = e / n, cc = e - (e / n) * n;
+            double acc = 0.0;
+            for (int j = 0; j < n; ++j) acc += Tb[a * n + j] * M[j * n + cc];
+            gb[e] += -zk * acc;
+        }
+    }
+}
 """
 
-_KERNELS = ("scatter_y", "mtr", "tm_init", "tm_upd", "pick", "gram", "tri", "synth")
+_KERNELS = ("scatter_y", "mtr", "tm_init", "tm_upd", "pick", "gram", "tri", "synth", "omp_wg")
 
 
 def kernel_source() -> str:
@@ -303,6 +461,17 @@ def gpu_available(device: str = "auto") -> bool:
     except Exception:  # noqa: BLE001 - no working device means "no"
         return False
     return is_gpu(ctx.devices[0])
+
+
+#: How a device solve is laid out (:meth:`DeviceOmp.solve`).
+MODES = ("kernels", "workgroup")
+
+#: Largest image side solved in one work-group by default: per atom the work-group does
+#: ``2n³ + 2·k·m`` multiply-adds (1.1 M at 64² and 256 atoms, 16 M at 128² and 1000), so at 64² the
+#: one launch beats six launches per atom (each costs a few µs on a GPU) and at 128² one
+#: work-group has too much to do. An estimate from operation counts, to be replaced by the
+#: ``nirspi-bench gpu`` measurement of both modes (docs/gpu.md).
+WORKGROUP_MAX_N = 64
 
 
 def _pow2_at_most(x: int) -> int:
@@ -358,12 +527,24 @@ class DeviceOmp:
         self.l_sel = _pow2_at_most(min(most, 256 if gpu else 16))
         self.l_gram = _pow2_at_most(min(most, 128 if gpu else 16))
         self.l_tri = _pow2_at_most(min(most, 256 if gpu else 16))
+        wg_most = int(self.k["omp_wg"].get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev))
+        self.l_wg = _pow2_at_most(min(wg_most, int(self.dev.max_work_group_size), 1024 if gpu else 16))
+        self.gpu = gpu
+
+    def default_mode(self) -> str:
+        """``workgroup`` (the whole solve in one launch, one work-group per problem) for images up to
+        :data:`WORKGROUP_MAX_N`, else ``kernels`` (six launches per atom, each over the whole device)."""
+        return "workgroup" if self.n <= WORKGROUP_MAX_N else "kernels"
 
     def solve(
-        self, ys: np.ndarray, weight: np.ndarray, tol: float
+        self, ys: np.ndarray, weight: np.ndarray, tol: float, mode: str | None = None
     ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
         """Solve the problems ``ys`` (``(B, m)``) with selection ``weight`` (``(N,)``); returns
-        ``(coefficients (B, N), atoms (B,), stop reasons, relative residuals (B,))``."""
+        ``(coefficients (B, N), atoms (B,), stop reasons, relative residuals (B,))``. ``mode``:
+        ``kernels``, ``workgroup`` or None (:meth:`default_mode`)."""
+        mode = mode or self.default_mode()
+        if mode not in MODES:
+            raise ValueError(f"mode {mode!r} not in {MODES}")
         cl, q, kern = self.cl, self.queue, self.k
         ys = np.ascontiguousarray(np.atleast_2d(ys), np.float64)
         nb = ys.shape[0]
@@ -390,6 +571,16 @@ class DeviceOmp:
         for d, nbytes in ((d_r, 8 * nb * nn), (d_s, 8 * nb * big_k), (d_z, 8 * nb * big_k)):
             cl.enqueue_fill_buffer(q, d, np.float64(0.0), 0, nbytes)
         i32, ni = np.int32, np.int32(n)
+        if mode == "workgroup":
+            lw = self.l_wg
+            kern["omp_wg"](
+                q, (lw * nb,), (lw,),
+                self.d_m, self.d_rows, self.d_cols, self.d_colnorm, d_y, d_g, d_w, d_aty, d_r, d_t,
+                d_lr, d_lc, d_c, d_wv, d_z, d_s, d_sup, d_st, d_sd, ni, i32(m), i32(big_k), np.float64(tol),
+                cl.LocalMemory(8 * lw), cl.LocalMemory(4 * lw),
+            )  # fmt: skip
+            cl.enqueue_copy(q, st, d_st)
+            return self._finish(q, st, sd, d_sup, d_s, d_sd, ny)
         # A^T y: scatter, then the two products
         kern["scatter_y"](q, (m, nb), None, d_r, self.d_rows, self.d_cols, d_y, ni, i32(m))
         kern["mtr"](q, (nn, nb), None, self.d_m, d_r, d_t, d_st, ni, i32(1))
@@ -437,6 +628,13 @@ class DeviceOmp:
             if todo == 0 or not np.any(st[:, 1] == 0):
                 break
             chunk *= 4
+        return self._finish(q, st, sd, d_sup, d_s, d_sd, ny)
+
+    def _finish(
+        self, q: Any, st: np.ndarray, sd: np.ndarray, d_sup: Any, d_s: Any, d_sd: Any, ny: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+        """Read the supports and coefficients back (the solve's last reads) and scatter them."""
+        cl, nb, big_k, nn = self.cl, st.shape[0], self.k_max, self.n * self.n
         sup = np.empty((nb, big_k), np.int32)
         coef = np.empty((nb, big_k))
         cl.enqueue_copy(q, sup, d_sup)
