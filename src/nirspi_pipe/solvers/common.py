@@ -34,6 +34,7 @@ __all__ = [
     "relative_residual",
     "data_scale",
     "SATURATION_MARGIN",
+    "TIE_RTOL",
 ]
 
 #: A reading more than this factor above the physical bound is flagged as saturated.
@@ -150,3 +151,9 @@ def data_scale(acquisition: Acquisition) -> float:
     p = np.asarray(acquisition.patterns, dtype=np.float64)
     rank_bound = min(p.shape[0], p.shape[1])
     return float(np.sum(p * p)) / rank_bound if rank_bound else 0.0
+
+
+#: OMP's tie window: correlation scores within this relative distance of the best count as tied and
+#: the lowest atom index wins (:func:`nirspi_pipe.solvers.omp.pick_atom`; the OpenCL kernels use
+#: the same constant, so both back ends pick the same atoms).
+TIE_RTOL = 1e-9

@@ -43,13 +43,10 @@ from scipy.linalg.blas import daxpy, dtpmv
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import sylvester
-from nirspi_pipe.solvers.common import checked_coefficients
+from nirspi_pipe.solvers.common import TIE_RTOL, checked_coefficients
 from nirspi_pipe.types import Acquisition, Image2D
 
 __all__ = ["OMPSolver", "basis_matrix", "haar_matrix", "dct_matrix", "omp_hadamard", "TIE_RTOL"]
-
-#: Relative window within which correlation scores count as tied (lowest atom index wins).
-TIE_RTOL = 1e-9
 
 
 @lru_cache(maxsize=16)

@@ -416,7 +416,7 @@ _KERNELS = ("scatter_y", "mtr", "tm_init", "tm_upd", "pick", "gram", "tri", "syn
 
 def kernel_source() -> str:
     """OpenCL C source of the device OMP."""
-    from nirspi_pipe.solvers.omp import TIE_RTOL
+    from nirspi_pipe.solvers.common import TIE_RTOL
 
     return _SOURCE % {"tie_rtol": float(TIE_RTOL)}
 
