@@ -182,7 +182,11 @@ def part_sfs(ns: argparse.Namespace) -> dict[str, Any]:
                 if label == "gpu":
                     from nirspi_pipe.sfs.opencl import _program, _program2
 
-                    kern = _program2(1, spec)[0] if scheme == "second_order" else _program(0, 1, spec)
+                    kern = (
+                        _program2(1, spec)[0]
+                        if scheme == "second_order"
+                        else _program(0, 0 if scheme == "lax_friedrichs" else 1, spec)
+                    )
                     row["gpu_local_size"] = default_local_size(kern, spec, n, n)
             rows.append(row)
             print("  " + json.dumps(row))
