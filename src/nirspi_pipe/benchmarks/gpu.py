@@ -462,6 +462,7 @@ def main(argv: list[str]) -> int:
             "-q",
             "-p",
             "no:cacheprovider",
+            "--continue-on-collection-errors",  # a test module whose imports fail here costs only itself
             "-m",
             "torch or not torch",
             "-k",
@@ -475,6 +476,7 @@ def main(argv: list[str]) -> int:
                 "test_backend_auto.py",
                 "test_omp.py",
                 "test_fsrcnn_device.py",
+                "test_bench_gpu.py",
             )
         ]
         run.step("parity", cmd, 120, env)

@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe.accel import check_device
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES
 from nirspi_pipe.sfs.sweeping import BIG, SCHEMES, SweepProblem, SweepResult, solve_numpy
@@ -335,8 +336,6 @@ def _device_info(backend: str, device: str) -> dict[str, Any]:
 
 
 def _check_device(obj: Any) -> None:
-    from nirspi_pipe.accel import check_device
-
     check_device(obj.device)
 
 

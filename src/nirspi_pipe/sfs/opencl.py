@@ -321,8 +321,10 @@ __kernel void fsm(__global double *z, __global const double *rhs,
 """
 
 
+@lru_cache(maxsize=8)
 def _context(device: str = "auto") -> tuple[Any, Any]:
-    """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`)."""
+    """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`;
+    cached here too, so that its cache says whether this process made one)."""
     from nirspi_pipe.accel import opencl_context
 
     return opencl_context(device)

@@ -41,6 +41,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 from scipy.linalg.blas import daxpy, dtpmv
 
+from nirspi_pipe.accel import check_device
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import sylvester
 from nirspi_pipe.solvers.common import TIE_RTOL, checked_coefficients
@@ -476,8 +477,6 @@ class OMPSolver:
     device: str = "auto"
 
     def __post_init__(self) -> None:
-        from nirspi_pipe.accel import check_device
-
         if self.basis not in ("dct", "haar"):
             raise ConfigError("basis", self.basis, "dct or haar")
         if not (0.0 < float(self.sparsity) <= 1.0):
