@@ -59,6 +59,11 @@ def _best(fn: Any, repeat: int) -> float:
 # --- the parts (each runs in a child: python -m nirspi_pipe.benchmarks.gpu --part NAME) ---------
 
 
+def _save(ns: argparse.Namespace, part: str, result: dict[str, Any]) -> None:
+    """Write a part's result so far (a step cut by its time limit keeps the rows it finished)."""
+    (Path(ns.out) / f"{part}.json").write_text(json.dumps(result, indent=1))
+
+
 def _opencl_devices() -> list[dict[str, Any]]:
     import pyopencl as cl
 
@@ -127,6 +132,7 @@ def part_omp(ns: argparse.Namespace) -> dict[str, Any]:
                     row[f"gpu_{mode}_max_diff"] = float(np.max(np.abs(img - ref)))
         rows.append(row)
         print("  " + json.dumps(row))
+        _save(ns, "omp", {"rows": rows})
     batch: dict[str, Any] = {}
     if ns.gpu is not None:  # 32 problems of 32² at 25 %, same patterns: one device solve vs 32 numpy ones
         n, nb = 32, 32
@@ -190,6 +196,7 @@ def part_sfs(ns: argparse.Namespace) -> dict[str, Any]:
                     row["gpu_local_size"] = default_local_size(kern, spec, n, n)
             rows.append(row)
             print("  " + json.dumps(row))
+            _save(ns, "sfs", {"rows": rows})
     if ns.gpu is None:
         print("  " + SKIP_NO_GPU + "SFS on the GPU")
     return {"rows": rows}
@@ -488,13 +495,13 @@ def main(argv: list[str]) -> int:
     for name, limit in (("omp", 70), ("sfs", 110), ("fsrcnn", 40), ("mesh3d", 60)):
         run.step(name, [*me, "--part", name, *dev_args, *sizes], limit, env)
     run.say(f"done in {time.monotonic() - run.t0:.0f} s (budget {ns.budget:.0f} s)")
-    summary = {"head": run.lines, "gpu": gpu, "cpu_device": cpu, "results": run.results}
+    rows = table_rows(run.results, gpu["name"] if gpu else None)
+    summary = {"head": run.lines, "gpu": gpu, "cpu_device": cpu, "results": run.results, "table_rows": rows}
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     (out / "summary.md").write_text(_summary_md(run.results, [f"    {ln}" for ln in run.lines]))
     if ns.write_table:
         from nirspi_pipe.accel import write_table
 
-        rows = table_rows(run.results, gpu["name"] if gpu else None)
         if rows:
             print(f"device table: {write_table(rows)} <- {json.dumps(rows)}")
         else:
