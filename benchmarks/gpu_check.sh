@@ -24,10 +24,11 @@ if [ "$mode" = fetch ]; then
   "$PY" -m pip wheel -q --no-deps -w "$DIR" "$here" || exit 1
   plats=(--platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64)
   # what the CUDA image lacked there (it has numpy, scipy, pandas, numba, scikit-image, torch, pytest)
-  for pkg in hydra-core omegaconf pyopencl pytools platformdirs siphash24 miepython scikit-fmm \
-             hypothesis sortedcontainers attrs threadpoolctl typing-extensions pyarrow matplotlib; do
+  # (binary wheels only: a wheel built here would be for this Python, not the GPU machine's)
+  for pkg in "hydra-core>=1.3.2,<1.4" "omegaconf>=2.2,<2.4" pyopencl pytools platformdirs siphash24 miepython \
+             hypothesis sortedcontainers attrs threadpoolctl typing-extensions matplotlib; do
     "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version "$pyver" "${plats[@]}" -d "$DIR" "$pkg" \
-      || "$PY" -m pip wheel -q --no-deps -w "$DIR" "$pkg" || echo "gpu_check: no wheel for $pkg" >&2
+      || echo "gpu_check: no binary wheel of $pkg for Python $pyver" >&2
   done
   # sdist only: a pure-Python wheel built here works there
   "$PY" -m pip wheel -q --no-deps -w "$DIR" "antlr4-python3-runtime==4.9.3" || exit 1
