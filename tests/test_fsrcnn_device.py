@@ -9,9 +9,9 @@ from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.fsrcnn import FSRCNN
 
+# marker torch: deselected by default (no skip in a run without torch); `pytest -m torch` after
+# `pip install '.[train]'`. torch is imported inside the tests, so collecting them needs no torch.
 pytestmark = pytest.mark.torch
-
-torch = pytest.importorskip("torch")
 
 
 def _image() -> Image2D:
@@ -28,6 +28,8 @@ def test_torch_backend_agrees_with_numpy_and_records_its_device() -> None:
 
 
 def test_auto_falls_back_to_the_cpu_and_cuda_fails_in_one_line() -> None:
+    import torch
+
     want = "cuda" if torch.cuda.is_available() else "cpu"
     assert FSRCNN(scale=2, backend="torch", device="auto").upscale(_image()).info["device"] == want
     if not torch.cuda.is_available():
@@ -42,6 +44,8 @@ def test_bad_keys_fail_in_one_line(key: str, value: str) -> None:
 
 
 def test_tf32_switches_are_restored_after_the_call() -> None:
+    import torch
+
     from nirspi_pipe.upscale.fsrcnn import fsrcnn_forward_torch, load_weights
 
     b = torch.backends
