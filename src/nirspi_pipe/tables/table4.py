@@ -27,6 +27,7 @@ from nirspi_pipe.tables._common import (
     bar_plot,
     compare_metric,
     conditions_note,
+    count_range,
     failures_note,
     fmt,
     ok_rows,
@@ -90,6 +91,9 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
         {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
         {k: t[f"paper_{k}"].tolist() for k in COLUMNS},
         "mean equiangle skewness (0 best, 1 degenerate)",
+        f"Error bars: ± 1 standard deviation of the jobs' mean skewness ({count_range(t['n'])} "
+        "jobs per scan: objects × kLux × seeds), the spread between jobs, not the uncertainty of the mean "
+        f"({name}.md gives the standard errors clustered by seed).",
     )
     return table
 
