@@ -39,6 +39,7 @@ __all__ = [
     "cell",
     "ranking",
     "ranking_note",
+    "with_families",
     "fmt_se",
 ]
 
@@ -141,6 +142,12 @@ def ranking(df: pd.DataFrame, col: str, higher_is_better: bool, where: dict | No
 def ranking_note(claims: pd.DataFrame) -> str:
     """The replicated claims of one family as text (``none`` when no claim holds)."""
     return st.claims_sentence(claims, SCAN_LABELS)
+
+
+def with_families(markdown: str, claims: pd.DataFrame) -> str:
+    """``markdown`` with a closing paragraph on what is controlled across the table's families
+    (:func:`nirspi_pipe.stats.family_sentence`; ``claims`` from :func:`nirspi_pipe.stats.across_families`)."""
+    return markdown.rstrip("\n") + "\n\n**Across families.** " + st.family_sentence(claims) + "\n"
 
 
 def fmt_se(mean: float, se: float, digits: int = 2) -> str:

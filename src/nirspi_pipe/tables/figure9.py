@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nirspi_pipe import stats as st
 from nirspi_pipe.tables._common import (
     SCAN_LABELS,
     SCANS,
@@ -43,6 +44,7 @@ from nirspi_pipe.tables._common import (
     ranking_note,
     scan_by_level_rows,
     stats,
+    with_families,
 )
 from nirspi_pipe.tables._common import cell as cell_se
 
@@ -91,9 +93,12 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     objects, claims = _per_object(df, scores)
     if len(objects):
         objects.to_csv(out_dir / "figure9_objects.csv", index=False, float_format="%.6g")
+        claims = st.across_families(claims)
         claims.to_csv(out_dir / "figure9_rankings.csv", index=False, float_format="%.6g")
         _plot_objects(objects, scores, paper, out_dir / "figure9_objects.png")
-    (out_dir / "figure9.md").write_text(_markdown(table, frame, df, paper, objects, claims, scores))
+    (out_dir / "figure9.md").write_text(
+        with_families(_markdown(table, frame, df, paper, objects, claims, scores), claims)
+    )
     _plot(table, paper, out_dir / "figure9.png")
     return table
 

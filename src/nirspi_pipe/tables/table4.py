@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from nirspi_pipe import stats as st
 from nirspi_pipe.tables._common import (
     SCAN_LABELS,
     SCANS,
@@ -34,6 +35,7 @@ from nirspi_pipe.tables._common import (
     paper_reference,
     ranking,
     ranking_note,
+    with_families,
 )
 from nirspi_pipe.tables._common import cell as cell_se
 from nirspi_pipe.tables.table3 import fogged
@@ -78,11 +80,14 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
         [ranking(df, col, higher_is_better=False, where={"column": key}) for key, col in COLUMNS.items()],
         ignore_index=True,
     )
+    claims = st.across_families(claims)
     claims.to_csv(out_dir / f"{name}_rankings.csv", index=False, float_format="%.6g")
     noremesh = _noremesh(plain)
     if len(noremesh):
         noremesh.to_csv(out_dir / f"{name}_noremesh.csv", index=False, float_format="%.6g")
-    (out_dir / f"{name}.md").write_text(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh))
+    (out_dir / f"{name}.md").write_text(
+        with_families(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh), claims)
+    )
     t = table.set_index("scan").reindex(list(SCANS))
     bar_plot(
         out_dir / f"{name}.png",
