@@ -89,3 +89,15 @@ def test_collect_prints_its_own_name(tmp_path, monkeypatch, capsys) -> None:
         monkeypatch.setattr(sys, "argv", [prog])
         assert results.build_tables(pd.DataFrame(), tmp_path, ["t"]) == ["t"]
         assert capsys.readouterr().out.startswith(expected)
+
+
+def test_reproduction_check_shows_plain_values() -> None:
+    """A cell that differs in a column of mixed types is shown as its value, not as numpy's repr."""
+    import pandas as pd
+
+    from nirspi_pipe.reproduce import compare_tables
+
+    new = pd.DataFrame({"scan": ["basic", "spiral"], "v": [np.float64(0.0), "x"]})
+    ref = pd.DataFrame({"scan": ["basic", "spiral"], "v": [np.float64(0.5), "x"]})
+    problems = compare_tables(new, ref, rtol=0.0, atol=0.0)
+    assert problems == ["row 0 column v: 0.0 vs reference 0.5"], problems
