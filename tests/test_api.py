@@ -248,6 +248,7 @@ def test_default_run_is_the_fog_chamber_and_says_so(tmp_path: Path) -> None:
     assert rec["config"]["scene"]["distance_mm"] == 200.0 and rec["config"]["illumination"]["klux"] == 15.0
     assert 0.0 < rec["metrics"]["ssim"] < 0.99 and rec["derived"]["saturated_patterns"] == 0  # not trivial
     assert (tmp_path / "run" / "summary.png").stat().st_size > 10_000
+    assert not (tmp_path / "run" / "cli.log").exists()  # Hydra's log file only when something is logged
 
 
 @pytest.mark.slow
