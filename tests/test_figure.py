@@ -1,5 +1,6 @@
 """summary.png (nirspi_pipe.figure): every text inside the picture, and the numbers it prints are
-the record's (issue 27: the picture was cut at the bottom; its histogram disagreed with its header)."""
+the record's (issue 27: the picture was cut at the bottom; its histogram disagreed with its header;
+issue 34: two grids and two definitions of depth error under one headline, a legend over the bars)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import matplotlib.pyplot as plt
 import pytest
 
 import nirspi_pipe
-from nirspi_pipe.figure import SUMMARY_DPI, SUMMARY_PAD_IN, summary_figure, write_summary_figure
+from nirspi_pipe.figure import SUMMARY_DPI, SUMMARY_PAD_IN, draw_summary, summary_figure, write_summary_figure
 
 _3D = ["sfs=godunov", "itof=cw4", "fusion=itof", "metrics=full"]
 
@@ -33,6 +34,8 @@ def _texts(fig: Any) -> list[Any]:
         if ax.axison:
             out += [t for t in (ax.xaxis.label, ax.yaxis.label) if t.get_text()]
         out += [t for t in (ax.title, *ax.texts) if t.get_text()]
+        if ax.get_legend():
+            out += [t for t in ax.get_legend().get_texts() if t.get_text()]
     return out + [fig._suptitle]
 
 
@@ -94,25 +97,85 @@ def test_header_prints_the_records_numbers(runs: dict[str, Any], name: str) -> N
     head, m, _ = _header(runs[name])
     assert _numbers(head, "SSIM") == pytest.approx(m["ssim"], abs=5e-4)
     assert _numbers(head, "PSNR") == pytest.approx(m["psnr"], abs=5e-3)
+    # the fitted PSNR is shown with the raw one that the raw RMSE gives (issue 34)
+    assert _numbers(head, "raw PSNR") == pytest.approx(m["psnr_raw"], abs=5e-3)
+    assert _same(_numbers(head, "RMSE"), m["rmse"])
     if name == "2d":
         assert "depth" not in head
         return
-    assert _same(_numbers(head, "SFS"), m["depth_rmse_sfs_mm"])
+    # the headline baseline is Table 3's primary, the offset-free one; the others are named
+    assert _same(_numbers(head, "SFS"), m["depth_rmse_sfs_offsetfree_mm"])
     assert _same(_numbers(head, "fused"), m["depth_rmse_fused_mm"])
+    assert _numbers(head, "improvement") == pytest.approx(m["improvement_offsetfree_pct"], abs=0.05)
     assert _same(_numbers(head, "global fit"), m["depth_rmse_sfs_fit_mm"])
-    assert _numbers(head, "improvement") == pytest.approx(m["improvement_pct"], abs=0.05)
+    assert _same(_numbers(head, "median placed at 200 mm"), m["depth_rmse_sfs_mm"])
 
 
-def test_histogram_shows_the_records_depth_errors_on_the_same_grid(runs: dict[str, Any]) -> None:
-    head, m, texts = _header(runs["3d"])  # not upscaled: the record scores the camera grid
-    assert "16×16 grid" in head and any("16×16 grid" in t for t in texts)
-    legend = " ".join(texts)
-    assert _same(_numbers(legend, "SFS, global fit:"), m["depth_rmse_sfs_fit_mm"])
-    assert _same(_numbers(legend, "fused (Alg. A3):"), m["depth_rmse_fused_mm"])
-    assert _same(_numbers(legend, "SFS, geometry only:"), m["depth_rmse_sfs_mm"])
+@pytest.mark.parametrize(("name", "grid"), [("3d_up", 32), ("3d", 16)])
+def test_numbers_drawn_are_the_records(runs: dict[str, Any], name: str, grid: int) -> None:
+    """Every number the summary draws is computed from the arrays it draws; each equals the
+    record's: one grid (the record's: 32² on the upscaled device run) and one definition."""
+    r = runs[name]
+    fig, drawn = draw_summary(r.products, r.record())
+    try:
+        texts = " ".join(t.get_text() for t in _texts(fig))
+        legend = " ".join(t.get_text() for ax in fig.axes if ax.get_legend() for t in ax.get_legend().get_texts())
+    finally:
+        plt.close(fig)
+    m = r.metrics
+    assert drawn["depth_grid"] == grid
+    for key in ("rmse", "depth_rmse_sfs_offsetfree_mm", "depth_rmse_fused_mm", "improvement_offsetfree_pct"):
+        assert drawn[key] == pytest.approx(m[key], rel=1e-9, abs=1e-12), key
+    assert drawn["depth_pixels"] == m["depth_pixels"]
+    assert f"{grid}×{grid} grid" in texts and f"{drawn['depth_pixels']:.0f} compared pixels" in texts
+    assert _same(_numbers(texts, "raw RMSE"), m["rmse"])
+    assert _same(_numbers(texts, "best offset): RMSE"), m["depth_rmse_sfs_offsetfree_mm"])
+    assert _same(_numbers(legend, "SFS, best offset (Alg. A2): RMSE"), m["depth_rmse_sfs_offsetfree_mm"])
+    assert _same(_numbers(legend, "fused (Alg. A3): RMSE"), m["depth_rmse_fused_mm"])
 
 
-def test_upscaled_run_names_both_grids(runs: dict[str, Any]) -> None:
-    head, m, texts = _header(runs["3d_up"])  # 8² camera, depth scored on the 32² upscaled grid
-    assert "32×32 grid" in head and any("8×8 grid" in t for t in texts)
-    assert m["depth_pixels"] > 64  # the record's scores are not on the 8² camera grid
+def test_device_summary_shows_the_upscaled_image(runs: dict[str, Any]) -> None:
+    r = runs["2d"]
+    fig, drawn = draw_summary(r.products, r.record())
+    try:
+        titles = [ax.get_title() for ax in fig.axes]
+        shapes = [im.get_array().shape for ax in fig.axes for im in ax.get_images()]
+    finally:
+        plt.close(fig)
+    assert (32, 32) in shapes and (8, 8) in shapes
+    up = next(t for t in titles if t.startswith("upscaled"))
+    assert "32×32" in up and _numbers(up, "PSNR") == pytest.approx(r.metrics["upscale_psnr"], abs=5e-3)
+    assert drawn["rmse"] == pytest.approx(r.metrics["rmse"], rel=1e-9)
+
+
+@pytest.mark.parametrize("name", ["3d_up", "3d"])
+def test_legends_cover_no_data(runs: dict[str, Any], name: str) -> None:
+    r = runs[name]
+    fig = summary_figure(r.products, r.record())
+    try:
+        renderer = fig.canvas.get_renderer()
+        legends = [ax.get_legend() for ax in fig.axes if ax.get_legend()]
+        assert legends
+        for legend in legends:
+            box = legend.get_window_extent(renderer)
+            for ax in fig.axes:  # no axes' data area (a panel, a histogram) under a legend
+                assert not box.overlaps(ax.get_window_extent(renderer)), (ax.get_title(), box.bounds)
+    finally:
+        plt.close(fig)
+
+
+def test_mesh_view_draws_the_truth_on_the_scored_grid(tmp_path: Path) -> None:
+    """mesh.png's ground truth is the surface on the grid depth is scored on (32² on the device
+    preset), not the 8×8 camera's patch of at most 98 triangles (issue 34)."""
+    from matplotlib.image import imread
+
+    from nirspi_pipe.mesh.metrics3d import run_depth_truth
+    from nirspi_pipe.mesh.outputs import truth_mesh, write_mesh_outputs
+
+    r = nirspi_pipe.run([*_3D, "surface=power_crust"])
+    truth = run_depth_truth(r.products, r.record()["config"])
+    assert truth is not None and truth.camera.resolution == 32 == r.products.depth.depth_m.shape[0]
+    assert len(truth_mesh(truth).faces) > 2 * 7 * 7
+    written = write_mesh_outputs(tmp_path, r.products, render=True, truth=truth)
+    assert [p.name for p in written] == ["mesh.ply", "mesh.png"]
+    assert imread(str(written[1])).shape[:2] == (450, 900)

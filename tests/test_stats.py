@@ -9,8 +9,10 @@ import pandas as pd
 import pytest
 
 from nirspi_pipe.stats import (
+    across_families,
     claims_sentence,
     clustered_mean_se,
+    family_sentence,
     holm,
     paired_difference,
     pairwise,
@@ -145,3 +147,27 @@ def test_split_seeds_is_disjoint_and_covers():
     a, b = split_seeds([3, 1, 0, 2, 2, 19, 10])
     assert a == [0, 1, 2] and b == [3, 10, 19]
     assert split_seeds(range(20)) == (list(range(10)), list(range(10, 20)))
+
+
+def test_across_families_is_holm_over_all_pairs_and_never_claims_more():
+    """Holm over every pair of many families is stricter than within each: p_holm_all ≥ p_holm
+    row by row, so every all-pair claim is also a per-family claim; a strong effect survives it,
+    and 48 null families (Figure 9's count) give no all-pair claim (issue 34)."""
+    rng = np.random.default_rng(6)
+    fams = []
+    for f in range(48):
+        effects = [0, 0, 0, 1.5] if f == 0 else [0, 0, 0, 0]
+        c = replicated_claims(_frame(rng, 20, effects, tau=0.5, sigma=0.5), "value", SCANS, higher_is_better=True)
+        c.insert(0, "family", f)
+        fams.append(c)
+    claims = across_families(pd.concat(fams, ignore_index=True))
+    assert len(claims) == 288
+    np.testing.assert_allclose(claims["p_holm_all"], holm(claims["p"].to_numpy()))
+    assert (claims["p_holm_all"] >= claims["p_holm"] - 1e-15).all()
+    assert (claims["p_holm_all_1"] >= claims["p_holm_1"] - 1e-15).all()
+    all_claims = claims[claims["claim_all"] != ""]
+    assert (all_claims["claim_all"] == all_claims["claim"]).all()
+    assert set(all_claims["family"]) == {0} and set(all_claims["claim_all"]) == {"spiral"}
+    text = family_sentence(claims)
+    assert "48 families (288 pairs)" in text and "48 × 0.05² = 0.12" in text
+    assert f"{len(all_claims)} claim" in text

@@ -185,3 +185,46 @@ def test_reduced_grid_single_scene_single_seed(tmp_path):
     assert table["se_vs_basic"].isna().all()
     for name in ("table5", "table6", "table7"):
         assert len(build_table(name, frame, tmp_path)) == 4
+
+
+@pytest.mark.parametrize(
+    ("name", "fog"), [("table3", "chamber"), ("table4", "none"), ("table6", "chamber"), ("figure9", "chamber")]
+)
+def test_plots_say_what_error_bars_are_and_legends_cover_nothing(tmp_path, monkeypatch, name, fog):
+    """Each table's PNG: a caption says what its error bars are, and no legend lies over a bar,
+    an error bar or a data point (issue 34: Table 6's legend covered a bar; Figure 9's ±4 dB bars
+    had no caption)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figures = []
+    real = Figure.savefig
+
+    def keep(self, *args, **kwargs):
+        figures.append(self)
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    build_table(name, _frame(fog), tmp_path)
+    assert figures
+    for fig in figures:
+        canvas = FigureCanvasAgg(fig)  # pyplot closed it: measure on a fresh Agg canvas
+        canvas.draw()
+        renderer = canvas.get_renderer()
+        captions = [t.get_text() for t in fig.texts]
+        assert any(t.startswith(("Error bars: ±", "Pooled over the objects. Error bars: ±")) for t in captions), (
+            captions
+        )
+        legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes if ax.get_legend())]
+        assert legends
+        drawn = [
+            artist.get_window_extent(renderer)
+            for ax in fig.axes
+            for artist in (*ax.patches, *ax.lines, *ax.collections)
+            if artist.get_visible()
+        ]
+        for legend in legends:
+            box = legend.get_window_extent(renderer)
+            for ax in fig.axes:
+                assert not box.overlaps(ax.get_window_extent(renderer)), (name, ax.get_title())
+            assert not any(box.overlaps(d) for d in drawn if d.width > 0 and d.height > 0), name

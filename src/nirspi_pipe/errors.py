@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["NirspiError", "ConfigError", "yaml_problem"]
+__all__ = ["NirspiError", "ConfigError", "plain_value", "yaml_problem"]
 
 
 class NirspiError(Exception):
@@ -25,13 +25,25 @@ class ConfigError(NirspiError, ValueError):
         if unknown_key:
             super().__init__(f"{key} is not a key; allowed keys: {allowed}")
         else:
-            super().__init__(f"{key}={value!r} is not allowed; allowed: {allowed}")
+            super().__init__(f"{key}={plain_value(value)!r} is not allowed; allowed: {allowed}")
 
     def under(self, prefix: str) -> ConfigError:
         """The same error with its key prefixed by ``prefix`` (``scene`` → ``scene.distance_mm``)."""
         if not prefix or self.absolute or self.key.startswith(prefix + "."):
             return self
         return ConfigError(f"{prefix}.{self.key}", self.value, self.allowed, self.unknown_key)
+
+
+def plain_value(value: Any) -> Any:
+    """A numpy scalar as the Python number it holds (``0.0``, not ``np.float64(0.0)``, in a
+    message); anything else unchanged."""
+    item = getattr(value, "item", None)
+    if callable(item) and getattr(value, "shape", None) == ():
+        try:
+            return item()
+        except (TypeError, ValueError):
+            return value
+    return value
 
 
 def yaml_problem(exc: BaseException) -> str | None:

@@ -130,10 +130,13 @@ def _write_products(cfg: Mapping[str, Any], out_dir: Path, output: RunOutput) ->
         images if out_cfg.get("images", True) else {},
     )
     if p.mesh is not None:
+        from nirspi_pipe.mesh.metrics3d import run_depth_truth
         from nirspi_pipe.mesh.outputs import write_mesh_outputs
 
-        # mesh.ply, and mesh.png (mesh beside the truth) unless output.images is false
-        write_mesh_outputs(out_dir, p, render=bool(out_cfg.get("images", True)))
+        # mesh.ply, and mesh.png (mesh beside the truth on the grid depth is scored on) unless
+        # output.images is false
+        render = bool(out_cfg.get("images", True))
+        write_mesh_outputs(out_dir, p, render=render, truth=run_depth_truth(p, cfg) if render else None)
 
 
 def _write_summary_png(out_dir: Path, output: RunOutput, record: dict[str, Any]) -> None:

@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
         table, klux_s = _sweep_table(tmp)
         sweeps = [("the README's sweep example, 9 jobs", "-m illumination.klux=5,15,50 seed=0,1,2", klux_s)]
         mesh_ms = {}
-        for name, jobs in (("table2", 48), ("paper_ci", 44)) + ((("paper", 2064),) if ns.paper else ()):
+        for name, jobs in (("table2", 48), ("paper_ci", 44)) + ((("paper", 2608),) if ns.paper else ()):
             wall = timed([_exe("nirspi-run"), "-m", f"+experiment={name}", f"hydra.sweep.dir=sweeps/{name}"], tmp)
             sweeps.append((f"{jobs} jobs", f"-m +experiment={name}", wall))
             if name != "table2":

@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nirspi_pipe.errors import plain_value
+
 __all__ = ["compare_tables", "reference_dir", "check", "update", "is_timing_column"]
 
 _TIMING = re.compile(r"(time|(^|[_.])ms($|[_.])|_s$|per_s|wall)", re.IGNORECASE)
@@ -82,7 +84,8 @@ def compare_tables(new: pd.DataFrame, ref: pd.DataFrame, rtol: float, atol: floa
                 problems.append(f"row {i} column {c}: {av[i]:.6g} vs reference {bv[i]:.6g}")
         else:
             for i in np.flatnonzero((a.astype(str) != b.astype(str)).to_numpy()):
-                problems.append(f"row {i} column {c}: {a[i]!r} vs reference {b[i]!r}")
+                # plain values: 0.0, not np.float64(0.0) (issue 34)
+                problems.append(f"row {i} column {c}: {plain_value(a[i])!r} vs reference {plain_value(b[i])!r}")
     return problems
 
 

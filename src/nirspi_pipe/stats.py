@@ -21,6 +21,15 @@ by Holm's step-down method (:func:`holm`). A "better than" claim is made only wh
 Holm *and* replicates, with the same sign, on two disjoint seed sets (the first and the second
 half of the sorted seeds, :func:`split_seeds`; the experiments run seeds 0–19, so the halves are
 0–9 and 10–19): :func:`replicated_claims`.
+
+**Across families.** Holm controls the error within one family (6 pairs) only; a table has many
+families (Figure 9: 48 = 4 objects × 4 kLux × 3 scores). Two things bound the sweep-wide error:
+the replication rule (the halves use disjoint seeds, so under no true difference a family yields a
+claim with probability at most ``α² = 0.0025``; F families, at most ``F·α²`` expected false
+claims, 0.12 for Figure 9's 48) and, reported beside it, Holm over *all* the pairs of a table at
+once (:func:`across_families`: ``p_holm_all`` on all seeds, ``claim_all`` when it holds in both
+halves with the halves' own all-pair Holm), which controls the family-wise error over the whole
+table at 5 %.
 """
 
 from __future__ import annotations
@@ -35,7 +44,9 @@ __all__ = [
     "ALPHA",
     "PAIR_KEYS",
     "cell_summary",
+    "across_families",
     "claims_sentence",
+    "family_sentence",
     "clustered_mean_se",
     "holm",
     "paired_difference",
@@ -187,15 +198,18 @@ def replicated_claims(
     """The pairwise comparisons of ``levels`` on all seeds, on each half of the seeds
     (:func:`split_seeds`) with their own Holm correction, and the claim each supports.
 
-    Columns: ``a, b, diff, se, n, clusters, p, p_holm`` (all seeds), ``diff_1, p_holm_1`` and
-    ``diff_2, p_holm_2`` (the halves), and ``claim``: ``"a"`` or ``"b"`` (the better one) when
-    ``p_holm < alpha`` in *both* halves with the same sign, else ``""``. A frame without the
-    ``cluster`` column, or with fewer than four distinct seeds, supports no claim.
+    Columns: ``a, b, diff, se, n, clusters, p, p_holm`` (all seeds), ``diff_1, p_1, p_holm_1``
+    and ``diff_2, p_2, p_holm_2`` (the halves), ``higher_is_better``, and ``claim``: ``"a"`` or
+    ``"b"`` (the better one) when ``p_holm < alpha`` in *both* halves with the same sign, else
+    ``""``. A frame without the ``cluster`` column, or with fewer than four distinct seeds,
+    supports no claim.
     """
     full = pairwise(frame, value, levels, by, pair_keys, cluster)
     full["claim"] = ""
+    full["higher_is_better"] = bool(higher_is_better)
     for k in (1, 2):
         full[f"diff_{k}"] = np.nan
+        full[f"p_{k}"] = np.nan
         full[f"p_holm_{k}"] = np.nan
     if cluster not in frame.columns or frame[cluster].nunique() < 4 or full.empty:
         return full
@@ -203,12 +217,56 @@ def replicated_claims(
     for k, seeds in enumerate(halves, start=1):
         part = pairwise(frame[frame[cluster].isin(seeds)], value, levels, by, pair_keys, cluster)
         full[f"diff_{k}"] = part["diff"].to_numpy()
+        full[f"p_{k}"] = part["p"].to_numpy()
         full[f"p_holm_{k}"] = part["p_holm"].to_numpy()
     sig = (full["p_holm_1"] < alpha) & (full["p_holm_2"] < alpha)
     same = np.sign(full["diff_1"]) == np.sign(full["diff_2"])
     a_better = (full["diff_1"] > 0) == higher_is_better
     full["claim"] = np.where(sig & same, np.where(a_better, full["a"], full["b"]), "")
     return full
+
+
+def across_families(claims: pd.DataFrame, alpha: float = ALPHA) -> pd.DataFrame:
+    """``claims`` (rows of :func:`replicated_claims` from any number of families, concatenated)
+    with Holm over *all* its pairs at once: ``p_holm_all`` (all seeds), ``p_holm_all_1`` and
+    ``p_holm_all_2`` (each seed half), and ``claim_all``: the better scan where both halves'
+    all-pair Holm p are below ``alpha`` with the same sign, else ``""``. A copy; the per-family
+    columns are kept."""
+    out = claims.copy()
+    if out.empty:
+        for c in ("p_holm_all", "p_holm_all_1", "p_holm_all_2", "claim_all"):
+            out[c] = pd.Series(dtype=object if c == "claim_all" else float)
+        return out
+    out["p_holm_all"] = holm(out["p"].to_numpy(dtype=np.float64))
+    for k in (1, 2):
+        col = f"p_{k}"
+        raw = out[col].to_numpy(dtype=np.float64) if col in out else np.full(len(out), np.nan)
+        out[f"p_holm_all_{k}"] = holm(raw)
+    sig = (out["p_holm_all_1"] < alpha) & (out["p_holm_all_2"] < alpha)
+    same = np.sign(out["diff_1"]) == np.sign(out["diff_2"])
+    hib = out["higher_is_better"].astype(bool) if "higher_is_better" in out else pd.Series(True, index=out.index)
+    a_better = (out["diff_1"] > 0) == hib
+    out["claim_all"] = np.where(sig & same, np.where(a_better, out["a"], out["b"]), "")
+    return out
+
+
+def family_sentence(claims: pd.DataFrame, family_size: int = 6, alpha: float = ALPHA) -> str:
+    """One sentence on what is controlled across the families of ``claims`` (the output of
+    :func:`across_families`): the number of families and pairs, the replication rule's bound on
+    expected false claims (``F·α²``), and the all-pair Holm result (smallest all-seed p, claims)."""
+    if claims.empty or "p_holm_all" not in claims:
+        return "No pairwise comparison."
+    pairs = len(claims)
+    families = max(1, round(pairs / family_size))
+    smallest = float(np.nanmin(claims["p_holm_all"])) if claims["p_holm_all"].notna().any() else np.nan
+    n_all = int((claims["claim_all"] != "").sum())
+    return (
+        f"Holm controls each family of {family_size} pairs at {alpha:g}; this table has {families} families "
+        f"({pairs} pairs). Across them, a claim needs both disjoint seed halves, so with no true difference at most "
+        f"{families} × {alpha:g}² = {families * alpha**2:.2g} false claims are expected; Holm over all {pairs} pairs "
+        f"at once (`p_holm_all` in the rankings CSV): smallest all-seed p {smallest:.3g}, "
+        f"{n_all} claim{'s' if n_all != 1 else ''} holding in both halves."
+    )
 
 
 def claims_sentence(claims: pd.DataFrame, label: dict | None = None) -> str:

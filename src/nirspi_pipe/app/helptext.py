@@ -1,11 +1,16 @@
 """Dynamic parts of ``nirspi-run --help`` (the template is ``conf/hydra/help/nirspi.yaml``).
 
-Hydra fills ``$APP_CONFIG_GROUPS`` (every config group and its options, plugins' included) itself;
-the experiments with a one-line description each and the installed plugins come from the
-OmegaConf resolver ``nirspi_help`` registered here (``${nirspi_help:experiments}``,
+The config groups and their options (plugins' included), the experiments with a one-line
+description each and the installed plugins come from the OmegaConf resolver ``nirspi_help``
+registered here (``${nirspi_help:groups}``, ``${nirspi_help:experiments}``,
 ``${nirspi_help:plugins}``), and so does the camera of the composed config
 (``${nirspi_help:camera}``: resolution, solver, upscaler, as ``--help`` with the same overrides
 would run them). A resolver never raises: a help page must always print.
+
+``groups`` replaces Hydra's ``$APP_CONFIG_GROUPS``, which lists every folder on the config search
+path: the experiments package's data folders (``reference/ci``: the CI reference's tolerances;
+``heldout``, ``mesh``, ``shapes``: scripts) looked like groups there, and ``mechanism`` (used by
+``+experiment=scan_order`` only) like a stage (issue 34).
 """
 
 from __future__ import annotations
@@ -13,9 +18,32 @@ from __future__ import annotations
 from importlib import resources
 from typing import Any
 
-__all__ = ["RESOLVER", "camera_text", "experiments_text", "plugins_text", "register_resolvers"]
+__all__ = ["RESOLVER", "camera_text", "experiments_text", "groups_text", "plugins_text", "register_resolvers"]
 
 RESOLVER = "nirspi_help"
+
+#: Groups that only an experiment selects: group -> the experiment that sweeps it.
+EXPERIMENT_GROUPS = {"mechanism": "scan_order"}
+#: Folders of the experiments package that hold data, not options: never listed as groups.
+DATA_FOLDERS = frozenset({"reference", "heldout", "mesh", "shapes"})
+
+
+def groups_text() -> str:
+    """``group: option, …`` per top-level config group that a run selects (plugins' included),
+    then those only an experiment sweeps; ``experiment`` has its own section."""
+    try:
+        from nirspi_pipe.app.configs import config_groups, group_options
+
+        groups = [g for g in config_groups() if g not in DATA_FOLDERS and g != "experiment" and group_options(g)]
+    except Exception as exc:  # noqa: BLE001 - help must print
+        return f"(config groups could not be listed: {exc})"
+    lines = [f"{g}: {', '.join(group_options(g))}" for g in groups if g not in EXPERIMENT_GROUPS]
+    for g in groups:
+        if g in EXPERIMENT_GROUPS:
+            lines.append(
+                f"{g} (only with +experiment={EXPERIMENT_GROUPS[g]}, which sweeps it): {', '.join(group_options(g))}"
+            )
+    return "\n".join(lines) + "\n"  # a blank line before the template's next paragraph
 
 
 def _description(name: str, group: str = "experiment", package: str = "nirspi_pipe.experiments") -> str:
@@ -107,9 +135,11 @@ def _resolve(what: str, *, _root_: Any = None) -> str:
             return plugins_text()
         if what == "camera":
             return camera_text(_root_)
+        if what == "groups":
+            return groups_text()
     except Exception as exc:  # noqa: BLE001 - help must print
         return f"({what} could not be described: {exc})"
-    return f"(unknown help section {what!r}; allowed: camera, experiments, plugins)"
+    return f"(unknown help section {what!r}; allowed: camera, experiments, groups, plugins)"
 
 
 def register_resolvers() -> None:

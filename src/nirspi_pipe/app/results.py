@@ -176,6 +176,13 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     return frame
 
 
+def _prog() -> str:
+    """The command printing: ``nirspi-collect`` when it is the running program, else
+    ``nirspi-run`` (issue 34: nirspi-collect printed "nirspi-run: table ...")."""
+    name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
+    return name if name == "nirspi-collect" else "nirspi-run"
+
+
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
     """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
     logged and skipped, so it never costs the sweep's other results. Returns those built."""
@@ -188,17 +195,17 @@ def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str
         if folder.is_dir():
             drop_links(folder, tuple(p.name for p in folder.iterdir() if p.is_symlink()))
     except OutputError as exc:
-        print(f"nirspi-run: error: no table built: {exc}", file=sys.stderr, flush=True)
+        print(f"{_prog()}: error: no table built: {exc}", file=sys.stderr, flush=True)
         return []
     built = []
     for name in names:
         try:
             build_table(str(name), frame, sweep / "tables")
             built.append(str(name))
-            print(f"nirspi-run: table {name} -> {sweep / 'tables'}")
+            print(f"{_prog()}: table {name} -> {sweep / 'tables'}")
         except Exception as exc:  # noqa: BLE001 - reported, results kept
             log.error("table %s failed: %s: %s", name, type(exc).__name__, exc)
-            print(f"nirspi-run: table {name} FAILED: {type(exc).__name__}: {exc}")
+            print(f"{_prog()}: table {name} FAILED: {type(exc).__name__}: {exc}")
     return built
 
 
@@ -233,7 +240,7 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
             built += build_tables(sub.reset_index(drop=True), sweep, names)
     if len(built) > 1:
         path = write_report(sweep, built, frame)
-        print(f"nirspi-run: report -> {path}")
+        print(f"{_prog()}: report -> {path}")
     return frame
 
 

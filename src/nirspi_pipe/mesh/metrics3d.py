@@ -53,6 +53,8 @@ from nirspi_pipe.types import Camera, DepthMap, PointCloud, Scene
 
 __all__ = [
     "compared_depths",
+    "depth_truth",
+    "run_depth_truth",
     "geometric_metric_depth",
     "Metrics3D",
     "equiangle_skewness",
@@ -307,6 +309,39 @@ def compared_depths(
     return both, z_base, z_sfs, z_fused
 
 
+def depth_truth(truth: Scene, depth: DepthMap | None, scene_model: Any) -> Scene:
+    """The ground truth that depth is scored against: ``truth`` itself when the SFS depth is on
+    its grid (or there is no scene model to render), else ``scene_model`` rendered again on the
+    SFS depth's grid, same field of view (an upscaled run: the device's 8² camera, depth on the
+    32² grid). The 3D metrics, ``summary.png`` and ``mesh.png`` all use this one grid."""
+    if depth is None or scene_model is None or depth.depth_m.shape[0] == truth.camera.resolution:
+        return truth
+    from nirspi_pipe.scene.render import render_cached
+    from nirspi_pipe.upscale.data import RenderCamera
+
+    side = int(depth.depth_m.shape[0])
+    return render_cached(scene_model, RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
+
+
+def run_depth_truth(products: Products, config: Any) -> Scene | None:
+    """:func:`depth_truth` of a finished run from its resolved config (plain data): the scene
+    model is the 3D metrics' (``metrics.scene``), else the run's ``scene``; only an upscaled
+    run is scored on a finer grid (:class:`Metrics3D`). None without a ground truth."""
+    truth = products.truth
+    if truth is None or products.upscaled is None or products.depth is None:
+        return truth
+    if products.depth.depth_m.shape[0] == truth.camera.resolution:
+        return truth
+    config = config or {}
+    node = (config.get("metrics") or {}).get("scene") if isinstance(config.get("metrics"), dict) else None
+    node = node if isinstance(node, dict) and "_target_" in node else config.get("scene")
+    if not (isinstance(node, dict) and "_target_" in node):
+        return truth
+    from nirspi_pipe.instantiate import build
+
+    return depth_truth(truth, products.depth, build(node, "scene"))
+
+
 @dataclass(frozen=True)
 class Metrics3D:
     """Metrics ``full``: SSIM/PSNR/RMSE of the 2D image plus the 3D metrics (module docstring).
@@ -344,12 +379,8 @@ class Metrics3D:
         if truth is None:
             return out
         depth = products.depth
-        if fine and depth is not None and depth.depth_m.shape[0] != truth.camera.resolution:
-            from nirspi_pipe.scene.render import render_cached
-            from nirspi_pipe.upscale.data import RenderCamera
-
-            side = int(depth.depth_m.shape[0])
-            truth = render_cached(self.scene, RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
+        if fine:
+            truth = depth_truth(truth, depth, self.scene)
         cam = truth.camera
         tmask = truth.mask & np.isfinite(truth.depth_m)
         cloud, mesh = products.cloud, products.mesh

@@ -1,8 +1,10 @@
 """Files a 3D run writes next to its record: ``mesh.ply`` and ``mesh.png``.
 
 ``mesh.png`` is an off-screen pyvista render (EGL here; no display needed) of the final mesh
-beside the ground-truth surface (the true depth map back-projected and triangulated), both in
-millimetres in the camera frame, seen from behind the camera.
+beside the ground-truth surface (the true depth map back-projected and triangulated, on the grid
+the 3D metrics score depth on: the upscaled 32² one on the device preset), both in millimetres in
+the camera frame, seen from beside the camera, each with a 3D ruler of :data:`SCALE_BAR_MM` along
+x under the object (perspective: the ruler is true to scale at its own depth).
 """
 
 from __future__ import annotations
@@ -15,7 +17,9 @@ import numpy as np
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Mesh, Scene
 
-__all__ = ["render_meshes", "truth_mesh", "warm_up", "write_mesh_outputs", "write_ply"]
+__all__ = ["SCALE_BAR_MM", "render_meshes", "truth_mesh", "warm_up", "write_mesh_outputs", "write_ply"]
+
+SCALE_BAR_MM = 20.0  # length of the ruler under each mesh (mm): assumed, 40 % of the Ø50 mm sphere
 
 
 def _polydata(vertices_m: np.ndarray, faces: np.ndarray):
@@ -73,18 +77,35 @@ def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, i
             plotter.add_text(title, font_size=10)
             # the device looks along +z with +y up: view from near the device, a little off axis
             centre = np.asarray(m.vertices_m).mean(axis=0) * 1e3 if len(m.vertices_m) else np.array([0, 0, 200.0])
+            if len(m.faces):
+                v = np.asarray(m.vertices_m) * 1e3
+                x0, y0 = float(v[:, 0].min()), float(v[:, 1].min()) - 4.0  # 4 mm under the object
+                # from +x to -x: seen from the camera's side +x is on the left, so 0 reads on the left
+                plotter.add_ruler(  # type: ignore[call-arg]  # pyvista 0.49 types its decorator without self
+                    pointa=(x0 + SCALE_BAR_MM, y0, float(centre[2])),
+                    pointb=(x0, y0, float(centre[2])),
+                    title=f"{SCALE_BAR_MM:g} mm",
+                    number_labels=3,
+                    label_format="%.0f",
+                    font_size_factor=0.8,
+                    label_color="black",
+                    tick_color="black",
+                )
             plotter.camera_position = [(centre[0] - 80.0, centre[1] + 60.0, 0.0), tuple(centre), (0.0, 1.0, 0.0)]
+            plotter.camera.zoom(1.4)  # the object and its ruler fill the panel (the object filled a fifth)
         plotter.screenshot(str(path))
     finally:
         plotter.close()
     return path
 
 
-def write_mesh_outputs(folder: Path, products: Products, render: bool = True) -> list[Path]:
+def write_mesh_outputs(folder: Path, products: Products, render: bool = True, truth: Scene | None = None) -> list[Path]:
     """Write ``mesh.ply`` and (when ``render``) ``mesh.png`` into ``folder`` when the run produced
     a mesh with faces; returns the written paths (empty otherwise). A failing render is warned
     about, not raised. The runner passes ``render = output.images``: sweeps that write no images
-    skip the off-screen render (hundreds of ms per job)."""
+    skip the off-screen render (hundreds of ms per job). ``truth``: the ground truth to draw
+    beside the mesh (the runner passes the one depth is scored against,
+    :func:`nirspi_pipe.mesh.metrics3d.run_depth_truth`); default ``products.truth``."""
     mesh = products.mesh
     if mesh is None or len(mesh.faces) == 0:
         return []
@@ -94,8 +115,8 @@ def write_mesh_outputs(folder: Path, products: Products, render: bool = True) ->
     if not render:
         return written
     try:
-        truth = truth_mesh(products.truth) if products.truth is not None else None
-        written.append(render_meshes(folder / "mesh.png", mesh, truth))
+        scene = truth if truth is not None else products.truth
+        written.append(render_meshes(folder / "mesh.png", mesh, truth_mesh(scene) if scene is not None else None))
     except Exception as exc:  # noqa: BLE001 - a missing GL context must not fail the run
         warnings.warn(f"mesh render failed: {type(exc).__name__}: {exc}", stacklevel=2)
     return written

@@ -39,6 +39,7 @@ __all__ = [
     "cell",
     "ranking",
     "ranking_note",
+    "with_families",
     "fmt_se",
 ]
 
@@ -143,6 +144,12 @@ def ranking_note(claims: pd.DataFrame) -> str:
     return st.claims_sentence(claims, SCAN_LABELS)
 
 
+def with_families(markdown: str, claims: pd.DataFrame) -> str:
+    """``markdown`` with a closing paragraph on what is controlled across the table's families
+    (:func:`nirspi_pipe.stats.family_sentence`; ``claims`` from :func:`nirspi_pipe.stats.across_families`)."""
+    return markdown.rstrip("\n") + "\n\n**Across families.** " + st.family_sentence(claims) + "\n"
+
+
 def fmt_se(mean: float, se: float, digits: int = 2) -> str:
     """``"m ± se"`` with the clustered standard error (``"n/a"`` for NaN mean)."""
     return fmt(mean, se, digits)
@@ -214,6 +221,12 @@ def conditions_note(df: pd.DataFrame) -> str:
     return "; ".join(parts)
 
 
+def count_range(n: pd.Series) -> str:
+    """``"160"`` or ``"150–160"``: the range of per-cell counts, for captions."""
+    lo, hi = int(n.min()), int(n.max())
+    return f"{lo}" if lo == hi else f"{lo}–{hi}"
+
+
 def bar_plot(
     path: Path,
     title: str,
@@ -221,9 +234,11 @@ def bar_plot(
     series: dict[str, tuple[list[float], list[float]]],
     paper: dict[str, list[float]] | None,
     ylabel: str,
+    errbars: str,
 ) -> None:
-    """Grouped bars (one group per scan method): ours (mean, std error bars) and the paper's values
-    (hatched), written as a PNG."""
+    """Grouped bars (one group per scan method): ours (mean, error bars) and the paper's values
+    (hatched), written as a PNG. ``errbars`` says what the error bars are; it is printed under
+    the plot. The legend sits right of the axes, where it covers no bar (issue 34)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,11 +248,11 @@ def bar_plot(
     k = len(names) + (len(paper) if paper else 0)
     width = 0.8 / max(k, 1)
     x = np.arange(len(groups))
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(8, 4.2), layout="constrained")
     i = 0
     for name in names:
-        mean, std = series[name]
-        ax.bar(x + (i - (k - 1) / 2) * width, mean, width, yerr=std, capsize=3, label=f"ours: {name}")
+        mean, err = series[name]
+        ax.bar(x + (i - (k - 1) / 2) * width, mean, width, yerr=err, capsize=3, label=f"ours: {name}")
         i += 1
     for name, vals in (paper or {}).items():
         ax.bar(x + (i - (k - 1) / 2) * width, vals, width, fill=False, hatch="//", label=f"paper: {name}")
@@ -246,7 +261,7 @@ def bar_plot(
     ax.set_xticklabels(groups)
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+    fig.text(0.01, 0.0, errbars, fontsize=7, ha="left", va="top", wrap=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)

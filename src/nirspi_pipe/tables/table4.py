@@ -21,18 +21,21 @@ from pathlib import Path
 
 import pandas as pd
 
+from nirspi_pipe import stats as st
 from nirspi_pipe.tables._common import (
     SCAN_LABELS,
     SCANS,
     bar_plot,
     compare_metric,
     conditions_note,
+    count_range,
     failures_note,
     fmt,
     ok_rows,
     paper_reference,
     ranking,
     ranking_note,
+    with_families,
 )
 from nirspi_pipe.tables._common import cell as cell_se
 from nirspi_pipe.tables.table3 import fogged
@@ -77,11 +80,14 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
         [ranking(df, col, higher_is_better=False, where={"column": key}) for key, col in COLUMNS.items()],
         ignore_index=True,
     )
+    claims = st.across_families(claims)
     claims.to_csv(out_dir / f"{name}_rankings.csv", index=False, float_format="%.6g")
     noremesh = _noremesh(plain)
     if len(noremesh):
         noremesh.to_csv(out_dir / f"{name}_noremesh.csv", index=False, float_format="%.6g")
-    (out_dir / f"{name}.md").write_text(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh))
+    (out_dir / f"{name}.md").write_text(
+        with_families(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh), claims)
+    )
     t = table.set_index("scan").reindex(list(SCANS))
     bar_plot(
         out_dir / f"{name}.png",
@@ -90,6 +96,9 @@ def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> 
         {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
         {k: t[f"paper_{k}"].tolist() for k in COLUMNS},
         "mean equiangle skewness (0 best, 1 degenerate)",
+        f"Error bars: ± 1 standard deviation of the jobs' mean skewness ({count_range(t['n'])} "
+        "jobs per scan: objects × kLux × seeds), the spread between jobs, not the uncertainty of the mean "
+        f"({name}.md gives the standard errors clustered by seed).",
     )
     return table
 

@@ -25,6 +25,7 @@ from nirspi_pipe.tables._common import (
     SCANS,
     bar_plot,
     conditions_note,
+    count_range,
     failures_note,
     fmt,
     ok_rows,
@@ -83,6 +84,8 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
         },
         {"SFS": t["paper_time_sfs_ms"].tolist(), "3D mesh": t["paper_time_3dmesh_ms"].tolist()},
         "ms",
+        f"Error bars: ± 1 standard deviation of the jobs' times ({count_range(t['n'])} jobs "
+        "per scan: objects × kLux × seeds), the spread between jobs, not the uncertainty of the mean.",
     )
     return table
 
