@@ -15,7 +15,7 @@ import time
 import traceback
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.finite import drop_nonfinite
@@ -30,9 +30,7 @@ from nirspi_pipe.records import (
     write_arrays,
     write_record,
 )
-
-if TYPE_CHECKING:
-    from nirspi_pipe.sources.recorded import ScanIndices
+from nirspi_pipe.stages import ScanIndices, WarmsUp
 
 __all__ = ["execute_job", "one_line", "warm_up"]
 
@@ -194,9 +192,8 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
                 if cls is None:
                     failed.append(f"{target}: cannot be imported")
                     continue
-                hook = getattr(cls, "warm_up", None)
-                if callable(hook):
-                    hook(params)
+                if isinstance(cls, WarmsUp):
+                    cls.warm_up(params)
             except Exception as exc:  # noqa: BLE001 - the job reports it
                 failed.append(f"{target}: {type(exc).__name__}: {exc}")
     return failed

@@ -12,17 +12,14 @@ import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
-from nirspi_pipe.stages import Products
+from nirspi_pipe.stages import Aimable, Itof, Products, ReadsScanOptions, ScanIndices, check_stage
 from nirspi_pipe.types import Camera
-
-if TYPE_CHECKING:
-    from nirspi_pipe.sources.recorded import ScanIndices
 
 __all__ = [
     "EFFECT_GROUPS",
@@ -67,12 +64,14 @@ class RunOutput:
 
 
 def build_stages(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped)."""
+    """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped), each
+    checked against its group's protocol (:func:`nirspi_pipe.stages.check_stage`)."""
     stages: dict[str, Any] = {}
     for group in STAGE_GROUPS:
         node = cfg.get(group)
         if node is not None:
             stages[group] = build(node, group)
+            check_stage(group, stages[group], node.get("_target_") if isinstance(node, Mapping) else None)
     return stages
 
 
@@ -97,9 +96,9 @@ class _Clock:
                 raise exc.under(name) from None
 
 
-def _measure_itof(stage: Any, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
-    """Aim steerable iToF spots with the 2D image when the stage can (``aimed``), then measure."""
-    if hasattr(stage, "aimed"):
+def _measure_itof(stage: Itof, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
+    """Aim steerable iToF spots with the 2D image when the stage can (:class:`Aimable`), then measure."""
+    if isinstance(stage, Aimable):
         stage = stage.aimed(image, grid)
     return stage.measure(truth, acq, rng)
 
@@ -170,10 +169,8 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
             if required not in stages:
                 raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
         source, scan, solver = stages["source"], stages["scan"], stages["solver"]
-        if getattr(source, "needs_scan_indices", False) and getattr(source, "scan_indices", None) is None:
-            from dataclasses import replace
-
-            source = replace(source, scan_indices=scan_indices)  # the caller resolves scan options
+        if isinstance(source, ReadsScanOptions) and source.scan_indices is None:
+            source = source.with_scan_indices(scan_indices)  # the caller resolves scan options
         n = camera.resolution
 
         truth = None
