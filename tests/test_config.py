@@ -168,9 +168,15 @@ def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
 
 
 def test_stage_null_on_the_command_line_runs(cli) -> None:
-    for args in (["sfs=null"], ["metrics=null"], ["fusion=null"], ["fog=null", "detector=null"]):
+    for args in (["sfs=null"], ["metrics=null"], ["fusion=null"]):
         res = cli("nirspi-run", *args, "camera.resolution=8", "output.quiet=true", "hydra.run.dir=out")
         assert res.returncode == 0, (args, res.stderr[-2000:])
+    # the simulated camera's models are not stages: their "nothing" is an option, null a one-line hint
+    for arg, hint in (("fog=null", "fog=none (clear air)"), ("detector=off", "detector=ideal (noise-free)")):
+        res = cli("nirspi-run", arg, "camera.resolution=8", "output.quiet=true", "hydra.run.dir=out")
+        assert res.returncode == 2 and res.stderr.strip().splitlines()[-1].endswith(
+            f"allowed: {hint}; {arg.split('=')[0]} is a model of the simulated camera, not a stage"
+        ), res.stderr[-2000:]
     res = cli("nirspi-run", "solver=null", "hydra.run.dir=out")
     assert res.returncode == 2 and "solver=null is not allowed" in res.stderr
     res = cli("nirspi-run", "scene=null", "camera.resolution=8", "hydra.run.dir=out")

@@ -294,13 +294,28 @@ def test_pipeline_fsrcnn_with_upscale_metrics(scale: int) -> None:
     assert "upscale" in out.timings_ms
 
 
-def test_pipeline_upscale_none_is_the_identity() -> None:
-    base = run_pipeline(_cfg(["preset=off", "camera.resolution=16"]))
-    none = run_pipeline(_cfg(["preset=off", "camera.resolution=16", "upscale=none"]))
-    assert base.products.upscaled is None
-    np.testing.assert_array_equal(none.products.upscaled.data, base.products.image.data)
-    assert none.info["upscale"]["model"] == "none"
-    assert none.metrics == base.metrics
+def test_one_way_to_switch_upscale_off(tmp_path: Path) -> None:
+    """``upscale=null`` (rewritten to ``off`` by nirspi-run) and ``upscale=off`` are one thing:
+    the same record, timings and dates aside; ``upscale=none`` is no option (one line)."""
+    from nirspi_pipe.app.api import compose as compose_job
+    from nirspi_pipe.app.validate import check_overrides, rewrite_nulls
+    from nirspi_pipe.execute import execute_job
+
+    records = []
+    for arg in ("upscale=null", "upscale=off"):
+        (args,), problem = rewrite_nulls([arg])
+        assert problem is None
+        cfg, choices = compose_job(["camera.resolution=8", args])
+        rec = execute_job(cfg, tmp_path / arg, {k: str(v) for k, v in choices.items()}, [arg])
+        for volatile in ("started", "wall_s"):
+            rec["meta"].pop(volatile)
+        rec.pop("timings_ms")
+        records.append(rec)
+    assert records[0]["meta"]["status"] == "ok" and records[0]["config"]["upscale"] is None
+    records[0]["meta"]["overrides"] = records[1]["meta"]["overrides"]  # what was typed differs
+    assert records[0] == records[1]
+    problem = check_overrides(["upscale=none"])
+    assert problem is not None and problem.startswith("upscale=none is not an option") and "\n" not in problem
 
 
 def test_upscale_metrics_on_exact_reconstruction_match_bicubic_of_the_truth() -> None:

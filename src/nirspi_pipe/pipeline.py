@@ -23,6 +23,7 @@ from nirspi_pipe.types import Camera
 
 __all__ = [
     "EFFECT_GROUPS",
+    "MODEL_OF_NOTHING",
     "STAGE_GROUPS",
     "RunOutput",
     "build",
@@ -44,6 +45,17 @@ STAGE_GROUPS = (
     "surface",
     "metrics",
 )
+
+#: What to write instead of ``group=null`` for the groups of the simulated medium and detector:
+#: they are models the source is built with, not stages of the pipeline, so their "nothing" is a
+#: model of nothing (clear air, no background light, a noise-free detector), one spelling each;
+#: ``null`` (and ``off``, which ``nirspi-run`` rewrites it to) is refused with this hint.
+#: (Stages switch off with ``null`` only: docs/architecture.md, "Switching a stage off".)
+MODEL_OF_NOTHING = {
+    "fog": "fog=none (clear air)",
+    "illumination": "illumination=none (no background light)",
+    "detector": "detector=ideal (noise-free)",
+}
 
 #: Independent random streams, by stage. Append only: the position fixes the stream.
 _RNG_STREAMS = ("source", "itof")
@@ -160,6 +172,9 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
+    for group, nothing in MODEL_OF_NOTHING.items():
+        if group in cfg and cfg[group] is None:
+            raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
     clock = _Clock()
     with _recorded_warnings() as caught:
         with clock.stage("build"):
