@@ -8,9 +8,10 @@ from hydra import compose, initialize_config_module
 
 from conftest import NOISE_FREE
 from nirspi_pipe.patterns.hadamard import fwht2
+from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.pipeline import run_pipeline
 from nirspi_pipe.scene.objects import ImageTarget, Sphere
-from nirspi_pipe.sources.simulator import Simulator, split_measure
+from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
 
 
