@@ -139,24 +139,6 @@ def test_forward_matches_loop_reference_on_tiny_network(scale: int, residual: bo
     np.testing.assert_allclose(fsrcnn_forward(lr, net), _forward_loops(lr, net), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.torch
-@pytest.mark.parametrize("scale", SCALES)
-def test_forward_matches_torch(scale: int) -> None:
-    import torch  # marker torch: deselected by default; run with `pytest -m torch` after `pip install '.[train]'`
-
-    from nirspi_pipe.upscale.train import _build_net, _to_weights
-
-    torch.manual_seed(scale)
-    net = _build_net(torch, scale, 6, 3, 2)
-    w = _to_weights(net, scale, residual=False, border=6, meta={})
-    lr = np.random.default_rng(scale).uniform(0, 1, (7, 9))
-    xp = np.pad(lr, 6, mode="symmetric").astype(np.float32)
-    with torch.no_grad():
-        ref = net(torch.from_numpy(xp)[None, None])[0, 0].numpy()
-    ref = ref[6 * scale : -6 * scale, 6 * scale : -6 * scale]
-    np.testing.assert_allclose(fsrcnn_forward(lr, w), ref, atol=1e-5)
-
-
 def test_save_load_round_trip(tmp_path: Path) -> None:
     net = _tiny_net(np.random.default_rng(0), 3, residual=True)
     save_weights(tmp_path / "w.npz", net)

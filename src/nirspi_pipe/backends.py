@@ -370,9 +370,20 @@ class FsrcnnCase:
 
     weights: Any  # nirspi_pipe.upscale.fsrcnn.FsrcnnWeights
     image: np.ndarray
+    #: ``trained-x…`` fixtures: the torch network of ``nirspi-train-fsrcnn`` (``upscale.train``)
+    #: that ``weights`` were exported from; the torch back end runs it, so its export is checked too.
+    module: Any = None
 
 
-_FSRCNN_FIXTURES = ("shipped-x2", "shipped-x3", "shipped-x4", "random-x3-plain")
+_FSRCNN_FIXTURES = (
+    "shipped-x2",
+    "shipped-x3",
+    "shipped-x4",
+    "random-x3-plain",
+    "trained-x2",
+    "trained-x3",
+    "trained-x4",
+)
 
 
 def _fsrcnn_fixture(name: str) -> FsrcnnCase:
@@ -385,6 +396,14 @@ def _fsrcnn_fixture(name: str) -> FsrcnnCase:
     image = np.clip(0.5 + 0.3 * np.sin(6 * xx + 3 * yy) + 0.05 * rng.standard_normal((9, 11)), 0, 1)
     if kind == "shipped":
         return FsrcnnCase(load_weights(scale), image)
+    if kind == "trained":  # a fresh network as nirspi-train-fsrcnn builds it, exported (needs torch)
+        import torch
+
+        from nirspi_pipe.upscale.train import _build_net, _to_weights
+
+        torch.manual_seed(scale)
+        net = _build_net(torch, scale, 6, 3, 2)
+        return FsrcnnCase(_to_weights(net, scale, residual=False, border=6, meta={}), image, net)
     d, s = 6, 3  # (d, s, m) = (6, 3, 2), weights of order one so that rounding shows
     shapes = [(d, 1, 5), (s, d, 1), (s, s, 3), (s, s, 3), (d, s, 1)]
     layers = tuple(
@@ -406,8 +425,9 @@ def _fsrcnn_numpy(case: FsrcnnCase) -> np.ndarray:
 
 
 def _fsrcnn_torch(case: FsrcnnCase) -> np.ndarray:
-    """The network as ``nirspi-train-fsrcnn`` runs it: torch's float32 layers on the mirrored image,
-    cropped, plus the bicubic image for residual weights (upscale/train.py's own check)."""
+    """The network as ``nirspi-train-fsrcnn`` runs it: torch's float32 layers on the mirrored image
+    (the training network itself for a ``trained`` fixture), cropped, plus the bicubic image for
+    residual weights (upscale/train.py's own check)."""
     import torch
     from torch.nn import functional as F
 
@@ -417,20 +437,17 @@ def _fsrcnn_torch(case: FsrcnnCase) -> np.ndarray:
     def f32(a: np.ndarray) -> Any:
         return torch.from_numpy(np.array(a, dtype=np.float32))  # a writable float32 copy
 
+    def layers(x: Any) -> Any:
+        for layer in w.layers:
+            x = F.prelu(F.conv2d(x, f32(layer.w), f32(layer.b), padding=layer.w.shape[-1] // 2), f32(layer.alpha))
+        return F.conv_transpose2d(
+            x, f32(w.deconv_w), f32(w.deconv_b), stride=s, padding=DECONV_PADDING, output_padding=s - 1
+        )
+
     w, s, pad = case.weights, case.weights.scale, case.weights.border
     x = torch.from_numpy(np.pad(case.image, pad, mode="symmetric").astype(np.float32))[None, None]
     with torch.no_grad():
-        for layer in w.layers:
-            x = F.conv2d(x, f32(layer.w), f32(layer.b), padding=layer.w.shape[-1] // 2)
-            x = F.prelu(x, f32(layer.alpha))
-        y = F.conv_transpose2d(
-            x,
-            f32(w.deconv_w),
-            f32(w.deconv_b),
-            stride=s,
-            padding=DECONV_PADDING,
-            output_padding=s - 1,
-        )
+        y = case.module(x) if case.module is not None else layers(x)
     h, wd = case.image.shape
     out = y[0, 0].numpy().astype(np.float64)[pad * s : pad * s + h * s, pad * s : pad * s + wd * s]
     return out + bicubic(case.image, s) if w.residual else out
@@ -460,7 +477,8 @@ FSRCNN = Family(
         "max_abs": Tolerance(
             1e-5,
             "torch runs in float32, numpy in float64. Not measured with torch here (not installed); the "
-            "bound is that of tests/test_upscale.py's former numpy-vs-torch test (torch 2.x, CPU). The "
+            "bound is that of tests/test_upscale.py's former numpy-vs-torch test (torch 2.x, CPU), whose "
+            "cases are the trained-x2/x3/x4 fixtures (the training network against its exported weights). The "
             "float32 rounding it stands for, measured by running fsrcnn_forward's layers in float32 "
             "with numpy on these 4 fixtures: max |dy| = 1.6e-7 (shipped weights), 1.5e-6 (random net)",
         ),
