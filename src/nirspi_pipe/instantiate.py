@@ -9,6 +9,11 @@ node included, whose interpolations resolve as they are read) into that plain da
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import inspect
+import types
+import typing
 from collections.abc import Mapping, Sequence
 from functools import lru_cache
 from typing import Any
@@ -87,8 +92,6 @@ def _instantiate(node: Any, path: str) -> Any:
             (_instantiate(v, f"{path}._args_.{i}") if recursive else v) for i, v in enumerate(node.get("_args_", []))
         ]
         if node.get("_partial_", False):
-            import functools
-
             return functools.partial(fn, *args, **kwargs)
         return fn(*args, **kwargs)
     except _BuildFailure:
@@ -130,8 +133,6 @@ _KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a s
 def _scalar_kinds(hint: Any) -> tuple[type, ...] | None:
     """The scalar types a field annotation accepts (None also when Optional), or None when the
     annotation is not a plain scalar (tuples, mappings, models: the stage checks those)."""
-    import types
-    import typing
 
     args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
     kinds = tuple(a for a in args if a in _KINDS or a is type(None))
@@ -157,10 +158,6 @@ def _type_text(kinds: tuple[type, ...]) -> str:
 def _scalar_fields(fn: Any) -> tuple[tuple[str, tuple[type, ...] | None], ...]:
     """``(name, scalar kinds or None)`` of a target's constructor fields, read from its annotations
     once per class (``typing.get_type_hints`` on every node cost ~3 ms per sweep job)."""
-    import dataclasses
-    import inspect
-    import typing
-
     hints = typing.get_type_hints(fn)
     if dataclasses.is_dataclass(fn):
         names = [f.name for f in dataclasses.fields(fn) if f.init]
@@ -208,8 +205,6 @@ def check_types(node: Any, key: str) -> None:
 
 def accepted_keys(node: Any) -> str:
     """Comma-separated constructor parameters of a node's ``_target_`` (for error messages)."""
-    import inspect
-
     try:
         params = inspect.signature(locate(str(node.get("_target_")))).parameters
     except Exception:  # noqa: BLE001 - best effort for a message

@@ -18,6 +18,8 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
+from nirspi_pipe.records import config_hash
+from nirspi_pipe.scene.render import forget_renders
 from nirspi_pipe.stages import Aimable, Itof, Products, ReadsScanOptions, ScanIndices, check_stage
 from nirspi_pipe.types import Camera
 
@@ -144,8 +146,6 @@ def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
 def effective_seed(cfg: Mapping[str, Any]) -> int:
     """The run's seed: ``cfg.seed``, or when it is null a seed derived from the hash of the
     resolved config (so every job of a sweep gets its own, reproducible noise)."""
-    from nirspi_pipe.records import config_hash
-
     seed = cfg.get("seed", 0)
     if seed is None:
         return int(config_hash(plain_config(cfg))[:8], 16)
@@ -165,8 +165,6 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
     Raises :class:`ConfigError` / :class:`NirspiError` for bad configuration or input; other
     exceptions are bugs or numerical failures and propagate unchanged.
     """
-    from nirspi_pipe.scene.render import forget_renders
-
     forget_renders(files_only=True)  # a scene read from a file is rendered afresh by each run
     seed = effective_seed(cfg)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sys
 import threading
@@ -38,6 +39,7 @@ from nirspi_pipe.device.protocol import (
     read_line,
     write_json_line,
 )
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.safeio import sanitize_text, short_repr
 
@@ -216,9 +218,7 @@ class Emulator:
 
 def _check_arguments(ns: argparse.Namespace) -> str | None:
     """The first argument out of range, as one line naming it and the allowed values, or None."""
-    import math
 
-    from nirspi_pipe.errors import ConfigError
     from nirspi_pipe.types import Camera
 
     if not 0 <= ns.port <= 65535:
@@ -245,8 +245,6 @@ def _check_arguments(ns: argparse.Namespace) -> str | None:
 def _cause_line(exc: BaseException) -> str:
     """The error's first line, and the first line of its cause when the error wraps one (Hydra's
     ``Error in call to target …:`` says the cause on the next line)."""
-
-    from nirspi_pipe.errors import ConfigError
 
     def first(e: BaseException) -> str:
         lines = str(e).strip().splitlines()
