@@ -122,7 +122,11 @@ def test_unknown_options_and_keys_are_one_line() -> None:
         (["scene.distance_mm=abc"], "scene.distance_mm", "a number"),
         (["fog=chamber", "fog.number_density_per_cm3=lots"], "fog.number_density_per_cm3", "a number"),
         (["fog=chamber", "fog.droplet_diameter_um=lots"], "fog.droplet_diameter_um", "a number, or null"),
-        (["fog=measured", "fog.beta_per_m=-1"], "fog.beta_per_m", "an extinction coefficient"),  # a value: the stage's words
+        (
+            ["fog=measured", "fog.beta_per_m=-1"],
+            "fog.beta_per_m",
+            "an extinction coefficient",
+        ),  # a value: the stage's words
         (["camera.resolution=abc"], "camera.resolution", "an integer"),
         (["camera.resolution=7"], "camera.resolution", "a power of two"),
         (["illumination=klux", "illumination.klux=true"], "illumination.klux", "a number"),

@@ -116,4 +116,3 @@ def test_a_stage_without_its_protocols_members_fails_when_built(monkeypatch: pyt
     built = build_stages(plain_config(_cfg(["sfs=lax_friedrichs", "itof=cw4", "fusion=itof", "surface=poisson"])))
     assert set(built) == set(PROTOCOLS)
     assert protocol_members(PROTOCOLS["source"]) == ["needs_scene", "acquire"]
-
