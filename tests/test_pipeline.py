@@ -8,9 +8,10 @@ from hydra import compose, initialize_config_module
 
 from conftest import NOISE_FREE
 from nirspi_pipe.patterns.hadamard import fwht2
+from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.pipeline import run_pipeline
 from nirspi_pipe.scene.objects import ImageTarget, Sphere
-from nirspi_pipe.sources.simulator import Simulator, split_measure
+from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
 
 
@@ -86,3 +87,32 @@ def test_simulator_rejects_mismatched_scene() -> None:
     scene = Sphere().render(Camera(resolution=16))
     with pytest.raises(NirspiError):
         Simulator().acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+
+
+class _SolverWithoutSolve:
+    """A solver stage that lacks the one method the pipeline calls (test only)."""
+
+    def reconstruct(self, acquisition: object) -> None: ...
+
+
+def test_a_stage_without_its_protocols_members_fails_when_built(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every stage is checked against its group's protocol (nirspi_pipe.stages.PROTOCOLS) when
+    it is built: one line naming the group's target and the missing member, before any stage runs."""
+    from nirspi_pipe import targets
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.instantiate import plain_config
+    from nirspi_pipe.pipeline import build_stages
+    from nirspi_pipe.stages import PROTOCOLS, protocol_members
+
+    target = f"{__name__}._SolverWithoutSolve"
+    monkeypatch.setattr(targets, "PROJECT_TARGETS", targets.PROJECT_TARGETS | {target})
+    cfg = {"solver": {"_target_": target}}
+    with pytest.raises(ConfigError) as err:
+        build_stages(cfg)
+    assert str(err.value).count("\n") == 0
+    assert str(err.value).startswith(f"solver._target_='{target}' is not allowed")
+    assert str(err.value).endswith("it lacks solve")
+    # every shipped stage of the default run and the 3D chain has its protocol's members
+    built = build_stages(plain_config(_cfg(["sfs=lax_friedrichs", "itof=cw4", "fusion=itof", "surface=poisson"])))
+    assert set(built) == set(PROTOCOLS)
+    assert protocol_members(PROTOCOLS["source"]) == ["needs_scene", "acquire"]

@@ -8,27 +8,40 @@ Hydra's: for every shipped experiment, jobs that hypothesis draws from its full 
 without extra command-line overrides, and its first and last job, compared with Hydra's public
 ``hydra.compose`` as resolved containers (``hydra`` node excluded, types included), with the
 config-group choices and task overrides. ``nirspi-bench compose --check-all`` compares every job of
-every grid (docs/architecture.md gives the count).
+every grid (docs/architecture.md gives the count; the benchmarks run it).
+
+The jobs drawn change every day: hypothesis is seeded with the date (``YYYYMMDD``, UTC), not
+derandomised as the rest of the suite, so each CI run tests other jobs. The seed is in every
+failure message; ``NIRSPI_EQUIVALENCE_SEED=<seed> pytest tests/test_sweeper_equivalence.py``
+replays a run.
 """
 
 from __future__ import annotations
 
+import datetime as _dt
+import os
 import re
 from typing import Any
 
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import HealthCheck, Phase, given, seed, settings
 from hypothesis import strategies as st
 
 from nirspi_pipe.benchmarks.compose import difference, experiments, fast_job, hydra_job, hydra_session, sweeper_for
 
 EXPERIMENTS = experiments()
 
+#: Today's seed (UTC date as YYYYMMDD), or the one to replay.
+SEED = int(os.environ.get("NIRSPI_EQUIVALENCE_SEED") or _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%d"))
+REPLAY = f"(hypothesis seed {SEED}: replay with NIRSPI_EQUIVALENCE_SEED={SEED})"
+
 #: Few examples per test (Hydra composes each drawn job, ~0.1 s, and the sweeper each new set of
 #: structural overrides), no shrinking (minutes at that cost; the failing example is printed as
 #: drawn): the whole file stays well under a minute on 2 cores.
 EQUIVALENCE = settings(
     max_examples=2,
+    derandomize=False,  # seeded with the date instead (module docstring)
+    database=None,
     deadline=None,
     phases=[Phase.explicit, Phase.reuse, Phase.generate],
     suppress_health_check=[HealthCheck.too_slow],
@@ -59,7 +72,7 @@ class Sweeps:
         sweeper, grid, bases = self.of(name)
         hydra = hydra_job(job)
         found = difference(fast_job(sweeper, job, bases), hydra)
-        assert found is None, f"+experiment={name}: job {' '.join(job)}: {found}"
+        assert found is None, f"+experiment={name}: job {' '.join(job)}: {found} {REPLAY}"
         if job == grid[0] and not isinstance(hydra, Exception):
             self._first[name] = hydra.config
 
@@ -83,6 +96,7 @@ def test_first_and_last_job_compose_as_hydra_composes_them(sweeps: Sweeps, name:
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
+@seed(SEED)
 @EQUIVALENCE
 @given(data=st.data())
 def test_any_job_of_the_grid_composes_as_hydra_composes_it(sweeps: Sweeps, name: str, data: st.DataObject) -> None:
@@ -160,6 +174,7 @@ def _command_line(draw: st.DrawFn, grid: list[list[str]], config: dict[str, Any]
     return out
 
 
+@seed(SEED)
 @settings(EQUIVALENCE, max_examples=12)
 @given(data=st.data())
 def test_jobs_with_command_line_overrides_compose_as_hydra_composes_them(sweeps: Sweeps, data: st.DataObject) -> None:
@@ -176,7 +191,7 @@ def test_jobs_with_command_line_overrides_compose_as_hydra_composes_them(sweeps:
         return
     job = jobs[data.draw(st.integers(0, len(jobs) - 1), label="job index")]
     found = difference(fast_job(sweeper, job, {}), hydra_job(job))
-    assert found is None, f"nirspi-run -m {' '.join(arguments)}: job {' '.join(job)}: {found}"
+    assert found is None, f"nirspi-run -m {' '.join(arguments)}: job {' '.join(job)}: {found} {REPLAY}"
 
 
 # -- regressions: cases the comparison found --------------------------------------------------------

@@ -405,9 +405,20 @@ class FsrcnnCase:
 
     weights: Any  # nirspi_pipe.upscale.fsrcnn.FsrcnnWeights
     image: np.ndarray
+    #: ``trained-x…`` fixtures: the torch network of ``nirspi-train-fsrcnn`` (``upscale.train``)
+    #: that ``weights`` were exported from; the torch back end runs it, so its export is checked too.
+    module: Any = None
 
 
-_FSRCNN_FIXTURES = ("shipped-x2", "shipped-x3", "shipped-x4", "random-x3-plain")
+_FSRCNN_FIXTURES = (
+    "shipped-x2",
+    "shipped-x3",
+    "shipped-x4",
+    "random-x3-plain",
+    "trained-x2",
+    "trained-x3",
+    "trained-x4",
+)
 
 
 def _fsrcnn_fixture(name: str) -> FsrcnnCase:
@@ -420,6 +431,14 @@ def _fsrcnn_fixture(name: str) -> FsrcnnCase:
     image = np.clip(0.5 + 0.3 * np.sin(6 * xx + 3 * yy) + 0.05 * rng.standard_normal((9, 11)), 0, 1)
     if kind == "shipped":
         return FsrcnnCase(load_weights(scale), image)
+    if kind == "trained":  # a fresh network as nirspi-train-fsrcnn builds it, exported (needs torch)
+        import torch
+
+        from nirspi_pipe.upscale.train import _build_net, _to_weights
+
+        torch.manual_seed(scale)
+        net = _build_net(torch, scale, 6, 3, 2)
+        return FsrcnnCase(_to_weights(net, scale, residual=False, border=6, meta={}), image, net)
     d, s = 6, 3  # (d, s, m) = (6, 3, 2), weights of order one so that rounding shows
     shapes = [(d, 1, 5), (s, d, 1), (s, s, 3), (s, s, 3), (d, s, 1)]
     layers = tuple(
@@ -441,11 +460,24 @@ def _fsrcnn_numpy(case: FsrcnnCase) -> np.ndarray:
 
 
 def _fsrcnn_torch(case: FsrcnnCase) -> np.ndarray:
-    """The network as ``nirspi-train-fsrcnn`` runs it: torch's float32 layers on the mirrored image,
-    cropped, plus the bicubic image for residual weights (upscale/train.py's own check), on the CPU."""
+    """The network as ``nirspi-train-fsrcnn`` runs it: torch's float32 layers on the mirrored image
+    (the training network itself for a ``trained`` fixture), cropped, plus the bicubic image for
+    residual weights (upscale/train.py's own check), on the CPU."""
     from nirspi_pipe.upscale.fsrcnn import fsrcnn_forward_torch
 
-    return fsrcnn_forward_torch(case.image, case.weights, "cpu")
+    if case.module is None:
+        return fsrcnn_forward_torch(case.image, case.weights, "cpu")
+    import torch
+
+    from nirspi_pipe.upscale.bicubic import bicubic
+
+    w, s, pad = case.weights, case.weights.scale, case.weights.border
+    x = torch.from_numpy(np.pad(case.image, pad, mode="symmetric").astype(np.float32))[None, None]
+    with torch.no_grad():
+        y = case.module(x)
+    h, wd = case.image.shape
+    out = y[0, 0].numpy().astype(np.float64)[pad * s : pad * s + h * s, pad * s : pad * s + wd * s]
+    return out + bicubic(case.image, s) if w.residual else out
 
 
 def _fsrcnn_torch_cuda(case: FsrcnnCase) -> np.ndarray:
@@ -490,7 +522,8 @@ FSRCNN = Family(
         "shape": Tolerance(0, "both crop to (h·scale, w·scale): the same output size"),
         "max_abs": Tolerance(
             1e-5,
-            "torch runs in float32, numpy in float64. The float32 rounding it stands for, measured by "
+            "torch runs in float32, numpy in float64; the cases include the trained-x2/x3/x4 fixtures "
+            "(the training network against its exported weights). The float32 rounding it stands for, measured by "
             "running fsrcnn_forward's layers in float32 with numpy on these 4 fixtures: max |dy| = 1.6e-7 "
             "(shipped weights), 1.5e-6 (random net); torch 2.11 on an H200 with TF32 off: 1.5e-6 (with "
             "TF32 on: 1.3e-3, over the bound, hence upscale.tf32 false by default)",

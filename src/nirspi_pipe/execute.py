@@ -11,28 +11,32 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import json
 import time
 import traceback
 from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from nirspi_pipe import safeio  # noqa: F401 - the records' writers import it on first use: loaded before a fork
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.figure import write_summary_figure
 from nirspi_pipe.finite import drop_nonfinite
 from nirspi_pipe.instantiate import plain_config
+from nirspi_pipe.mesh.outputs import write_mesh_outputs
 from nirspi_pipe.pipeline import RunOutput, effective_seed, run_pipeline
 from nirspi_pipe.records import (
     OutputError,
     atomic_write,
     drop_links,
     new_record,
+    provenance,
     refuse_link,
     write_arrays,
     write_record,
 )
-
-if TYPE_CHECKING:
-    from nirspi_pipe.sources.recorded import ScanIndices
+from nirspi_pipe.stages import ScanIndices, WarmsUp
+from nirspi_pipe.targets import allowed_targets, locate
 
 __all__ = ["execute_job", "one_line", "warm_up"]
 
@@ -130,8 +134,7 @@ def _write_products(cfg: Mapping[str, Any], out_dir: Path, output: RunOutput) ->
         images if out_cfg.get("images", True) else {},
     )
     if p.mesh is not None:
-        from nirspi_pipe.mesh.metrics3d import run_depth_truth
-        from nirspi_pipe.mesh.outputs import write_mesh_outputs
+        from nirspi_pipe.mesh.metrics3d import run_depth_truth  # deferred: loads the 3D metrics only for 3D runs
 
         # mesh.ply, and mesh.png (mesh beside the truth on the grid depth is scored on) unless
         # output.images is false
@@ -141,8 +144,6 @@ def _write_products(cfg: Mapping[str, Any], out_dir: Path, output: RunOutput) ->
 
 def _write_summary_png(out_dir: Path, output: RunOutput, record: dict[str, Any]) -> None:
     """summary.png (nirspi_pipe.figure); a failing figure is a warning in the record, not a failed run."""
-    from nirspi_pipe.figure import write_summary_figure
-
     try:
         write_summary_figure(out_dir, output.products, record, mesh_png=out_dir / "mesh.png")
     except Exception as exc:  # noqa: BLE001 - a picture must not fail the run
@@ -176,11 +177,6 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
     (:class:`nirspi_pipe.stages.WarmsUp`), once per distinct ``(target, params)``. Returns
     what failed, as ``target: error`` lines (the job that needs it reports it in its record);
     a target outside the allow-list is not imported (its job refuses it)."""
-    import json
-
-    from nirspi_pipe import safeio  # noqa: F401 - imported by the records' writers on first use
-    from nirspi_pipe.records import provenance
-    from nirspi_pipe.targets import allowed_targets, locate
 
     provenance()  # the installation's identity, read once
     allowed = allowed_targets()
@@ -197,9 +193,8 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
                 if cls is None:
                     failed.append(f"{target}: cannot be imported")
                     continue
-                hook = getattr(cls, "warm_up", None)
-                if callable(hook):
-                    hook(params)
+                if isinstance(cls, WarmsUp):
+                    cls.warm_up(params)
             except Exception as exc:  # noqa: BLE001 - the job reports it
                 failed.append(f"{target}: {type(exc).__name__}: {exc}")
     return failed

@@ -12,20 +12,20 @@ import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
-from nirspi_pipe.stages import Products
+from nirspi_pipe.records import config_hash
+from nirspi_pipe.scene.render import forget_renders
+from nirspi_pipe.stages import Aimable, Itof, Products, ReadsScanOptions, ScanIndices, check_stage
 from nirspi_pipe.types import Camera
-
-if TYPE_CHECKING:
-    from nirspi_pipe.sources.recorded import ScanIndices
 
 __all__ = [
     "EFFECT_GROUPS",
+    "MODEL_OF_NOTHING",
     "STAGE_GROUPS",
     "RunOutput",
     "build",
@@ -48,6 +48,17 @@ STAGE_GROUPS = (
     "metrics",
 )
 
+#: What to write instead of ``group=null`` for the groups of the simulated medium and detector:
+#: they are models the source is built with, not stages of the pipeline, so their "nothing" is a
+#: model of nothing (clear air, no background light, a noise-free detector), one spelling each;
+#: ``null`` (and ``off``, which ``nirspi-run`` rewrites it to) is refused with this hint.
+#: (Stages switch off with ``null`` only: docs/architecture.md, "Switching a stage off".)
+MODEL_OF_NOTHING = {
+    "fog": "fog=none (clear air)",
+    "illumination": "illumination=none (no background light)",
+    "detector": "detector=ideal (noise-free)",
+}
+
 #: Independent random streams, by stage. Append only: the position fixes the stream.
 _RNG_STREAMS = ("source", "itof")
 
@@ -67,12 +78,14 @@ class RunOutput:
 
 
 def build_stages(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped)."""
+    """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped), each
+    checked against its group's protocol (:func:`nirspi_pipe.stages.check_stage`)."""
     stages: dict[str, Any] = {}
     for group in STAGE_GROUPS:
         node = cfg.get(group)
         if node is not None:
             stages[group] = build(node, group)
+            check_stage(group, stages[group], node.get("_target_") if isinstance(node, Mapping) else None)
     return stages
 
 
@@ -97,9 +110,9 @@ class _Clock:
                 raise exc.under(name) from None
 
 
-def _measure_itof(stage: Any, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
-    """Aim steerable iToF spots with the 2D image when the stage can (``aimed``), then measure."""
-    if hasattr(stage, "aimed"):
+def _measure_itof(stage: Itof, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
+    """Aim steerable iToF spots with the 2D image when the stage can (:class:`Aimable`), then measure."""
+    if isinstance(stage, Aimable):
         stage = stage.aimed(image, grid)
     return stage.measure(truth, acq, rng)
 
@@ -133,8 +146,6 @@ def _stage_info(products: Products) -> dict[str, dict[str, Any]]:
 def effective_seed(cfg: Mapping[str, Any]) -> int:
     """The run's seed: ``cfg.seed``, or when it is null a seed derived from the hash of the
     resolved config (so every job of a sweep gets its own, reproducible noise)."""
-    from nirspi_pipe.records import config_hash
-
     seed = cfg.get("seed", 0)
     if seed is None:
         return int(config_hash(plain_config(cfg))[:8], 16)
@@ -154,13 +165,14 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
     Raises :class:`ConfigError` / :class:`NirspiError` for bad configuration or input; other
     exceptions are bugs or numerical failures and propagate unchanged.
     """
-    from nirspi_pipe.scene.render import forget_renders
-
     forget_renders(files_only=True)  # a scene read from a file is rendered afresh by each run
     seed = effective_seed(cfg)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
+    for group, nothing in MODEL_OF_NOTHING.items():
+        if group in cfg and cfg[group] is None:
+            raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
     clock = _Clock()
     with _recorded_warnings() as caught:
         with clock.stage("build"):
@@ -170,10 +182,8 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
             if required not in stages:
                 raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
         source, scan, solver = stages["source"], stages["scan"], stages["solver"]
-        if getattr(source, "needs_scan_indices", False) and getattr(source, "scan_indices", None) is None:
-            from dataclasses import replace
-
-            source = replace(source, scan_indices=scan_indices)  # the caller resolves scan options
+        if isinstance(source, ReadsScanOptions) and source.scan_indices is None:
+            source = source.with_scan_indices(scan_indices)  # the caller resolves scan options
         n = camera.resolution
 
         truth = None

@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import importlib.util
 import io
 import json
 import math
@@ -38,7 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe import __version__
 from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.safeio import sanitize_text
 
 __all__ = [
     "RECORD_NAME",
@@ -121,7 +124,6 @@ def refuse_link(folder: Path, what: str = "output folder") -> None:
             target = os.readlink(folder)
         except OSError:
             target = "?"
-        from nirspi_pipe.safeio import sanitize_text
 
         raise OutputError(
             f"{what} {sanitize_text(folder, 300)} is a symbolic link (to {sanitize_text(target, 300)}); refused: "
@@ -191,7 +193,7 @@ class JobLock:
 
     def acquire(self, wait: bool = True, poll_s: float = 0.2) -> bool:
         try:
-            import fcntl
+            import fcntl  # POSIX only: this branch does not run on Windows
         except ImportError:  # pragma: no cover - Windows
             return True
         refuse_link(self.path.parent, "job folder")
@@ -378,7 +380,6 @@ def _checkout_of(pkg: Path) -> Path | None:
 def _source_roots() -> dict[str, Path]:
     """The folders of the package and of its two data packages (mapped from the repository's
     ``conf/`` and ``experiments/`` in an editable install, nested in a wheel)."""
-    import importlib.util
 
     roots = {"nirspi_pipe": package_root()}
     for name in ("nirspi_pipe.conf", "nirspi_pipe.experiments"):
@@ -418,7 +419,6 @@ def code_identity() -> dict[str, Any]:
     (git runs with ``-C <that checkout>``, never in the caller's working directory); otherwise
     None. ``source_hash`` always (:func:`source_hash`). ``code`` is the short label reports use:
     ``git:<sha12>[+dirty]`` or ``src:<source_hash>``. Cached per process."""
-    from nirspi_pipe import __version__
 
     pkg = package_root()
     sha = dirty = None
@@ -435,7 +435,7 @@ def code_identity() -> dict[str, Any]:
 
 def _query_opencl() -> tuple[str, ...]:
     try:
-        import pyopencl as cl
+        import pyopencl as cl  # optional: an OpenCL platform, when installed
 
         return tuple(f"{p.name} / {d.name}" for p in cl.get_platforms() for d in p.get_devices())
     except Exception as exc:  # noqa: BLE001 - provenance must never fail a run
@@ -560,7 +560,7 @@ def write_arrays(
         np.savez_compressed(buf, **present)  # type: ignore[arg-type]  # numpy stubs type **kwds as allow_pickle
         atomic_write(Path(folder) / "arrays.npz", buf.getvalue())
     if images:
-        from matplotlib.image import imsave
+        from matplotlib.image import imsave  # start-up: matplotlib takes ~1 s to import; only the PNGs need it
 
         for name, img in images.items():
             if img is None:

@@ -24,6 +24,14 @@ surface    ``reconstruct(cloud)``                          :class:`Mesh`
 metrics    ``compute(products)``                           ``{name: float}``
 =========  ==============================================  ==========================
 
+The runner checks each stage it builds against its group's protocol (:func:`check_stage`: every
+method and attribute the protocol declares, by name), so a stage that lacks a member the
+pipeline uses fails when it is built, with one line naming the group, its ``_target_`` and the
+missing members. Two optional protocols add what only some stages do: a source that replays a
+recording naming its scan option (:class:`ReadsScanOptions`: the runner hands it the config
+layer's resolver) and an iToF stage whose spots are aimed with the 2D image (:class:`Aimable`).
+The runner reads no member that a protocol does not declare.
+
 Every stage class (and every class built inside a stage's node, such as a fog model) may also
 define :class:`WarmsUp`'s class method ``warm_up(params)``: what its first use in a process
 would otherwise pay for (imports, compiled kernels loaded from their disk cache). The sweep
@@ -33,12 +41,13 @@ before it forks the jobs, for every ``_target_`` the sweep's configs name; it na
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.types import (
     Acquisition,
     Camera,
@@ -63,7 +72,16 @@ __all__ = [
     "Metrics",
     "Products",
     "WarmsUp",
+    "ReadsScanOptions",
+    "Aimable",
+    "ScanIndices",
+    "PROTOCOLS",
+    "check_stage",
 ]
+
+#: Resolves the scan option a recording names: ``(order, ratio, n) -> flat pattern indices``
+#: (the config layer's :func:`nirspi_pipe.app.configs.scan_indices`).
+ScanIndices = Callable[[str, float, int], np.ndarray]
 
 
 @runtime_checkable
@@ -102,6 +120,16 @@ class Source(Protocol):
     needs_scene: bool
 
     def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition: ...
+
+
+@runtime_checkable
+class ReadsScanOptions(Protocol):
+    """A source whose input names its scan option (a recording's pattern spec ``order``): the
+    runner hands it the config layer's resolver when it has none (``scan_indices`` is None)."""
+
+    scan_indices: ScanIndices | None
+
+    def with_scan_indices(self, resolver: ScanIndices | None) -> ReadsScanOptions: ...
 
 
 @runtime_checkable
@@ -148,6 +176,14 @@ class Itof(Protocol):
 
 
 @runtime_checkable
+class Aimable(Protocol):
+    """An iToF stage whose spots are steered with the 2D image: the runner measures with
+    ``aimed(image, camera)`` (``camera``: the image's grid) instead of the stage itself."""
+
+    def aimed(self, image: Image2D, camera: Camera) -> Itof: ...
+
+
+@runtime_checkable
 class Fusion(Protocol):
     """Fuses SFS depth with the iToF points into a metric point cloud."""
 
@@ -180,3 +216,41 @@ class Metrics(Protocol):
     """Scores a run's products against the ground truth."""
 
     def compute(self, products: Products) -> dict[str, float]: ...
+
+
+#: The protocol each stage group's ``_target_`` must satisfy.
+PROTOCOLS: dict[str, type] = {
+    "scene": SceneModel,
+    "source": Source,
+    "scan": ScanOrder,
+    "solver": Solver,
+    "upscale": Upscaler,
+    "sfs": ShapeFromShading,
+    "itof": Itof,
+    "fusion": Fusion,
+    "surface": Surface,
+    "metrics": Metrics,
+}
+
+
+def protocol_members(protocol: type) -> list[str]:
+    """The methods and attributes ``protocol`` declares (in declaration order)."""
+    methods = [k for k, v in vars(protocol).items() if callable(v) and not k.startswith("_")]
+    return [*vars(protocol).get("__annotations__", {}), *methods]
+
+
+def check_stage(group: str, stage: Any, target: Any = None) -> None:
+    """Raise :class:`ConfigError` (one line: ``group._target_``, the missing members) when the
+    stage built for ``group`` lacks a member of its protocol (:data:`PROTOCOLS`)."""
+    protocol = PROTOCOLS.get(group)
+    if protocol is None:
+        return
+    missing = [m for m in protocol_members(protocol) if not hasattr(stage, m)]
+    if missing:
+        need = ", ".join(protocol_members(protocol))
+        raise ConfigError(
+            f"{group}._target_",
+            target if target is not None else type(stage).__qualname__,
+            f"a {group} stage with {need} (nirspi_pipe.stages.{protocol.__name__}); it lacks {', '.join(missing)}",
+            absolute=True,
+        )

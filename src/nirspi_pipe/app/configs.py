@@ -10,9 +10,9 @@ field of the target with its default (:func:`schema_defaults`), served to Hydra 
 source :class:`SchemaSource` (public plugin API) and generated when first composed.
 The option file then keeps only its ``_target_`` and the values that differ from the target's
 defaults (a preset); ``tests/test_config_schema.py`` checks that no option repeats a default.
-Types come from the same annotations (:func:`nirspi_pipe.pipeline.check_types`): ``nirspi-run``
+Types come from the same annotations (:func:`nirspi_pipe.instantiate.check_types`): ``nirspi-run``
 checks them before any job starts (:mod:`nirspi_pipe.app.validate`), the runner before it builds a
-stage, and a wrong type reads like a wrong value. docs/architecture.md, "Where defaults and
+stage; a wrong type is named by its annotation (``a number``). docs/architecture.md, "Where defaults and
 types live", says why the schemas are plain nodes rather than typed structured configs.
 
 Group and option listings go through ``hydra.initialize_config_module`` and the public

@@ -21,6 +21,7 @@ Where ``os.fork`` does not exist (Windows) the job runs in-process, without cras
 from __future__ import annotations
 
 import datetime as _dt
+import functools
 import json
 import logging
 import os
@@ -31,6 +32,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from nirspi_pipe import execute
+from nirspi_pipe.app.configs import scan_indices
 from nirspi_pipe.records import (
     RECORD_NAME,
     JobLock,
@@ -58,24 +61,10 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 
-def execute_job(
-    cfg: Any,
-    out_dir: Path,
-    choices: dict[str, str],
-    overrides: list[str],
-    job_num: int | None = None,
-    attempt: int | None = None,
-    on_output: Any = None,
-) -> dict[str, Any]:
-    """The runner's :func:`nirspi_pipe.execute.execute_job` for a composed config (an OmegaConf
-    node or its resolved plain dict), with the config layer's resolver of the scan option a
-    recording names (:func:`nirspi_pipe.app.configs.scan_indices`). Every front end (the command
-    line, the launchers, the Python API) runs a job through this function."""
-    from nirspi_pipe.app.configs import scan_indices
-    from nirspi_pipe.execute import execute_job as run_job
-    from nirspi_pipe.instantiate import plain_config
-
-    return run_job(plain_config(cfg), out_dir, choices, overrides, job_num, attempt, on_output, scan_indices)
+#: The runner's :func:`nirspi_pipe.execute.execute_job` (the only one) with the config layer's
+#: resolver of the scan option a recording names bound (:func:`nirspi_pipe.app.configs.scan_indices`):
+#: what every front end (the command line, the launchers, the Python API) runs a job with.
+execute_job = functools.partial(execute.execute_job, scan_indices=scan_indices)
 
 
 ATTEMPTS_NAME = "attempts.json"

@@ -620,8 +620,9 @@ class NirspiSweeperBase(Sweeper):
             raise SystemExit(1) from None
 
     def _sweep(self, sweep_dir: Path, arguments: list[str]) -> Any:
-        from nirspi_pipe.app.jobs import attempts_with_this_code
-
+        """Expand the grid, key every job by its composed config, write ``sweep.json`` with each
+        job's fate (run, skipped, duplicate, uncomposable, refused, given up), say it in one line,
+        and launch what is to run."""
         atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
         try:
             grid = self._expand(arguments)
@@ -632,7 +633,6 @@ class NirspiSweeperBase(Sweeper):
         # a launcher that can run composed jobs (the nirspi launcher, nirspi_pipe.app.launcher) gets them
         run_composed = getattr(self.launcher, "run_composed", None)
         prepared = self.prepare(grid, workers=getattr(self.launcher, "workers", None) if run_composed else None)
-        keys = [key for key, _ in prepared]
         composed: dict[str, ComposedJob] = {}  # the first job of each key runs (as it is launched below)
         for key, composed_job in prepared:
             if isinstance(key, str) and composed_job is not None:
@@ -641,6 +641,45 @@ class NirspiSweeperBase(Sweeper):
         log.info("keyed %d jobs in %.1f s", len(grid), keying_s)
 
         started = time.time()
+        jobs, to_launch, n_bad, n_links = self._plan(sweep_dir, grid, [key for key, _ in prepared])
+        info = {
+            "started": started,
+            "experiments": self.experiments,
+            "total": len(jobs),
+            "to_run": len(to_launch),
+            "keying_s": round(keying_s, 3),
+            "max_attempts": self.max_attempts,
+            "jobs": jobs,
+        }
+        sweep_file = sweep_dir / SWEEP_FILE
+        atomic_write(sweep_file, json.dumps(info, indent=1))
+        self._announce(sweep_dir, jobs, len(to_launch), n_bad, n_links, keying_s)
+        returns: list[Sequence[Any]] = []
+        if not to_launch:
+            return returns
+        if run_composed is not None:  # it runs the composed jobs and reports progress itself
+            returns.append(
+                run_composed([(key, ov, composed[key]) for key, ov in to_launch], sweep_dir, sweep_file, self.resume)
+            )
+            return returns
+        watcher = ProgressWatcher(sweep_dir)
+        watcher.start()
+        try:
+            self._launch_with_retries(sweep_dir, sweep_file, to_launch, returns)
+        finally:
+            watcher.stop()
+        return returns
+
+    def _plan(
+        self, sweep_dir: Path, grid: list[list[str]], keys: list[str | Exception]
+    ) -> tuple[list[dict[str, Any]], list[tuple[str, list[str]]], int, int]:
+        """Each job's entry in ``sweep.json``, the ``(key, overrides)`` to launch, and the numbers of
+        distinct jobs that do not compose and of job folders refused. A job that does not compose
+        gets a failed record; a job folder that is a link is refused; a job whose ``ok`` record
+        exists is skipped with ``resume``; a repeated config runs once; a job that used up
+        ``max_attempts`` is not retried."""
+        from nirspi_pipe.app.jobs import attempts_with_this_code
+
         jobs: list[dict[str, Any]] = []
         to_launch: list[tuple[str, list[str]]] = []
         seen: set[str] = set()
@@ -682,24 +721,20 @@ class NirspiSweeperBase(Sweeper):
                     to_launch.append((key, overrides))
             seen.add(job["key"])
             jobs.append(job)
+        return jobs, to_launch, n_bad, n_links
+
+    def _announce(
+        self, sweep_dir: Path, jobs: list[dict[str, Any]], n_run: int, n_bad: int, n_links: int, keying_s: float
+    ) -> None:
+        """The sweep's one line: how many jobs run, are skipped, repeat, fail to compose, are
+        refused or given up."""
         n_dup = sum(bool(j.get("duplicate")) for j in jobs)
         if n_dup:
             log.warning("%d jobs of this sweep repeat another job's config; each config runs once", n_dup)
         n_gave_up = sum(bool(j.get("gave_up")) for j in jobs)
-        info = {
-            "started": started,
-            "experiments": self.experiments,
-            "total": len(jobs),
-            "to_run": len(to_launch),
-            "keying_s": round(keying_s, 3),
-            "max_attempts": self.max_attempts,
-            "jobs": jobs,
-        }
-        sweep_file = sweep_dir / SWEEP_FILE
-        atomic_write(sweep_file, json.dumps(info, indent=1))
         n_skip = sum(bool(j["skipped"]) and not j.get("duplicate") for j in jobs)
         print(
-            f"nirspi-run: sweep of {len(jobs)} jobs in {sweep_dir}: {len(to_launch)} to run"
+            f"nirspi-run: sweep of {len(jobs)} jobs in {sweep_dir}: {n_run} to run"
             + (f", {n_skip} skipped (already complete)" if n_skip else "")
             + (f", {n_dup} identical to another job (run once)" if n_dup else "")
             + (f", {n_bad} do not compose (failed)" if n_bad else "")
@@ -712,38 +747,27 @@ class NirspiSweeperBase(Sweeper):
             + f" [keyed in {keying_s:.1f} s]",
             flush=True,
         )
-        returns: list[Sequence[Any]] = []
-        if not to_launch:
-            return returns
-        if run_composed is not None:  # it runs the composed jobs and reports progress itself
-            returns.append(
-                run_composed([(key, ov, composed[key]) for key, ov in to_launch], sweep_dir, sweep_file, self.resume)
-            )
-            return returns
-        watcher = ProgressWatcher(sweep_dir)
-        watcher.start()
-        try:
-            pending = to_launch
-            for round_ in range(self.max_attempts):
-                if not self._launch(pending, returns):
-                    break
-                # the launcher failed (e.g. a joblib worker killed from outside): launch again the
-                # jobs that wrote no record in this sweep and may still be attempted, unless this
-                # round wrote no record at all (the launcher could not start: it would fail again)
-                left = [
-                    (key, ov) for key, ov in pending if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)
-                ]
-                if len(left) == len(pending):
-                    break
-                pending = [
-                    (key, ov) for key, ov in left if attempts_with_this_code(sweep_dir / key) < self.max_attempts
-                ]
-                if not pending or round_ + 1 == self.max_attempts:
-                    break
-                print(f"nirspi-run: launching the {len(pending)} jobs without a record again", flush=True)
-        finally:
-            watcher.stop()
-        return returns
+
+    def _launch_with_retries(
+        self, sweep_dir: Path, sweep_file: Path, to_launch: list[tuple[str, list[str]]], returns: list[Sequence[Any]]
+    ) -> None:
+        """Launch the jobs; when the launcher fails (e.g. a joblib worker killed from outside),
+        launch again the jobs that wrote no record in this sweep and may still be attempted,
+        unless that round wrote no record at all (the launcher could not start: it would fail
+        again), at most ``max_attempts`` rounds."""
+        from nirspi_pipe.app.jobs import attempts_with_this_code
+
+        pending = to_launch
+        for round_ in range(self.max_attempts):
+            if not self._launch(pending, returns):
+                break
+            left = [(key, ov) for key, ov in pending if not _written_since(sweep_dir / key / RECORD_NAME, sweep_file)]
+            if len(left) == len(pending):
+                break
+            pending = [(key, ov) for key, ov in left if attempts_with_this_code(sweep_dir / key) < self.max_attempts]
+            if not pending or round_ + 1 == self.max_attempts:
+                break
+            print(f"nirspi-run: launching the {len(pending)} jobs without a record again", flush=True)
 
     def _launch(self, jobs: list[tuple[str, list[str]]], returns: list[Sequence[Any]]) -> bool:
         """Launch ``jobs`` in batches; True when the launcher raised (reported in one line)."""

@@ -27,7 +27,9 @@ import argparse
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from importlib import resources
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, cast
 
 __all__ = ["difference", "experiments", "fast_job", "hydra_job", "hydra_session", "main", "sweeper_for", "typed"]
@@ -35,7 +37,6 @@ __all__ = ["difference", "experiments", "fast_job", "hydra_job", "hydra_session"
 
 def experiments() -> list[str]:
     """The shipped experiments (``experiments/experiment/*.yaml``), sorted."""
-    from importlib import resources
 
     folder = Path(str(resources.files("nirspi_pipe.experiments"))) / "experiment"
     return sorted(p.stem for p in folder.glob("*.yaml"))
@@ -44,8 +45,8 @@ def experiments() -> list[str]:
 @contextmanager
 def hydra_session() -> Iterator[Any]:
     """Hydra initialised on ``nirspi_pipe.conf`` (public API); yields its config loader."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
+    from hydra import initialize_config_module  # start-up: loads hydra and omegaconf (501 ms here)
+    from hydra.core.global_hydra import GlobalHydra  # start-up: loads hydra and omegaconf (522 ms here)
 
     with initialize_config_module(config_module="nirspi_pipe.conf", version_base="1.3"):
         yield GlobalHydra.instance().config_loader()
@@ -54,12 +55,11 @@ def hydra_session() -> Iterator[Any]:
 def sweeper_for(loader: Any, experiment: str, arguments: Sequence[str] = ()) -> Any:
     """The nirspi sweeper of ``nirspi-run -m +experiment=EXPERIMENT ARGUMENTS``, set up for keying
     (its sweep config composed by Hydra, its ``hydra.sweeper`` settings, the config loader)."""
-    from types import SimpleNamespace
 
-    from hydra.types import RunMode
-    from omegaconf import OmegaConf
+    from hydra.types import RunMode  # start-up: loads hydra and omegaconf (495 ms here)
+    from omegaconf import OmegaConf  # start-up: loads omegaconf (227 ms here)
 
-    from nirspi_pipe.app.sweeper import NirspiSweeperBase
+    from nirspi_pipe.app.sweeper import NirspiSweeperBase  # start-up: loads hydra and omegaconf (656 ms here)
 
     cfg = loader.load_configuration("config", [f"+experiment={experiment}", *arguments], run_mode=RunMode.MULTIRUN)
     node = cast("dict[str, Any]", OmegaConf.to_container(cfg.hydra.sweeper, resolve=False))
@@ -75,10 +75,10 @@ def hydra_job(overrides: Sequence[str]) -> Any:
     (the config resolved by OmegaConf without the ``hydra`` node, the group choices without
     ``hydra/*``, ``hydra.overrides.task``), or the exception composing or resolving raised.
     Call it inside :func:`hydra_session`."""
-    from hydra import compose
-    from omegaconf import OmegaConf, open_dict, read_write
+    from hydra import compose  # start-up: loads hydra and omegaconf (501 ms here)
+    from omegaconf import OmegaConf, open_dict, read_write  # start-up: loads omegaconf (227 ms here)
 
-    from nirspi_pipe.app.sweeper import ComposedJob
+    from nirspi_pipe.app.sweeper import ComposedJob  # start-up: loads hydra and omegaconf (656 ms here)
 
     try:
         cfg = compose("config", overrides=list(overrides), return_hydra_config=True)

@@ -21,6 +21,9 @@ from skimage.restoration import denoise_tv_chambolle
 
 from nirspi_pipe.benchmarks import median_time_s
 from nirspi_pipe.patterns.orders import Zigzag
+from nirspi_pipe.physics.detector import IdealDetector, Photodiode
+from nirspi_pipe.physics.effects import forward_model
+from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.common import hadamard_operator
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
@@ -62,9 +65,6 @@ def main(argv: list[str]) -> int:
 
 
 def _auto(sizes: list[int], ratio: float, repeat: int) -> int:
-    from nirspi_pipe.physics.detector import IdealDetector, Photodiode
-    from nirspi_pipe.physics.effects import forward_model
-    from nirspi_pipe.physics.light import Background
     from nirspi_pipe.solvers.fwht import FWHTSolver
 
     cases = {

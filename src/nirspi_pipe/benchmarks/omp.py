@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from nirspi_pipe.patterns.hadamard import sylvester
 from nirspi_pipe.patterns.orders import Zigzag
@@ -34,7 +35,6 @@ REFERENCE_QUIET_128_S = 1.5
 
 def reference_omp(y: np.ndarray, n: int, indices: np.ndarray, k_max: int, tol: float = 1e-6) -> np.ndarray:
     """The pre-issue-#15 OMP (DCT basis, unnormalised selection): full-grid correlation, CGS2."""
-    from scipy.linalg import solve_triangular
 
     idx = np.asarray(indices, dtype=np.int64)
     rows, cols = idx // n, idx % n

@@ -2,7 +2,7 @@
 
 It renders a nirspi-pipe scene (any ``scene=`` option, plugins included), measures the
 requested Hadamard patterns in the split convention (noise-free readings from
-:func:`~nirspi_pipe.sources.simulator.split_measure`, plus a constant background on both halves
+:func:`~nirspi_pipe.physics.forward.split_measure`, plus a constant background on both halves
 and optional Gaussian detector noise) and streams them back frame by frame.
 
 It listens on 127.0.0.1 only, serves at most ``--connections`` acquisitions, and stops by
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import socket
 import sys
 import threading
@@ -38,8 +39,9 @@ from nirspi_pipe.device.protocol import (
     read_line,
     write_json_line,
 )
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.safeio import sanitize_text, short_repr
-from nirspi_pipe.sources.simulator import split_measure
 
 __all__ = ["FAULTS", "Emulator", "main"]
 
@@ -216,9 +218,7 @@ class Emulator:
 
 def _check_arguments(ns: argparse.Namespace) -> str | None:
     """The first argument out of range, as one line naming it and the allowed values, or None."""
-    import math
 
-    from nirspi_pipe.errors import ConfigError
     from nirspi_pipe.types import Camera
 
     if not 0 <= ns.port <= 65535:
@@ -245,8 +245,6 @@ def _check_arguments(ns: argparse.Namespace) -> str | None:
 def _cause_line(exc: BaseException) -> str:
     """The error's first line, and the first line of its cause when the error wraps one (Hydra's
     ``Error in call to target …:`` says the cause on the next line)."""
-
-    from nirspi_pipe.errors import ConfigError
 
     def first(e: BaseException) -> str:
         lines = str(e).strip().splitlines()

@@ -191,88 +191,138 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
     version = _scalar(arrays, "format_version", where, "iu")
     if version is not None and int(version) > FORMAT_VERSION:
         raise _fail("format_version", f"{int(version)} is newer than this reader ({FORMAT_VERSION})", where)
+    y = _measurements(arrays, where)
+    spec_given = [k for k in _SPEC_KEYS if k in arrays]
+    patterns = indices = None
+    split: str | None = None
+    if "patterns" in arrays:
+        if spec_given:
+            raise _fail(
+                "patterns",
+                f"give either 'patterns' or a pattern spec, not both (also found {', '.join(spec_given)})",
+                where,
+            )
+        patterns, n = _pattern_matrix(arrays["patterns"], y, where)
+    else:
+        n, split, indices = _pattern_spec(arrays, y, spec_given, where, indices_from_order)
+    optional = _optional_arrays(arrays, y, n, where)
+    gain = _scalar(arrays, "gain", where)
+    if gain is not None and gain <= 0:
+        raise _fail("gain", f"must be > 0, got {gain}", where)
+    fov = _scalar(arrays, "fov_deg", where)
+    if fov is not None and not 0 < fov < 170:
+        raise _fail("fov_deg", f"{fov} is not in (0, 170) degrees", where)
+    _check_magnitudes(y, 1.0 if gain is None else gain, n, optional, where)
+    meta = {k: sanitize_text(v, 100) for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
+    return Recording(
+        measurements=y,
+        n=n,
+        patterns=patterns,
+        indices=indices,
+        split=split,
+        gain=1.0 if gain is None else gain,
+        fov_deg=fov,
+        meta=meta,
+        **optional,
+    )
+
+
+def _measurements(arrays: dict[str, np.ndarray], where: str) -> np.ndarray:
+    """The detector readings: present, a 1-D finite float array, not empty."""
     if "measurements" not in arrays:
         raise _fail("measurements", "missing (one detector reading per displayed pattern)", where)
     y = _float_array(arrays["measurements"], "measurements", where, ndim=1)
     if y.size == 0:
         raise _fail("measurements", "is empty", where)
-    has_patterns = "patterns" in arrays
-    spec_given = [k for k in _SPEC_KEYS if k in arrays]
-    if has_patterns and spec_given:
+    return y
+
+
+def _pattern_matrix(patterns: np.ndarray, y: np.ndarray, where: str) -> tuple[np.ndarray, int]:
+    """An explicit ``(M, n²)`` pattern matrix, one row per reading, and its ``n``."""
+    if patterns.dtype.kind not in "fiub":
+        raise _fail("patterns", f"dtype {patterns.dtype} is not allowed (expected float, integer or bool)", where)
+    if patterns.ndim != 2:
+        raise _fail("patterns", f"expected a 2-D (M, N) matrix, got shape {patterns.shape}", where)
+    m, big_n = patterns.shape
+    if m != y.size:
+        raise _fail("patterns", f"has {m} rows but 'measurements' has {y.size} values (one row per reading)", where)
+    n = int(round(np.sqrt(big_n)))
+    if n * n != big_n or not is_power_of_two(n) or n < 2:
+        raise _fail("patterns", f"rows have {big_n} pixels; expected n² pixels with n a power of two ≥ 2", where)
+    # min and max are finite exactly when every value is (NaN propagates); no temporary.
+    if patterns.dtype.kind == "f" and not (np.isfinite(patterns.min()) and np.isfinite(patterns.max())):
+        bad = ~np.isfinite(patterns)
+        raise _fail("patterns", f"{int(bad.sum())} non-finite value(s) (NaN or Inf)", where)
+    return patterns, n
+
+
+def _pattern_spec(
+    arrays: dict[str, np.ndarray], y: np.ndarray, spec_given: list[str], where: str, indices_from_order: Any
+) -> tuple[int, str, np.ndarray]:
+    """A Hadamard pattern spec (basis, resolution, split, and indices or order): ``(n, split, indices)``,
+    with as many readings as the split needs."""
+    missing = [k for k in ("basis", "resolution", "split") if k not in arrays]
+    if missing and not spec_given:
         raise _fail(
             "patterns",
-            f"give either 'patterns' or a pattern spec, not both (also found {', '.join(spec_given)})",
+            "missing: give 'patterns' (M, N) or a pattern spec (basis, resolution, split, indices or order)",
             where,
         )
-    patterns = indices = None
-    split: str | None = None
-    if has_patterns:
-        patterns = arrays["patterns"]
-        if patterns.dtype.kind not in "fiub":
-            raise _fail("patterns", f"dtype {patterns.dtype} is not allowed (expected float, integer or bool)", where)
-        if patterns.ndim != 2:
-            raise _fail("patterns", f"expected a 2-D (M, N) matrix, got shape {patterns.shape}", where)
-        m, big_n = patterns.shape
-        if m != y.size:
-            raise _fail("patterns", f"has {m} rows but 'measurements' has {y.size} values (one row per reading)", where)
-        n = int(round(np.sqrt(big_n)))
-        if n * n != big_n or not is_power_of_two(n) or n < 2:
-            raise _fail("patterns", f"rows have {big_n} pixels; expected n² pixels with n a power of two ≥ 2", where)
-        # min and max are finite exactly when every value is (NaN propagates); no temporary.
-        if patterns.dtype.kind == "f" and not (np.isfinite(patterns.min()) and np.isfinite(patterns.max())):
-            bad = ~np.isfinite(patterns)
-            raise _fail("patterns", f"{int(bad.sum())} non-finite value(s) (NaN or Inf)", where)
+    if missing:
+        raise _fail(missing[0], "missing from the pattern spec (basis, resolution, split, indices or order)", where)
+    basis = _string(arrays, "basis", where)
+    if basis != "hadamard":
+        raise _fail("basis", f"{basis!r} is not supported; allowed: 'hadamard'", where)
+    n = int(_scalar(arrays, "resolution", where, "iu"))  # type: ignore[arg-type]
+    if not is_power_of_two(n) or not 2 <= n <= 4096:
+        raise _fail("resolution", f"{n} is not a power of two from 2 to 4096", where)
+    split = _string(arrays, "split", where)
+    if split not in SPLITS:
+        raise _fail("split", f"{split!r} is not allowed; allowed: {', '.join(SPLITS)}", where)
+    indices = _spec_indices(arrays, n, where, indices_from_order)
+    per = 1 if split == "differential" else 2
+    if y.size != per * indices.size:
+        raise _fail(
+            "measurements",
+            f"has {y.size} values; split={split!r} with {indices.size} patterns needs {per * indices.size}",
+            where,
+        )
+    return n, split, indices
+
+
+def _spec_indices(arrays: dict[str, np.ndarray], n: int, where: str, indices_from_order: Any) -> np.ndarray:
+    """The spec's pattern indices: explicit ``indices``, or the scan option ``order`` at ``ratio``
+    resolved by ``indices_from_order``; distinct, in ``[0, n²)``."""
+    if "indices" in arrays:
+        if "order" in arrays:
+            raise _fail("order", "give either 'indices' or 'order', not both", where)
+        idx = arrays["indices"]
+        if idx.dtype.kind not in "iu" or idx.ndim != 1:
+            raise _fail("indices", f"expected a 1-D integer array, got {idx.dtype} of shape {idx.shape}", where)
+        indices = idx.astype(np.int64)
+    elif "order" in arrays:
+        order = _string(arrays, "order", where)
+        ratio = _scalar(arrays, "ratio", where)
+        ratio = 1.0 if ratio is None else ratio
+        if not 0 < ratio <= 1:
+            raise _fail("ratio", f"{ratio} is not a fraction in (0, 1]", where)
+        if indices_from_order is None:
+            raise _fail("order", "cannot be resolved here; store explicit 'indices'", where)
+        indices = np.asarray(indices_from_order(order, ratio, n), dtype=np.int64)
     else:
-        missing = [k for k in ("basis", "resolution", "split") if k not in arrays]
-        if missing and not spec_given:
-            raise _fail(
-                "patterns",
-                "missing: give 'patterns' (M, N) or a pattern spec (basis, resolution, split, indices or order)",
-                where,
-            )
-        if missing:
-            raise _fail(missing[0], "missing from the pattern spec (basis, resolution, split, indices or order)", where)
-        basis = _string(arrays, "basis", where)
-        if basis != "hadamard":
-            raise _fail("basis", f"{basis!r} is not supported; allowed: 'hadamard'", where)
-        res = _scalar(arrays, "resolution", where, "iu")
-        n = int(res)  # type: ignore[arg-type]
-        if not is_power_of_two(n) or not 2 <= n <= 4096:
-            raise _fail("resolution", f"{n} is not a power of two from 2 to 4096", where)
-        split = _string(arrays, "split", where)
-        if split not in SPLITS:
-            raise _fail("split", f"{split!r} is not allowed; allowed: {', '.join(SPLITS)}", where)
-        per = 1 if split == "differential" else 2
-        if "indices" in arrays:
-            if "order" in arrays:
-                raise _fail("order", "give either 'indices' or 'order', not both", where)
-            idx = arrays["indices"]
-            if idx.dtype.kind not in "iu" or idx.ndim != 1:
-                raise _fail("indices", f"expected a 1-D integer array, got {idx.dtype} of shape {idx.shape}", where)
-            indices = idx.astype(np.int64)
-        elif "order" in arrays:
-            order = _string(arrays, "order", where)
-            ratio = _scalar(arrays, "ratio", where)
-            ratio = 1.0 if ratio is None else ratio
-            if not 0 < ratio <= 1:
-                raise _fail("ratio", f"{ratio} is not a fraction in (0, 1]", where)
-            if indices_from_order is None:
-                raise _fail("order", "cannot be resolved here; store explicit 'indices'", where)
-            indices = np.asarray(indices_from_order(order, ratio, n), dtype=np.int64)
-        else:
-            raise _fail("indices", "missing from the pattern spec (give 'indices' or 'order')", where)
-        if indices.size == 0:
-            raise _fail("indices", "is empty", where)
-        if indices.min() < 0 or indices.max() >= n * n:
-            raise _fail("indices", f"values must lie in [0, {n * n}) for resolution {n}", where)
-        if np.unique(indices).size != indices.size:
-            raise _fail("indices", "contains repeated pattern indices", where)
-        if y.size != per * indices.size:
-            raise _fail(
-                "measurements",
-                f"has {y.size} values; split={split!r} with {indices.size} patterns needs {per * indices.size}",
-                where,
-            )
+        raise _fail("indices", "missing from the pattern spec (give 'indices' or 'order')", where)
+    if indices.size == 0:
+        raise _fail("indices", "is empty", where)
+    if indices.min() < 0 or indices.max() >= n * n:
+        raise _fail("indices", f"values must lie in [0, {n * n}) for resolution {n}", where)
+    if np.unique(indices).size != indices.size:
+        raise _fail("indices", "contains repeated pattern indices", where)
+    return indices
+
+
+def _optional_arrays(arrays: dict[str, np.ndarray], y: np.ndarray, n: int, where: str) -> dict[str, Any]:
+    """The optional arrays that are present: timestamps (one per reading, not decreasing), dark and
+    background readings, raw iToF data and the truth image (``n × n``)."""
     optional: dict[str, Any] = {}
     if "timestamps" in arrays:
         t = _float_array(arrays["timestamps"], "timestamps", where, ndim=1, kinds="fiu")
@@ -294,25 +344,7 @@ def validate_recording(arrays: dict[str, np.ndarray], where: str = "", indices_f
         if img.shape != (n, n):
             raise _fail("image", f"shape {img.shape} does not match the {n}x{n} patterns", where)
         optional["image"] = img
-    gain = _scalar(arrays, "gain", where)
-    if gain is not None and gain <= 0:
-        raise _fail("gain", f"must be > 0, got {gain}", where)
-    fov = _scalar(arrays, "fov_deg", where)
-    if fov is not None and not 0 < fov < 170:
-        raise _fail("fov_deg", f"{fov} is not in (0, 170) degrees", where)
-    _check_magnitudes(y, 1.0 if gain is None else gain, n, optional, where)
-    meta = {k: sanitize_text(v, 100) for k in ("units", "device") if (v := _string(arrays, k, where)) is not None}
-    return Recording(
-        measurements=y,
-        n=n,
-        patterns=patterns,
-        indices=indices,
-        split=split,
-        gain=1.0 if gain is None else gain,
-        fov_deg=fov,
-        meta=meta,
-        **optional,
-    )
+    return optional
 
 
 def load_recording(path: str | Path, indices_from_order: Any = None) -> Recording:

@@ -152,9 +152,20 @@ def _weld(P, wtol):
 
 @_jit
 def _crust(poles, tets, centres, inner, wtol, edges):
-    t = tets.shape[0]
+    """The four steps of the module docstring: ``(vertices, faces, polygons)``."""
     m = poles.shape[0]
-    # 1. mixed edges: key (a*m + b, a < b), tetrahedron, ring pair
+    key, tid, oth = _mixed_edges(tets, inner, edges, m)
+    order = _stable_order(key, m)
+    ring_t, ring_start, ring_ab, n_ring = _closed_rings(poles, centres, key, tid, oth, order, m)
+    id_of, cl, vpos = _weld_ring_centres(centres, ring_t, wtol)
+    return _fan_polygons(poles, inner, ring_t, ring_start, ring_ab, n_ring, id_of, cl, vpos)
+
+
+@_jit
+def _mixed_edges(tets, inner, edges, m):
+    """Step 1: every edge of every tetrahedron between an inner and an outer pole: its key
+    ``a·m + b`` (a < b), its tetrahedron, and the two other vertices (the ring pair)."""
+    t = tets.shape[0]
     k = 0
     for i in range(t):
         for e in range(6):
@@ -172,12 +183,31 @@ def _crust(poles, tets, centres, inner, wtol, edges):
                 tid[k] = i
                 oth[k, 0], oth[k, 1] = tets[i, edges[e, 2]], tets[i, edges[e, 3]]
                 k += 1
-    order = _stable_order(key, m)
-    # 2. closed rings, each ordered by angle around its edge
-    ring_t = np.empty(k, np.int64)  # tetrahedra of the kept rings, ring after ring
+    return key, tid, oth
+
+
+@_jit
+def _is_closed(oth, order, i, j):
+    """The ring of entries ``order[i:j]`` is closed: each of its vertices is seen exactly twice."""
+    for q in range(i, j):
+        for side in range(2):
+            v = oth[order[q], side]
+            seen = 0
+            for r in range(i, j):
+                seen += (oth[order[r], 0] == v) + (oth[order[r], 1] == v)
+            if seen != 2:
+                return False
+    return True
+
+
+@_jit
+def _closed_rings(poles, centres, key, tid, oth, order, m):
+    """Step 2: the closed rings, each one's tetrahedra ordered by angle around its edge.
+    Returns ``(tetrahedra ring after ring, ring starts, ring edges (a, b), number of rings)``."""
+    k = key.shape[0]
+    ring_t = np.empty(k, np.int64)
     ring_start = np.empty(k + 1, np.int64)
-    ring_a = np.empty(k, np.int64)
-    ring_b = np.empty(k, np.int64)
+    ring_ab = np.empty((k, 2), np.int64)
     n_ring = 0
     n_t = 0
     ang = np.empty(64)
@@ -187,65 +217,68 @@ def _crust(poles, tets, centres, inner, wtol, edges):
         j = i
         while j < k and key[order[j]] == key[order[i]]:
             j += 1
-        s = j - i
-        closed = True
-        for q in range(i, j):
-            for side in range(2):
-                v = oth[order[q], side]
-                seen = 0
-                for r in range(i, j):
-                    seen += (oth[order[r], 0] == v) + (oth[order[r], 1] == v)
-                if seen != 2:
-                    closed = False
-        if closed:
-            a = key[order[i]] // m
-            b = key[order[i]] % m
-            ax, ay, az = poles[b, 0] - poles[a, 0], poles[b, 1] - poles[a, 1], poles[b, 2] - poles[a, 2]
-            nrm = np.sqrt(ax * ax + ay * ay + az * az)
-            ax, ay, az = ax / nrm, ay / nrm, az / nrm
-            if abs(ax) < 0.9:
-                ux, uy, uz = 0.0, az, -ay  # axis x (1, 0, 0)
-            else:
-                ux, uy, uz = -az, 0.0, ax  # axis x (0, 1, 0)
-            nu = np.sqrt(ux * ux + uy * uy + uz * uz)
-            ux, uy, uz = ux / nu, uy / nu, uz / nu
-            wx, wy, wz = ay * uz - az * uy, az * ux - ax * uz, ax * uy - ay * ux
-            cx = cy = cz = 0.0
-            for q in range(i, j):
-                c = tid[order[q]]
-                cx += centres[c, 0]
-                cy += centres[c, 1]
-                cz += centres[c, 2]
-            cx, cy, cz = cx / s, cy / s, cz / s
-            if s > ang.shape[0]:
-                ang = np.empty(2 * s)
-                idx = np.empty(2 * s, np.int64)
-            for q in range(s):
-                c = tid[order[i + q]]
-                rx, ry, rz = centres[c, 0] - cx, centres[c, 1] - cy, centres[c, 2] - cz
-                ang[q] = np.arctan2(rx * wx + ry * wy + rz * wz, rx * ux + ry * uy + rz * uz)
-                idx[q] = c
-            for q in range(1, s):  # stable insertion sort by angle
-                av, iv = ang[q], idx[q]
-                r = q - 1
-                while r >= 0 and ang[r] > av:
-                    ang[r + 1] = ang[r]
-                    idx[r + 1] = idx[r]
-                    r -= 1
-                ang[r + 1] = av
-                idx[r + 1] = iv
+        if _is_closed(oth, order, i, j):
+            a, b = key[order[i]] // m, key[order[i]] % m
+            if j - i > ang.shape[0]:
+                ang = np.empty(2 * (j - i))
+                idx = np.empty(2 * (j - i), np.int64)
+            _order_by_angle(poles, centres, tid, order, i, j, a, b, ang, idx)
             ring_start[n_ring] = n_t
-            ring_a[n_ring] = a
-            ring_b[n_ring] = b
-            for q in range(s):
+            ring_ab[n_ring, 0], ring_ab[n_ring, 1] = a, b
+            for q in range(j - i):
                 ring_t[n_t] = idx[q]
                 n_t += 1
             n_ring += 1
         i = j
     ring_start[n_ring] = n_t
-    # 3. weld the power centres the rings use
+    return ring_t[:n_t], ring_start, ring_ab, n_ring
+
+
+@_jit
+def _order_by_angle(poles, centres, tid, order, i, j, a, b, ang, idx):
+    """The tetrahedra ``tid[order[i:j]]`` into ``idx[:j - i]``, by the angle of their power
+    centres around the axis a → b about the ring's centroid (a stable insertion sort)."""
+    s = j - i
+    ax, ay, az = poles[b, 0] - poles[a, 0], poles[b, 1] - poles[a, 1], poles[b, 2] - poles[a, 2]
+    nrm = np.sqrt(ax * ax + ay * ay + az * az)
+    ax, ay, az = ax / nrm, ay / nrm, az / nrm
+    if abs(ax) < 0.9:
+        ux, uy, uz = 0.0, az, -ay  # axis x (1, 0, 0)
+    else:
+        ux, uy, uz = -az, 0.0, ax  # axis x (0, 1, 0)
+    nu = np.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / nu, uy / nu, uz / nu
+    wx, wy, wz = ay * uz - az * uy, az * ux - ax * uz, ax * uy - ay * ux
+    cx = cy = cz = 0.0
+    for q in range(i, j):
+        c = tid[order[q]]
+        cx += centres[c, 0]
+        cy += centres[c, 1]
+        cz += centres[c, 2]
+    cx, cy, cz = cx / s, cy / s, cz / s
+    for q in range(s):
+        c = tid[order[i + q]]
+        rx, ry, rz = centres[c, 0] - cx, centres[c, 1] - cy, centres[c, 2] - cz
+        ang[q] = np.arctan2(rx * wx + ry * wy + rz * wz, rx * ux + ry * uy + rz * uz)
+        idx[q] = c
+    for q in range(1, s):  # stable insertion sort by angle
+        av, iv = ang[q], idx[q]
+        r = q - 1
+        while r >= 0 and ang[r] > av:
+            ang[r + 1] = ang[r]
+            idx[r + 1] = idx[r]
+            r -= 1
+        ang[r + 1] = av
+        idx[r + 1] = iv
+
+
+@_jit
+def _weld_ring_centres(centres, ring_t, wtol):
+    """Step 3: the power centres the rings use, welded within ``wtol``. Returns each
+    tetrahedron's index among the used ones, each used one's cluster, and the clusters' positions."""
+    t = centres.shape[0]
     used = np.zeros(t, np.bool_)
-    for q in range(n_t):
+    for q in range(ring_t.shape[0]):
         used[ring_t[q]] = True
     id_of, n_id = _ranks(used)
     P = np.empty((n_id, 3))
@@ -253,8 +286,15 @@ def _crust(poles, tets, centres, inner, wtol, edges):
         if used[q]:
             P[id_of[q]] = centres[q]
     cl, vpos = _weld(P, wtol)
+    return id_of, cl, vpos
+
+
+@_jit
+def _fan_polygons(poles, inner, ring_t, ring_start, ring_ab, n_ring, id_of, cl, vpos):
+    """Step 4: each ring's polygon of welded centres without cyclic repeats; one with three or
+    more vertices is fanned around its centroid, oriented from the inner pole to the outer one."""
+    n_t = ring_t.shape[0]
     n_cl = vpos.shape[0]
-    # 4. polygons: drop cyclic repeats, keep those with >= 3 vertices, fan around the centroid
     vid = np.empty(max(n_t, 1), np.int64)
     faces = np.empty((max(n_t, 1), 3), np.int64)
     cen = np.empty((max(n_ring, 1), 3))
@@ -277,7 +317,7 @@ def _crust(poles, tets, centres, inner, wtol, edges):
             cy += vpos[vid[q], 1]
             cz += vpos[vid[q], 2]
         cen[n_poly, 0], cen[n_poly, 1], cen[n_poly, 2] = cx / n, cy / n, cz / n
-        a, b = ring_a[r], ring_b[r]
+        a, b = ring_ab[r, 0], ring_ab[r, 1]
         dx, dy, dz = poles[b, 0] - poles[a, 0], poles[b, 1] - poles[a, 1], poles[b, 2] - poles[a, 2]
         for q in range(n):
             v1, v2 = vid[q], vid[(q + 1) % n]

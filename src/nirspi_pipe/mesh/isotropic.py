@@ -679,29 +679,25 @@ def _stitch(opp, h):
 
 @_jit
 def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):
-    """Collapse edges shorter than sqrt(lo2) (module docstring); returns the number collapsed."""
+    """Collapse edges shorter than sqrt(lo2) (module docstring); returns the number collapsed.
+
+    Each short edge a → b goes into b (a border vertex is the one kept: :func:`_edge_to_collapse`),
+    placed at b or at the edge's midpoint, when the link condition holds (:func:`_link_ok`), its
+    two opposite vertices keep their valence (:func:`_keeps_valence`) and no edge grows beyond
+    sqrt(hi2) nor any face turns (:func:`_moves_ok`)."""
     count = 0
-    nv = V.shape[0]
-    mark = np.zeros(nv, np.int64)
+    mark = np.zeros(V.shape[0], np.int64)
     stamp = 0
     for f in range(nf):
         for k in range(3):
             if F[f, 0] < 0:
                 break
-            h = 3 * f + k
-            a, b = F[f, k], F[f, (k + 1) % 3]
-            if _len2(V, a, b) >= lo2:
+            if _len2(V, F[f, k], F[f, (k + 1) % 3]) >= lo2:
                 continue
-            o = opp[h]
+            h, o, a, b, ok = _edge_to_collapse(F, opp, bnd, 3 * f + k)
+            if not ok:
+                continue
             border_edge = o < 0
-            # remove a, keep b (swap so that a border vertex is the one kept)
-            if not border_edge and bnd[a] and bnd[b]:
-                continue
-            if bnd[a] and not bnd[b]:
-                if border_edge:
-                    continue
-                h, o = o, h
-                a, b = b, a
             px, py, pz = V[b, 0], V[b, 1], V[b, 2]
             if bnd[a] == bnd[b]:
                 px, py, pz = 0.5 * (V[a, 0] + V[b, 0]), 0.5 * (V[a, 1] + V[b, 1]), 0.5 * (V[a, 2] + V[b, 2])
@@ -709,91 +705,122 @@ def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):
             d = -1 if o < 0 else _dst(F, _nxt(o))
             if border_edge and opp[_nxt(h)] < 0 and opp[_prv(h)] < 0:
                 continue  # a triangle on its own: collapsing it would leave a dangling edge
-            na, ba = _ring(F, opp, vh, a, buf)
-            nb, bb = _ring(F, opp, vh, b, buf2)
-            # link condition: the common neighbours of a and b are exactly c (and d)
+            na = _ring(F, opp, vh, a, buf)[0]
+            nb = _ring(F, opp, vh, b, buf2)[0]
             stamp += 1
-            for i in range(na):
-                mark[_dst(F, buf[i])] = stamp
-                mark[_org(F, _prv(buf[i]))] = stamp
-            common = 0
-            bad = False
-            for i in range(nb):
-                for w in (_dst(F, buf2[i]), _org(F, _prv(buf2[i]))):
-                    if w != a and mark[w] == stamp:
-                        mark[w] = -stamp  # count once
-                        common += 1
-                        if w != c and w != d:
-                            bad = True
-            if bad or common != (1 if border_edge else 2):
+            if not _link_ok(F, buf, na, buf2, nb, mark, stamp, a, c, d, border_edge):
                 continue
-            # valences of c and d must stay >= 3 (>= 2 on a border)
-            nc, bc = _ring(F, opp, vh, c, buf2)
-            if nc + (1 if bc else 0) - 1 < (2 if bc else 3):
+            if not _keeps_valence(F, opp, vh, c, buf2) or (d >= 0 and not _keeps_valence(F, opp, vh, d, buf2)):
                 continue
-            if d >= 0:
-                nd, bd = _ring(F, opp, vh, d, buf2)
-                if nd + (1 if bd else 0) - 1 < (2 if bd else 3):
-                    continue
-            nb, bb = _ring(F, opp, vh, b, buf2)
-            # no new edge longer than hi, no face turning over
-            ok = True
-            for r in range(2):
-                n_r = na if r == 0 else nb
-                ring = buf if r == 0 else buf2
-                moved = a if r == 0 else b
-                for i in range(n_r):
-                    g = ring[i] // 3
-                    if g == h // 3 or (o >= 0 and g == o // 3):
-                        continue
-                    w = _dst(F, ring[i])
-                    dx, dy, dz = V[w, 0] - px, V[w, 1] - py, V[w, 2] - pz
-                    if dx * dx + dy * dy + dz * dz > hi2:
-                        ok = False
-                        break
-                    _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
-                    sx, sy, sz = V[moved, 0], V[moved, 1], V[moved, 2]
-                    V[moved, 0], V[moved, 1], V[moved, 2] = px, py, pz
-                    _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm2)
-                    V[moved, 0], V[moved, 1], V[moved, 2] = sx, sy, sz
-                    dot = nrm[0] * nrm2[0] + nrm[1] * nrm2[1] + nrm[2] * nrm2[2]
-                    n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
-                    n2 = nrm2[0] * nrm2[0] + nrm2[1] * nrm2[1] + nrm2[2] * nrm2[2]
-                    # turning over, or by more than 60 degrees, or becoming degenerate
-                    if dot <= 0.0 or dot * dot < 0.25 * n1 * n2 or n2 <= 1e-24 * n1:
-                        ok = False
-                        break
-                if not ok:
-                    break
-            if not ok:
+            nb = _ring(F, opp, vh, b, buf2)[0]  # buf2 was the scratch of the valence checks
+            if not _moves_ok(V, F, h, o, a, b, px, py, pz, buf, na, buf2, nb, hi2, nrm, nrm2):
                 continue
-            # --- collapse: every corner of a becomes b; stitch across the two removed faces
-            for i in range(na):
-                g = buf[i] // 3
-                F[g, buf[i] % 3] = b
-            f0 = h // 3
-            x1, x2 = _stitch(opp, h)
-            y1, y2 = _stitch(opp, o) if o >= 0 else (-1, -1)
-            for g in (f0, -1 if o < 0 else o // 3):
-                if g < 0:
-                    continue
-                for q in range(3):
-                    opp[3 * g + q] = -1
-                    F[g, q] = -1
-            # a live half-edge leaving a neighbour, if it still has one (c and d may be left
-            # without a face: a triangle hanging on the collapsed edge)
-            vh[a] = -1
-            vh[b] = _live_out(F, b, x2, x1, y2 if o >= 0 else -1, y1 if o >= 0 else -1, buf, na, buf2, nb)
-            vh[c] = _live_out(F, c, x1, x2, -1, -1, buf, 0, buf2, 0)
-            if o >= 0:
-                vh[d] = _live_out(F, d, y1, y2, -1, -1, buf, 0, buf2, 0)
-            V[b, 0], V[b, 1], V[b, 2] = px, py, pz
-            for w in (b, c, d):
-                if w >= 0:
-                    bnd[w] = _ring(F, opp, vh, w, buf)[1] if vh[w] >= 0 else False
+            _collapse(V, F, opp, vh, bnd, h, o, a, b, c, d, px, py, pz, buf, na, buf2, nb)
             count += 1
             break
     return count
+
+
+@_jit
+def _edge_to_collapse(F, opp, bnd, h):
+    """``(h, o, a, b, ok)``: half-edge h (and its opposite o) oriented a → b so that a border
+    vertex is the one kept (b); ok is False when the edge must stay: an interior edge between two
+    border vertices, or a border edge with only a on the border."""
+    f, k = h // 3, h % 3
+    a, b = F[f, k], F[f, (k + 1) % 3]
+    o = opp[h]
+    if o >= 0 and bnd[a] and bnd[b]:
+        return h, o, a, b, False
+    if bnd[a] and not bnd[b]:
+        if o < 0:
+            return h, o, a, b, False
+        return o, h, b, a, True
+    return h, o, a, b, True
+
+
+@_jit
+def _link_ok(F, buf, na, buf2, nb, mark, stamp, a, c, d, border_edge):
+    """The link condition: the common neighbours of a (ring ``buf[:na]``) and b (ring
+    ``buf2[:nb]``) are exactly c (and d across an interior edge). ``mark`` holds ``stamp`` for
+    a's neighbours (a fresh stamp per call)."""
+    for i in range(na):
+        mark[_dst(F, buf[i])] = stamp
+        mark[_org(F, _prv(buf[i]))] = stamp
+    common = 0
+    for i in range(nb):
+        for w in (_dst(F, buf2[i]), _org(F, _prv(buf2[i]))):
+            if w != a and mark[w] == stamp:
+                mark[w] = -stamp  # count once
+                common += 1
+                if w != c and w != d:
+                    return False
+    return common == (1 if border_edge else 2)
+
+
+@_jit
+def _keeps_valence(F, opp, vh, v, buf):
+    """v keeps at least 3 neighbours (2 on a border) after losing one to the collapse."""
+    n, border = _ring(F, opp, vh, v, buf)
+    return n + (1 if border else 0) - 1 >= (2 if border else 3)
+
+
+@_jit
+def _moves_ok(V, F, h, o, a, b, px, py, pz, buf, na, buf2, nb, hi2, nrm, nrm2):
+    """Moving a and b to p makes no edge of their rings longer than sqrt(hi2) and turns no face
+    over, by more than 60 degrees, or into a degenerate one (the two collapsed faces aside)."""
+    for r in range(2):
+        n_r = na if r == 0 else nb
+        ring = buf if r == 0 else buf2
+        moved = a if r == 0 else b
+        for i in range(n_r):
+            g = ring[i] // 3
+            if g == h // 3 or (o >= 0 and g == o // 3):
+                continue
+            w = _dst(F, ring[i])
+            dx, dy, dz = V[w, 0] - px, V[w, 1] - py, V[w, 2] - pz
+            if dx * dx + dy * dy + dz * dz > hi2:
+                return False
+            _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
+            sx, sy, sz = V[moved, 0], V[moved, 1], V[moved, 2]
+            V[moved, 0], V[moved, 1], V[moved, 2] = px, py, pz
+            _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm2)
+            V[moved, 0], V[moved, 1], V[moved, 2] = sx, sy, sz
+            dot = nrm[0] * nrm2[0] + nrm[1] * nrm2[1] + nrm[2] * nrm2[2]
+            n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
+            n2 = nrm2[0] * nrm2[0] + nrm2[1] * nrm2[1] + nrm2[2] * nrm2[2]
+            # turning over, or by more than 60 degrees, or becoming degenerate
+            if dot <= 0.0 or dot * dot < 0.25 * n1 * n2 or n2 <= 1e-24 * n1:
+                return False
+    return True
+
+
+@_jit
+def _collapse(V, F, opp, vh, bnd, h, o, a, b, c, d, px, py, pz, buf, na, buf2, nb):
+    """Collapse a into b at p: every corner of a becomes b, the two faces of the edge go (their
+    outer half-edges stitched), and the half-edge and border tables of b, c and d are renewed."""
+    for i in range(na):
+        g = buf[i] // 3
+        F[g, buf[i] % 3] = b
+    f0 = h // 3
+    x1, x2 = _stitch(opp, h)
+    y1, y2 = _stitch(opp, o) if o >= 0 else (-1, -1)
+    for g in (f0, -1 if o < 0 else o // 3):
+        if g < 0:
+            continue
+        for q in range(3):
+            opp[3 * g + q] = -1
+            F[g, q] = -1
+    # a live half-edge leaving a neighbour, if it still has one (c and d may be left
+    # without a face: a triangle hanging on the collapsed edge)
+    vh[a] = -1
+    vh[b] = _live_out(F, b, x2, x1, y2 if o >= 0 else -1, y1 if o >= 0 else -1, buf, na, buf2, nb)
+    vh[c] = _live_out(F, c, x1, x2, -1, -1, buf, 0, buf2, 0)
+    if o >= 0:
+        vh[d] = _live_out(F, d, y1, y2, -1, -1, buf, 0, buf2, 0)
+    V[b, 0], V[b, 1], V[b, 2] = px, py, pz
+    for w in (b, c, d):
+        if w >= 0:
+            bnd[w] = _ring(F, opp, vh, w, buf)[1] if vh[w] >= 0 else False
 
 
 @_jit_inline

@@ -83,7 +83,7 @@ class ScreenedPoisson:
 
     def reconstruct(self, cloud: PointCloud) -> Mesh:
         """Screened Poisson mesh of ``cloud.points_m`` (metres)."""
-        import pymeshlab
+        import pymeshlab  # optional dependency: pymeshlab
 
         pts = np.asarray(cloud.points_m, dtype=np.float64)
         if len(pts) < 4 or not np.all(np.isfinite(pts)):

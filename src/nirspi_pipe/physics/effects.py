@@ -115,8 +115,6 @@ __all__ = [
     "stage_of",
     "measure",
     "ideal_readout",
-    "split_measure",
-    "modulated_split",
     # the built-in effects and the chain
     "Illumination",
     "FogAttenuation",

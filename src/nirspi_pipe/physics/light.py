@@ -35,6 +35,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
+from importlib import resources
 from typing import Any
 
 import numpy as np
@@ -69,7 +70,6 @@ SPECTRA = ("sun", "halogen", "blackbody")
 def astm_g173_global() -> tuple[np.ndarray, np.ndarray]:
     """ASTM G173-03 AM1.5 global-tilt spectral irradiance: wavelengths (m) and W m⁻² m⁻¹, over
     the rows kept in ``physics/data/astm_g173_global.csv`` (360–1800 nm)."""
-    from importlib import resources
 
     path = resources.files("nirspi_pipe.physics").joinpath("data").joinpath("astm_g173_global.csv")
     with path.open() as fh:

@@ -34,7 +34,7 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.detector import Photodiode
-from nirspi_pipe.physics.fog import backscatter, koschmieder_radiance
+from nirspi_pipe.physics.fog import MieFog, backscatter, koschmieder_radiance
 
 __all__ = [
     "bisect",
@@ -185,7 +185,6 @@ def calibrate(detector: Photodiode | None = None, fog: Any = None) -> dict[str, 
     ``number_density_per_cm3``; conf/detector/ingaas.yaml and conf/fog/chamber.yaml hold these
     values (a test checks they agree).
     """
-    from nirspi_pipe.physics.fog import MieFog
 
     detector = detector if detector is not None else Photodiode()
     fog = fog if fog is not None else MieFog()

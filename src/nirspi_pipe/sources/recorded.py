@@ -15,8 +15,7 @@ operator (``lstsq``, ``fista_tv``).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -25,13 +24,10 @@ import numpy as np
 from nirspi_pipe.device.recording import Recording, load_recording, match_hadamard
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.orders import n_selected
+from nirspi_pipe.stages import ScanIndices
 from nirspi_pipe.types import Acquisition, Camera, Scene
 
 __all__ = ["Recorded", "recording_to_acquisition"]
-
-#: ``(order, ratio, n) -> indices``: resolves a scan option a recording names (the runner hands
-#: :func:`nirspi_pipe.app.configs.scan_indices` to the source; a stage never reads configs itself).
-ScanIndices = Callable[[str, float, int], np.ndarray]
 
 
 def _truth(rec: Recording, name: str) -> Scene | None:
@@ -173,14 +169,16 @@ class Recorded:
     )
 
     needs_scene: ClassVar[bool] = False
-    #: The runner sets :attr:`scan_indices` on sources that say they use it.
-    needs_scan_indices: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if self.path is None or str(self.path).strip() == "":
             raise ConfigError("path", self.path, "an .npz recording (source.path=FILE)")
         if not Path(self.path).is_file():
             raise ConfigError("path", self.path, "an existing .npz file")
+
+    def with_scan_indices(self, resolver: ScanIndices | None) -> Recorded:
+        """This source with the runner's resolver of scan options (:class:`~nirspi_pipe.stages.ReadsScanOptions`)."""
+        return replace(self, scan_indices=resolver)
 
     def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Load, validate and convert the recording; ``scene`` and ``rng`` are not used, and of

@@ -31,15 +31,10 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
-from nirspi_pipe.physics.effects import (
-    Exposure,
-    ForwardModel,
-    modulated_split,
-    split_measure,
-)
+from nirspi_pipe.physics.effects import Exposure, ForwardModel
 from nirspi_pipe.types import Acquisition, Medium, Scene
 
-__all__ = ["Simulator", "split_measure", "modulated_split"]
+__all__ = ["Simulator"]
 
 #: ``snr_db`` is clipped to ±this (noise-free or signal-free readings), so records stay finite.
 SNR_DB_LIMIT = 200.0

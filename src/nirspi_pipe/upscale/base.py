@@ -1,4 +1,4 @@
-"""Shared pieces of the ``upscale`` stages: scale validation, input checks and ``upscale=none``.
+"""Shared pieces of the ``upscale`` stages: scale validation, input checks and the identity.
 
 Images are relative radiance (dimensionless, nominally in [0, 1]). The upscaled grid is aligned
 on pixel *areas*: low-resolution pixel ``i`` covers high-resolution pixels ``i·s … i·s + s − 1``,
@@ -58,9 +58,8 @@ def block_mean(hr: np.ndarray, scale: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class NoUpscale:
-    """Upscale ``none``: the identity (scale 1). ``upscale=none`` and ``upscale=null`` give the
-    same image; ``none`` additionally records ``upscaled`` in ``arrays.npz`` and
-    ``info.upscale`` (``model: none``) so that sweeps over ``upscale`` have a baseline row."""
+    """The identity upscaler (scale 1), for tests of the upscale interface. It is no config
+    option: no upscaling is ``upscale=null`` (one way to switch a stage off)."""
 
     def upscale(self, image: Image2D) -> Image2D:
         x = as_finite_image(image.data, "none")

@@ -35,7 +35,7 @@ _DEFAULT_OUT = Path(__file__).resolve().parent / "weights"
 
 def _import_torch():
     try:
-        import torch
+        import torch  # optional dependency: torch
     except ImportError:
         print(
             "nirspi-train-fsrcnn: error: PyTorch is not installed; install the optional extra: "
