@@ -1,0 +1,319 @@
+"""Solver ``completion``: linear MMSE ("denoised completion") of the unmeasured Hadamard coefficients
+from the measured ones, through a stationary image prior (Lorente Mur et al., Opt. Express 29(11),
+2021, Eqs. 10–13; the same linear map as Czajkowski et al.'s FDRI, Opt. Express 26(16), 2018, for
+a Tikhonov prior).
+
+Model. The image ``x`` (``N = n²`` pixels, relative radiance) has mean ``μ`` (a flat image) and
+covariance ``s·C``; the acquisition measures ``y = A x + w`` with ``A = H_M`` (the measured rows
+``M`` of the 2D Hadamard matrix, in any scan order and at any ratio) and white noise ``w`` of
+variance ``σ²`` per ±1 measurement. The linear MMSE estimate (Gauss–Markov) is::
+
+    x̂ = μ + s C Aᵀ (s A C Aᵀ + σ² I)⁻¹ (y − A μ)
+
+In the Hadamard domain (``Σ = H C H``, the coefficients' covariance) this is the issue's
+``x̂_U = μ_U + Σ_UM (Σ_MM + D)⁻¹ (y − μ_M)`` for the unmeasured coefficients and
+``x̂_M = μ_M + Σ_MM (Σ_MM + D)⁻¹ (y − μ_M)`` for the measured ones (denoised), ``D = σ²/s · I``,
+followed by the inverse transform: the image-domain form is the same map with the inverse
+transform folded in (``H⁻¹ Σ_{:,M} = C Aᵀ``). With ``σ = 0`` the measured coefficients are kept
+exactly and only the unmeasured ones are estimated (regularised by ``EXACT_FLOOR``).
+
+Prior (:class:`PowerLawPrior`): a stationary covariance whose power spectrum is
+``S(f) = (f0² + |f|²)^(−α/2)``, ``f`` in cycles per image side, embedded in a ``2n × 2n`` torus
+(so the ``n × n`` covariance is a principal block of a positive semi-definite circulant, hence
+positive semi-definite), with ``α`` and ``f0`` fitted to a training set that is disjoint from every
+benchmark image (``experiments/prior/build_prior.py``; shipped as two numbers in
+``nirspi_pipe/data/completion_prior.json``). The amplitude ``s`` is fitted to each acquisition by
+maximum marginal likelihood (type-II ML: ``y − Aμ ~ N(0, s Σ_MM + σ² I)``), so the prior needs no
+absolute brightness. ``μ`` is the flat image at the measured mean (the DC reading / ``N``) when DC
+is measured, else at the training set's mean.
+
+Noise (``noise: auto``): ``σ`` from the split measurements themselves (the spread of the pair sums
+``y⁺ + y⁻``, :func:`~nirspi_pipe.solvers.noise.estimate_noise`, rule ``pair_sums``), or the value a
+source declares; a number fixes it (calibrated units of one ±1 measurement).
+
+Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
+``Σ_MM = V Λ Vᵀ`` and ``G = C Aᵀ V`` (``N × m``), as float32: ``(N + m)·m·4`` bytes, 7.4 MiB at 64²
+and 10 %, 20 MiB at 25 %, 50 MiB at 50 %, 128 MiB at 100 %; in memory, least recently used first
+out beyond ``CACHE_BYTES``. Building it costs one eigendecomposition of ``Σ_MM`` (``O(m³)``) and
+``m`` FFT convolutions. Once cached a solve is ``x̂ = μ + G · (s z / (s λ + σ²))`` with
+``z = Vᵀ (y − Aμ)``: two matrix-vector products, and the 1-D likelihood search for ``s``.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
+from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
+from nirspi_pipe.solvers.noise import estimate_noise
+from nirspi_pipe.types import Acquisition, Image2D
+
+__all__ = [
+    "PowerLawPrior",
+    "CompletionSolver",
+    "default_prior",
+    "completion_maps",
+    "complete",
+    "CACHE_BYTES",
+    "EXACT_FLOOR",
+    "PRIOR_FILE",
+]
+
+#: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
+PRIOR_FILE = "completion_prior.json"
+#: In-memory cache budget of the completion maps, bytes (assumed: a few 64² maps at 25–50 %).
+CACHE_BYTES = 512 * 2**20
+#: With ``σ = 0`` the noise variance is floored at this fraction of ``s·λ_max`` (the largest
+#: eigenvalue of ``s Σ_MM``): float64 eigenvalues below it are rounding, not signal.
+EXACT_FLOOR = 1e-12
+#: Patterns convolved with ``C`` per FFT batch (bounds the complex work array: 256 × (2n)² × 16 B,
+#: 64 MiB at 64²).
+_BATCH = 256
+
+
+@dataclass(frozen=True)
+class PowerLawPrior:
+    """A stationary image covariance with power spectrum ``(f0² + |f|²)^(−α/2)``.
+
+    Attributes:
+        alpha: spectral exponent α (natural images: ≈ 2, Field 1987; van der Schaaf & van
+            Hateren 1996).
+        f0: roll-off frequency, cycles per image side (> 0; the variance of the image mean).
+        mean: prior mean radiance (relative radiance), used when DC is not measured.
+    """
+
+    alpha: float
+    f0: float
+    mean: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.alpha) and 0 <= self.alpha <= 6):
+            raise ConfigError("alpha", self.alpha, "a spectral exponent in [0, 6]")
+        if not (np.isfinite(self.f0) and self.f0 > 0):
+            raise ConfigError("f0", self.f0, "a roll-off frequency > 0 (cycles per image side)")
+        if not np.isfinite(self.mean):
+            raise ConfigError("mean", self.mean, "a finite prior mean radiance")
+
+    @property
+    def cache_key(self) -> tuple:
+        """What identifies this prior's maps in the cache."""
+        return ("power_law", float(self.alpha), float(self.f0))
+
+    def spectrum(self, n: int) -> np.ndarray:
+        """``(2n, 2n)`` spectrum on the embedding torus, frequencies in cycles per image side
+        (``n`` pixels), unnormalised (the amplitude is fitted per acquisition)."""
+        f = np.fft.fftfreq(2 * n) * n
+        r2 = f[:, None] ** 2 + f[None, :] ** 2
+        return (self.f0**2 + r2) ** (-0.5 * self.alpha)
+
+    def covariance_apply(self, images: np.ndarray) -> np.ndarray:
+        """``C x`` for a batch ``(B, n, n)``: zero-padded circular convolution on the ``2n`` torus
+        (``O(B n² log n)``; the ``N × N`` matrix is never formed)."""
+        n = images.shape[-1]
+        spec = _spectrum_cached(self.alpha, self.f0, n)
+        out = np.empty(images.shape, dtype=np.float64)
+        for start in range(0, images.shape[0], _BATCH):
+            part = images[start : start + _BATCH]
+            f = np.fft.rfft2(part, s=(2 * n, 2 * n))
+            out[start : start + _BATCH] = np.fft.irfft2(f * spec, s=(2 * n, 2 * n))[:, :n, :n]
+        return out
+
+
+@lru_cache(maxsize=8)
+def _spectrum_cached(alpha: float, f0: float, n: int) -> np.ndarray:
+    spec = PowerLawPrior(alpha, f0).spectrum(n)
+    spec = spec / spec.mean()  # covariance 1 at lag 0: the amplitude s is the pixel variance
+    return np.ascontiguousarray(spec[:, : n + 1])  # the rfft2 half
+
+
+@lru_cache(maxsize=1)
+def default_prior() -> PowerLawPrior:
+    """The shipped prior (``nirspi_pipe/data/completion_prior.json``; its ``training`` key lists
+    the images it was fitted to, ``experiments/prior/build_prior.py`` rebuilds it)."""
+    text = resources.files("nirspi_pipe").joinpath("data").joinpath(PRIOR_FILE).read_text()
+    p = json.loads(text)["prior"]
+    return PowerLawPrior(alpha=float(p["alpha"]), f0=float(p["f0"]), mean=float(p["mean"]))
+
+
+@dataclass(frozen=True)
+class _Maps:
+    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending), ``vt`` ``(m, m)`` = ``Vᵀ``, ``g``
+    ``(N, m)`` = ``C Aᵀ V`` (float32), ``dc`` position of DC in the measured set or −1."""
+
+    lam: np.ndarray
+    vt: np.ndarray
+    g: np.ndarray
+    dc: int
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.lam.nbytes + self.vt.nbytes + self.g.nbytes)
+
+
+class _ByteLRU:
+    """A least-recently-used cache bounded by the total ``nbytes`` of its values."""
+
+    def __init__(self, budget: int) -> None:
+        self.budget = budget
+        self.items: OrderedDict[tuple, _Maps] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple) -> _Maps | None:
+        with self.lock:
+            hit = self.items.get(key)
+            if hit is not None:
+                self.items.move_to_end(key)
+            return hit
+
+    def put(self, key: tuple, value: _Maps) -> None:
+        with self.lock:
+            self.items[key] = value
+            self.items.move_to_end(key)
+            while len(self.items) > 1 and sum(v.nbytes for v in self.items.values()) > self.budget:
+                self.items.popitem(last=False)
+
+    def clear(self) -> None:
+        with self.lock:
+            self.items.clear()
+
+
+_CACHE = _ByteLRU(CACHE_BYTES)
+
+
+def _patterns(n: int, indices: np.ndarray) -> np.ndarray:
+    """``(m, n, n)`` the ±1 patterns ``h_i h_jᵀ`` of the flat indices (the rows of ``A``)."""
+    h = sylvester(n)
+    i, j = indices // n, indices % n
+    return h[i][:, :, None] * h[j][:, None, :]
+
+
+def completion_maps(n: int, indices: np.ndarray, prior: PowerLawPrior) -> _Maps:
+    """The cached maps of one (resolution, measured set, prior) (module doc: cost and size).
+
+    ``prior`` needs ``covariance_apply`` (``(B, n, n) ↦ C x``), ``cache_key`` and ``mean``: any
+    covariance can be plugged in (``experiments/prior/build_prior.py`` compares an empirical one)."""
+    idx = np.asarray(indices, dtype=np.int64)
+    key = (int(n), idx.tobytes(), prior.cache_key)
+    hit = _CACHE.get(key)
+    if hit is not None:
+        return hit
+    size = n * n
+    cp = prior.covariance_apply(_patterns(n, idx)).reshape(idx.size, size)  # rows: C aₖ
+    sigma_mm = fwht(cp, axis=-1)[:, idx]  # A C Aᵀ (symmetric)
+    sigma_mm = 0.5 * (sigma_mm + sigma_mm.T)
+    lam, v = np.linalg.eigh(sigma_mm)
+    lam = np.maximum(lam, 0.0)
+    g = (cp.T @ v).astype(np.float32)
+    where = np.flatnonzero(idx == 0)
+    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v.T, dtype=np.float32), g=g, dc=int(where[0]) if where.size else -1)
+    _CACHE.put(key, maps)
+    return maps
+
+
+def _fit_scale(z2: np.ndarray, lam: np.ndarray, sigma2: float) -> float:
+    """Type-II maximum likelihood of the prior's amplitude ``s``: ``zᵢ ~ N(0, s λᵢ + σ²)``."""
+    live = lam > EXACT_FLOOR * float(lam[-1])
+    z2, lam = z2[live], lam[live]
+    if sigma2 <= 0:  # closed form
+        return float(np.mean(z2 / lam))
+    guess = max(float(np.mean(np.maximum(z2 - sigma2, 0.0) / lam)), 1e-30)
+
+    def nll(log_s: float) -> float:
+        v = np.exp(log_s) * lam + sigma2
+        return float(np.sum(np.log(v) + z2 / v))
+
+    lo, hi = np.log(guess) - 12.0, np.log(guess) + 6.0
+    res = minimize_scalar(nll, bounds=(lo, hi), method="bounded", options={"xatol": 0.02})
+    return float(np.exp(res.x))
+
+
+def complete(
+    n: int, indices: np.ndarray, y: np.ndarray, sigma: float, prior: PowerLawPrior, scale: float | None = None
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The linear MMSE image ``(n, n)`` from measurements ``y`` (calibrated ±1 coefficients at
+    flat ``indices``) with noise ``sigma`` per measurement, and bookkeeping (module doc).
+
+    ``scale``: the prior's amplitude ``s`` (None: fitted by marginal likelihood)."""
+    maps = completion_maps(n, indices, prior)
+    size = n * n
+    mu = float(y[maps.dc]) / size if maps.dc >= 0 else float(prior.mean)
+    r = np.asarray(y, dtype=np.float64).copy()
+    if maps.dc >= 0:
+        r[maps.dc] -= mu * size  # A μ: a flat image has only a DC coefficient
+    z = maps.vt @ r.astype(np.float32)
+    z = z.astype(np.float64)
+    s = _fit_scale(z * z, maps.lam, sigma**2) if scale is None else float(scale)
+    lam_max = float(maps.lam[-1]) if maps.lam.size else 0.0
+    noise2 = max(sigma**2, EXACT_FLOOR * s * lam_max)
+    denom = s * maps.lam + noise2
+    w = np.where(denom > 0, s * z / np.where(denom > 0, denom, 1.0), 0.0)
+    image = mu + (maps.g @ w.astype(np.float32)).astype(np.float64)
+    info = {"prior_scale": s, "noise_sigma": float(sigma), "prior_mean": mu}
+    return image.reshape(n, n), info
+
+
+@dataclass(frozen=True)
+class CompletionSolver:
+    """Solver ``completion``: linear MMSE completion and denoising of Hadamard coefficients under a
+    stationary power-law image prior (module doc; Lorente Mur et al. 2021).
+
+    Attributes:
+        noise: ``auto`` (σ from the acquisition: declared, or the split pairs' sums,
+            :func:`~nirspi_pipe.solvers.noise.estimate_noise`), or σ ≥ 0 per ±1 measurement in
+            calibrated units (relative radiance × pixels); 0 treats the data as exact.
+        alpha: spectral exponent of the prior; null: the shipped, fitted one
+            (``nirspi_pipe/data/completion_prior.json``).
+        f0: roll-off frequency of the prior, cycles per image side; null: the shipped one.
+    """
+
+    noise: float | str = "auto"
+    alpha: float | None = None
+    f0: float | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.noise, str):
+            if self.noise != "auto":
+                raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
+        elif not (np.isfinite(self.noise) and self.noise >= 0):
+            raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
+        if self.alpha is not None or self.f0 is not None:
+            self.prior()  # validates
+
+    def prior(self) -> PowerLawPrior:
+        """The prior in use: the shipped one, with ``alpha``/``f0`` replaced where set."""
+        base = default_prior()
+        return PowerLawPrior(
+            alpha=base.alpha if self.alpha is None else float(self.alpha),
+            f0=base.f0 if self.f0 is None else float(self.f0),
+            mean=base.mean,
+        )
+
+    def solve(self, acquisition: Acquisition) -> Image2D:
+        require_hadamard(acquisition, "completion")
+        n = acquisition.n
+        if not is_power_of_two(n):
+            raise ConfigError("camera.resolution", n, "a power of two (Hadamard patterns)", absolute=True)
+        y = checked_coefficients(acquisition, "completion")
+        info: dict[str, object] = {"iterations": 1, "stop_reason": "direct"}
+        if isinstance(self.noise, str):
+            est = estimate_noise(acquisition)
+            sigma, info["noise_method"] = float(est.sigma), est.method
+        else:
+            sigma, info["noise_method"] = float(self.noise), "fixed"
+        image, extra = complete(n, np.asarray(acquisition.indices, dtype=np.int64), y, sigma, self.prior())
+        info.update(extra)
+        return Image2D(image, info=info)
+
+
+def clear_cache() -> None:
+    """Empty the in-memory map cache (tests, benchmarks)."""
+    _CACHE.clear()
