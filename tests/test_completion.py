@@ -175,3 +175,24 @@ def test_shipped_prior_and_its_training_set_are_disjoint_from_the_benchmarks():
     lines = (ROOT / "experiments" / "prior" / "training.txt").read_text().splitlines()
     training = [ln.split(":")[1].split(".")[0] for ln in lines if ln.strip() and not ln.startswith("#")]
     assert training and not set(training) & names
+
+
+@pytest.mark.parametrize("alpha_true", [2.0, 5.0])
+def test_auto_alpha_picks_the_exponent_the_image_was_drawn_from(alpha_true):
+    """Images drawn from a power-law prior: of the exponents {2, 5}, the marginal likelihood picks
+    the one they were drawn from (3 seeds each)."""
+    n = 16
+    idx = O.Zigzag(0.25).select(n)
+    candidates = [C.PowerLawPrior(a, PRIOR.f0, PRIOR.mean) for a in (2.0, 5.0)]
+    w, v = np.linalg.eigh(dense_covariance(C.PowerLawPrior(alpha_true, PRIOR.f0), n))
+    for seed in range(3):
+        img = 0.5 + (v * np.sqrt(np.maximum(w, 0) * 0.01)) @ np.random.default_rng(seed).standard_normal(n * n)
+        y = fwht(img)[idx] + 0.05 * np.random.default_rng(seed + 10).standard_normal(idx.size)
+        _, info = C.complete(n, idx, y, 0.05, candidates)
+        assert info["alpha"] == alpha_true
+
+
+def test_auto_alpha_chooses_among_the_shipped_exponents():
+    acq = acquisition(smooth_image(16), O.Zigzag(0.25).select(16))
+    out = C.CompletionSolver().solve(acq)
+    assert out.info["alpha"] in C.default_alphas() and len(C.default_alphas()) == 3

@@ -1,7 +1,7 @@
 """Solver ``completion``: linear MMSE ("denoised completion") of the unmeasured Hadamard coefficients
-from the measured ones, through a stationary image prior (Lorente Mur et al., Opt. Express 29(11),
-2021, Eqs. 10–13; the same linear map as Czajkowski et al.'s FDRI, Opt. Express 26(16), 2018, for
-a Tikhonov prior).
+from the measured ones, through a stationary image prior (the denoised completion of Lorente Mur,
+Peyrin & Ducros, Opt. Express 2021, without its network; a single precomputed linear map like
+Czajkowski et al.'s FDRI, Opt. Express 2018).
 
 Model. The image ``x`` (``N = n²`` pixels, relative radiance) has mean ``μ`` (a flat image) and
 covariance ``s·C``; the acquisition measures ``y = A x + w`` with ``A = H_M`` (the measured rows
@@ -20,23 +20,29 @@ exactly and only the unmeasured ones are estimated (regularised by ``EXACT_FLOOR
 Prior (:class:`PowerLawPrior`): a stationary covariance whose power spectrum is
 ``S(f) = (f0² + |f|²)^(−α/2)``, ``f`` in cycles per image side, embedded in a ``2n × 2n`` torus
 (so the ``n × n`` covariance is a principal block of a positive semi-definite circulant, hence
-positive semi-definite), with ``α`` and ``f0`` fitted to a training set that is disjoint from every
-benchmark image (``experiments/prior/build_prior.py``; shipped as two numbers in
-``nirspi_pipe/data/completion_prior.json``). The amplitude ``s`` is fitted to each acquisition by
-maximum marginal likelihood (type-II ML: ``y − Aμ ~ N(0, s Σ_MM + σ² I)``), so the prior needs no
-absolute brightness. ``μ`` is the flat image at the measured mean (the DC reading / ``N``) when DC
-is measured, else at the training set's mean.
+positive semi-definite), normalised to unit pixel variance. ``α`` and ``f0`` are fitted to a
+training set that is disjoint from every benchmark image (``experiments/prior/build_prior.py``,
+``experiments/prior/training.txt``; shipped as a few numbers in
+``nirspi_pipe/data/completion_prior.json``, the ``N × N`` covariance is never stored). The
+amplitude ``s`` is fitted to each acquisition by maximum marginal likelihood (type-II ML:
+``y − Aμ ~ N(0, s Σ_MM + σ² I)``), so the prior needs no absolute brightness; with ``alpha: auto``
+the exponent too is chosen per acquisition, by the same likelihood, among three shipped values (the
+pooled fit and the 5th / 90th percentiles of the exponents fitted to each training crop alone).
+``μ`` is the flat image at the measured mean (the DC reading / ``N``) when DC is measured, else at
+the training set's mean.
 
 Noise (``noise: auto``): ``σ`` from the split measurements themselves (the spread of the pair sums
 ``y⁺ + y⁻``, :func:`~nirspi_pipe.solvers.noise.estimate_noise`, rule ``pair_sums``), or the value a
-source declares; a number fixes it (calibrated units of one ±1 measurement).
+source declares; a number fixes it (calibrated units of one ±1 measurement). The detector model's
+parameters are not read: the solver sees only the acquisition, as it would from the device.
 
 Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
 ``Σ_MM = V Λ Vᵀ`` and ``G = C Aᵀ V`` (``N × m``), as float32: ``(N + m)·m·4`` bytes, 7.4 MiB at 64²
-and 10 %, 20 MiB at 25 %, 50 MiB at 50 %, 128 MiB at 100 %; in memory, least recently used first
-out beyond ``CACHE_BYTES``. Building it costs one eigendecomposition of ``Σ_MM`` (``O(m³)``) and
-``m`` FFT convolutions. Once cached a solve is ``x̂ = μ + G · (s z / (s λ + σ²))`` with
-``z = Vᵀ (y − Aμ)``: two matrix-vector products, and the 1-D likelihood search for ``s``.
+and 10 %, 20 MiB at 25 %, 48 MiB at 50 %, 128 MiB at 100 % (three times that with ``alpha:
+auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
+Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
+Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
+then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ from __future__ import annotations
 import json
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
@@ -61,6 +68,7 @@ __all__ = [
     "PowerLawPrior",
     "CompletionSolver",
     "default_prior",
+    "default_alphas",
     "completion_maps",
     "complete",
     "CACHE_BYTES",
@@ -136,23 +144,32 @@ def _spectrum_cached(alpha: float, f0: float, n: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=1)
-def default_prior() -> PowerLawPrior:
-    """The shipped prior (``nirspi_pipe/data/completion_prior.json``; its ``training`` key lists
-    the images it was fitted to, ``experiments/prior/build_prior.py`` rebuilds it)."""
+def _shipped() -> dict:
     text = resources.files("nirspi_pipe").joinpath("data").joinpath(PRIOR_FILE).read_text()
-    p = json.loads(text)["prior"]
+    return dict(json.loads(text)["prior"])
+
+
+def default_prior() -> PowerLawPrior:
+    """The shipped prior, the pooled fit (``nirspi_pipe/data/completion_prior.json``; its
+    ``training`` key lists the images it was fitted to, ``experiments/prior/build_prior.py``
+    rebuilds it)."""
+    p = _shipped()
     return PowerLawPrior(alpha=float(p["alpha"]), f0=float(p["f0"]), mean=float(p["mean"]))
+
+
+def default_alphas() -> tuple[float, ...]:
+    """The shipped exponents among which ``alpha: auto`` chooses (ascending)."""
+    return tuple(sorted(float(a) for a in _shipped()["alphas"]))
 
 
 @dataclass(frozen=True)
 class _Maps:
-    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending), ``vt`` ``(m, m)`` = ``Vᵀ``, ``g``
-    ``(N, m)`` = ``C Aᵀ V`` (float32), ``dc`` position of DC in the measured set or −1."""
+    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ`` and
+    ``g`` ``(N, m)`` = ``C Aᵀ V`` (float32)."""
 
     lam: np.ndarray
     vt: np.ndarray
     g: np.ndarray
-    dc: int
 
     @property
     def nbytes(self) -> int:
@@ -213,14 +230,14 @@ def completion_maps(n: int, indices: np.ndarray, prior: PowerLawPrior) -> _Maps:
     lam, v = np.linalg.eigh(sigma_mm)
     lam = np.maximum(lam, 0.0)
     g = (cp.T @ v).astype(np.float32)
-    where = np.flatnonzero(idx == 0)
-    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v.T, dtype=np.float32), g=g, dc=int(where[0]) if where.size else -1)
+    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v.T, dtype=np.float32), g=g)
     _CACHE.put(key, maps)
     return maps
 
 
 def _fit_scale(z2: np.ndarray, lam: np.ndarray, sigma2: float) -> float:
-    """Type-II maximum likelihood of the prior's amplitude ``s``: ``zᵢ ~ N(0, s λᵢ + σ²)``."""
+    """Type-II maximum likelihood of the prior's amplitude ``s``: ``zᵢ ~ N(0, s λᵢ + σ²)``
+    (closed form when ``σ = 0``; else scipy's bounded Brent search on ``ln s``)."""
     live = lam > EXACT_FLOOR * float(lam[-1])
     z2, lam = z2[live], lam[live]
     if sigma2 <= 0:  # closed form
@@ -236,28 +253,62 @@ def _fit_scale(z2: np.ndarray, lam: np.ndarray, sigma2: float) -> float:
     return float(np.exp(res.x))
 
 
-def complete(
-    n: int, indices: np.ndarray, y: np.ndarray, sigma: float, prior: PowerLawPrior, scale: float | None = None
-) -> tuple[np.ndarray, dict[str, float]]:
-    """The linear MMSE image ``(n, n)`` from measurements ``y`` (calibrated ±1 coefficients at
-    flat ``indices``) with noise ``sigma`` per measurement, and bookkeeping (module doc).
+@dataclass(frozen=True)
+class _Fit:
+    """One prior fitted to one acquisition: maps, ``z = Vᵀ(y − Aμ)``, amplitude, noise variance
+    used, and the negative log marginal likelihood per measurement (up to ½ ln 2π)."""
 
-    ``scale``: the prior's amplitude ``s`` (None: fitted by marginal likelihood)."""
-    maps = completion_maps(n, indices, prior)
-    size = n * n
-    mu = float(y[maps.dc]) / size if maps.dc >= 0 else float(prior.mean)
-    r = np.asarray(y, dtype=np.float64).copy()
-    if maps.dc >= 0:
-        r[maps.dc] -= mu * size  # A μ: a flat image has only a DC coefficient
-    z = maps.vt @ r.astype(np.float32)
-    z = z.astype(np.float64)
+    maps: _Maps
+    z: np.ndarray
+    scale: float
+    noise2: float
+    nll: float
+
+
+def _fit(maps: _Maps, r: np.ndarray, sigma: float, scale: float | None) -> _Fit:
+    z = (maps.vt @ r.astype(np.float32)).astype(np.float64)
     s = _fit_scale(z * z, maps.lam, sigma**2) if scale is None else float(scale)
     lam_max = float(maps.lam[-1]) if maps.lam.size else 0.0
     noise2 = max(sigma**2, EXACT_FLOOR * s * lam_max)
     denom = s * maps.lam + noise2
-    w = np.where(denom > 0, s * z / np.where(denom > 0, denom, 1.0), 0.0)
-    image = mu + (maps.g @ w.astype(np.float32)).astype(np.float64)
-    info = {"prior_scale": s, "noise_sigma": float(sigma), "prior_mean": mu}
+    live = denom > 0
+    nll = 0.5 * float(np.sum(np.log(denom[live]) + z[live] ** 2 / denom[live])) / max(int(live.sum()), 1)
+    return _Fit(maps, z, s, noise2, nll)
+
+
+def complete(
+    n: int,
+    indices: np.ndarray,
+    y: np.ndarray,
+    sigma: float,
+    prior: PowerLawPrior | Sequence[PowerLawPrior],
+    scale: float | None = None,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The linear MMSE image ``(n, n)`` from measurements ``y`` (calibrated ±1 coefficients at
+    flat ``indices``) with noise ``sigma`` per measurement, and bookkeeping (module doc).
+
+    ``prior``: one prior, or several (then the one of highest marginal likelihood of ``y`` is used,
+    ``info["alpha"]``); ``scale``: the prior's amplitude ``s`` (None: fitted by marginal likelihood)."""
+    priors = list(prior) if isinstance(prior, Sequence) else [prior]
+    size = n * n
+    r = np.asarray(y, dtype=np.float64).copy()
+    dc = np.flatnonzero(np.asarray(indices) == 0)
+    mu = float(r[dc[0]]) / size if dc.size else float(priors[0].mean)
+    if dc.size:
+        r[dc[0]] -= mu * size  # A μ: a flat image has only a DC coefficient
+    fits = [_fit(completion_maps(n, indices, p), r, sigma, scale) for p in priors]
+    best = int(np.argmin([f.nll for f in fits]))
+    f = fits[best]
+    denom = f.scale * f.maps.lam + f.noise2
+    w = np.where(denom > 0, f.scale * f.z / np.where(denom > 0, denom, 1.0), 0.0)
+    image = mu + (f.maps.g @ w.astype(np.float32)).astype(np.float64)
+    info = {
+        "alpha": float(getattr(priors[best], "alpha", np.nan)),
+        "prior_scale": f.scale,
+        "noise_sigma": float(sigma),
+        "prior_mean": mu,
+        "neg_log_evidence": f.nll,
+    }
     return image.reshape(n, n), info
 
 
@@ -270,13 +321,15 @@ class CompletionSolver:
         noise: ``auto`` (σ from the acquisition: declared, or the split pairs' sums,
             :func:`~nirspi_pipe.solvers.noise.estimate_noise`), or σ ≥ 0 per ±1 measurement in
             calibrated units (relative radiance × pixels); 0 treats the data as exact.
-        alpha: spectral exponent of the prior; null: the shipped, fitted one
-            (``nirspi_pipe/data/completion_prior.json``).
+        alpha: spectral exponent of the prior; ``auto``: of the shipped exponents (the training
+            crops' 5th percentile, the pooled fit and the 90th percentile,
+            ``nirspi_pipe/data/completion_prior.json``), the one under which the measurements are
+            most likely (marginal likelihood; three maps cached instead of one).
         f0: roll-off frequency of the prior, cycles per image side; null: the shipped one.
     """
 
     noise: float | str = "auto"
-    alpha: float | None = None
+    alpha: float | str = "auto"
     f0: float | None = None
 
     def __post_init__(self) -> None:
@@ -285,17 +338,17 @@ class CompletionSolver:
                 raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
         elif not (np.isfinite(self.noise) and self.noise >= 0):
             raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
-        if self.alpha is not None or self.f0 is not None:
-            self.prior()  # validates
+        if isinstance(self.alpha, str) and self.alpha != "auto":
+            raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
+        self.priors()  # validates alpha and f0
 
-    def prior(self) -> PowerLawPrior:
-        """The prior in use: the shipped one, with ``alpha``/``f0`` replaced where set."""
+    def priors(self) -> list[PowerLawPrior]:
+        """The priors in use: the shipped exponents (``alpha: auto``) or the one given, with the
+        shipped ``f0`` unless ``f0`` is set."""
         base = default_prior()
-        return PowerLawPrior(
-            alpha=base.alpha if self.alpha is None else float(self.alpha),
-            f0=base.f0 if self.f0 is None else float(self.f0),
-            mean=base.mean,
-        )
+        f0 = base.f0 if self.f0 is None else float(self.f0)
+        alphas = default_alphas() if isinstance(self.alpha, str) else (float(self.alpha),)
+        return [PowerLawPrior(alpha=a, f0=f0, mean=base.mean) for a in alphas]
 
     def solve(self, acquisition: Acquisition) -> Image2D:
         require_hadamard(acquisition, "completion")
@@ -309,7 +362,7 @@ class CompletionSolver:
             sigma, info["noise_method"] = float(est.sigma), est.method
         else:
             sigma, info["noise_method"] = float(self.noise), "fixed"
-        image, extra = complete(n, np.asarray(acquisition.indices, dtype=np.int64), y, sigma, self.prior())
+        image, extra = complete(n, np.asarray(acquisition.indices, dtype=np.int64), y, sigma, self.priors())
         info.update(extra)
         return Image2D(image, info=info)
 
