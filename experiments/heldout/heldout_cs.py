@@ -95,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--orders", nargs="+", default=list(ORDERS), choices=list(ORDERS))
     ap.add_argument("--solvers", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
     ap.add_argument("--no-fixed", action="store_true", help="skip fista_tv's fixed-weight grid at 25 %% noise-free")
+    ap.add_argument("--no-guard", action="store_true", help="completion with guard: false (issue 36's first run)")
     ap.add_argument(
         "--keep", action="store_true", help="keep the rows of runs.csv/fixed.csv for solvers (and grids) not rerun"
     )
@@ -147,6 +148,8 @@ def run(ns: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame, 
     sims = {noise: simulator(noise) for noise in ns.noise}
     truths = {(noise, name): sims[noise].reference_image(sc) for noise in ns.noise for name, sc in scenes.items()}
     solvers = {s: SOLVERS[s]() for s in ns.solvers}
+    if "completion" in solvers and ns.no_guard:
+        solvers["completion"] = CompletionSolver(guard=False)
     for ratio in ns.ratios:
         for o in ns.orders:
             idx = ORDERS[o](ratio).select(N)
@@ -175,7 +178,7 @@ def run(ns: argparse.Namespace, out: Path) -> tuple[pd.DataFrame, pd.DataFrame, 
                         )  # fmt: skip
                     if "completion" in solvers:
                         for sigma in COMPLETION_GRID:
-                            img = CompletionSolver(noise=sigma).solve(acq)
+                            img = CompletionSolver(noise=sigma, guard=not ns.no_guard).solve(acq)
                             oracle.append(
                                 {"image": name, "noise": noise, "ratio": ratio, "order": o, "sigma": sigma,
                                  "psnr_db": psnr(truth, img.data)}

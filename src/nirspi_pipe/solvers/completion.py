@@ -44,9 +44,9 @@ Gaussian model, is compared with that of the white prior (every coefficient inde
 (Wiener-shrunk by ``sN/(sN + σ²)`` with noise).
 
 Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
-``Σ_MM = V Λ Vᵀ`` and ``G = C Aᵀ V`` (``N × m``), as float32: ``(N + m)·m·4`` bytes, 7.4 MiB at 64²
-and 10 %, 20 MiB at 25 %, 48 MiB at 50 %, 128 MiB at 100 % (three times that with ``alpha:
-auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
+``Σ_MM = V Λ Vᵀ``, ``V ∘ V`` (the guard) and ``G = C Aᵀ V`` (``N × m``), as float32:
+``(N + 2m)·m·4`` bytes, 7.7 MiB at 64² and 10 %, 24 MiB at 25 %, 64 MiB at 50 %, 192 MiB at 100 %
+(three times that with ``alpha: auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
 Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
 Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
 then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
@@ -171,16 +171,18 @@ def default_alphas() -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class _Maps:
-    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ`` and
-    ``g`` ``(N, m)`` = ``C Aᵀ V`` (float32)."""
+    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ``,
+    ``v2`` ``(m, m)`` = ``V ∘ V`` (the guard's diagonal of ``K⁻¹``) and ``g`` ``(N, m)`` = ``C Aᵀ V``
+    (float32)."""
 
     lam: np.ndarray
     vt: np.ndarray
+    v2: np.ndarray
     g: np.ndarray
 
     @property
     def nbytes(self) -> int:
-        return int(self.lam.nbytes + self.vt.nbytes + self.g.nbytes)
+        return int(self.lam.nbytes + self.vt.nbytes + self.v2.nbytes + self.g.nbytes)
 
 
 class _ByteLRU:
@@ -237,7 +239,8 @@ def completion_maps(n: int, indices: np.ndarray, prior: PowerLawPrior) -> _Maps:
     lam, v = np.linalg.eigh(sigma_mm)
     lam = np.maximum(lam, 0.0)
     g = (cp.T @ v).astype(np.float32)
-    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v.T, dtype=np.float32), g=g)
+    v32 = v.astype(np.float32)
+    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v32.T), v2=v32 * v32, g=g)
     _CACHE.put(key, maps)
     return maps
 
@@ -349,7 +352,7 @@ def _loo_ratio(f: _Fit, denom: np.ndarray, live: np.ndarray, r: np.ndarray) -> f
     v = f.maps.vt.T
     inv = (1.0 / denom).astype(np.float32)
     k_r = (v @ (f.z / denom).astype(np.float32)).astype(np.float64)
-    k_ii = ((v * v) @ inv).astype(np.float64)
+    k_ii = (f.maps.v2 @ inv).astype(np.float64)
     loo = k_r[live] / k_ii[live]
     white = float(np.sum(r[live] ** 2))
     return float(np.sum(loo**2)) / white if white > 0 else 0.0
