@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 # the held-out benchmark's two cases and size; a script's own folder is on sys.path
-from heldout_cs import N, simulator
+from heldout_cs import TUNING, N, simulator
 
 from nirspi_pipe.metrics import psnr
 from nirspi_pipe.patterns import orders as O
@@ -30,10 +30,6 @@ from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
 from nirspi_pipe.types import Camera
 
-TUNING = (
-    "chelsea", "coffee", "rocket", "hubble_deep_field", "immunohistochemistry", "retina", "logo",
-    "colorwheel", "lfw_subset",
-)  # fmt: skip
 ORDERS = ("zigzag", "cake_cutting", "sequency")
 RATIOS = (0.1, 0.25)
 

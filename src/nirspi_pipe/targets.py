@@ -85,6 +85,7 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         "nirspi_pipe.patterns.orders.Variance",
         "nirspi_pipe.patterns.orders.Zigzag",
         # solvers
+        "nirspi_pipe.solvers.completion.CompletionSolver",
         "nirspi_pipe.solvers.correlation.CorrelationSolver",
         "nirspi_pipe.solvers.fista_tv.FistaTVSolver",
         "nirspi_pipe.solvers.fwht.FWHTSolver",

@@ -1,0 +1,425 @@
+"""Solver ``completion``: linear MMSE ("denoised completion") of the unmeasured Hadamard coefficients
+from the measured ones, through a stationary image prior (the denoised completion of Lorente Mur,
+Peyrin & Ducros, Opt. Express 2021, without its network; a single precomputed linear map like
+Czajkowski et al.'s FDRI, Opt. Express 2018).
+
+Model. The image ``x`` (``N = n²`` pixels, relative radiance) has mean ``μ`` (a flat image) and
+covariance ``s·C``; the acquisition measures ``y = A x + w`` with ``A = H_M`` (the measured rows
+``M`` of the 2D Hadamard matrix, in any scan order and at any ratio) and white noise ``w`` of
+variance ``σ²`` per ±1 measurement. The linear MMSE estimate (Gauss–Markov) is::
+
+    x̂ = μ + s C Aᵀ (s A C Aᵀ + σ² I)⁻¹ (y − A μ)
+
+In the Hadamard domain (``Σ = H C H``, the coefficients' covariance) this is the issue's
+``x̂_U = μ_U + Σ_UM (Σ_MM + D)⁻¹ (y − μ_M)`` for the unmeasured coefficients and
+``x̂_M = μ_M + Σ_MM (Σ_MM + D)⁻¹ (y − μ_M)`` for the measured ones (denoised), ``D = σ²/s · I``,
+followed by the inverse transform: the image-domain form is the same map with the inverse
+transform folded in (``H⁻¹ Σ_{:,M} = C Aᵀ``). With ``σ = 0`` the measured coefficients are kept
+exactly and only the unmeasured ones are estimated (regularised by ``EXACT_FLOOR``).
+
+Prior (:class:`PowerLawPrior`): a stationary covariance whose power spectrum is
+``S(f) = (f0² + |f|²)^(−α/2)``, ``f`` in cycles per image side, embedded in a ``2n × 2n`` torus
+(so the ``n × n`` covariance is a principal block of a positive semi-definite circulant, hence
+positive semi-definite), normalised to unit pixel variance. ``α`` and ``f0`` are fitted to a
+training set that is disjoint from every benchmark image (``experiments/prior/build_prior.py``,
+``experiments/prior/training.txt``; shipped as a few numbers in
+``nirspi_pipe/data/completion_prior.json``, the ``N × N`` covariance is never stored). The
+amplitude ``s`` is fitted to each acquisition by maximum marginal likelihood (type-II ML:
+``y − Aμ ~ N(0, s Σ_MM + σ² I)``), so the prior needs no absolute brightness; with ``alpha: auto``
+the exponent too is chosen per acquisition, by the same likelihood, among three shipped values (the
+pooled fit and the 5th / 90th percentiles of the exponents fitted to each training crop alone).
+``μ`` is the flat image at the measured mean (the DC reading / ``N``) when DC is measured, else at
+the training set's mean.
+
+Noise (``noise: auto``): ``σ`` from the split measurements themselves (the spread of the pair sums
+``y⁺ + y⁻``, :func:`~nirspi_pipe.solvers.noise.estimate_noise`, rule ``pair_sums``), or the value a
+source declares; a number fixes it (calibrated units of one ±1 measurement). The detector model's
+parameters are not read: the solver sees only the acquisition, as it would from the device.
+
+Guard (``guard: true``): the power law is a poor model of images that are sparse in the Walsh
+basis (a checkerboard aligned with the patterns: completion lost 20 dB to zero-filling there). The
+leave-one-out error of predicting each measured coefficient from the others, closed form for a
+Gaussian model, is compared with that of the white prior (every coefficient independent: predicts
+0); when the white prior predicts better, the solver returns its estimate, the zero-filled image
+(Wiener-shrunk by ``sN/(sN + σ²)`` with noise).
+
+Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
+``Σ_MM = V Λ Vᵀ``, ``V ∘ V`` (the guard) and ``G = C Aᵀ V`` (``N × m``), as float32:
+``(N + 2m)·m·4`` bytes, 7.7 MiB at 64² and 10 %, 24 MiB at 25 %, 64 MiB at 50 %, 192 MiB at 100 %
+(three times that with ``alpha: auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
+Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
+Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
+then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
+from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
+from nirspi_pipe.solvers.noise import estimate_noise
+from nirspi_pipe.types import Acquisition, Image2D
+
+__all__ = [
+    "PowerLawPrior",
+    "CompletionSolver",
+    "default_prior",
+    "default_alphas",
+    "completion_maps",
+    "complete",
+    "CACHE_BYTES",
+    "EXACT_FLOOR",
+    "PRIOR_FILE",
+]
+
+#: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
+PRIOR_FILE = "completion_prior.json"
+#: In-memory cache budget of the completion maps, bytes (assumed: a few 64² maps at 25–50 %).
+CACHE_BYTES = 512 * 2**20
+#: With ``σ = 0`` the noise variance is floored at this fraction of ``s·λ_max`` (the largest
+#: eigenvalue of ``s Σ_MM``): float64 eigenvalues below it are rounding, not signal.
+EXACT_FLOOR = 1e-12
+#: Patterns convolved with ``C`` per FFT batch (bounds the complex work array: 256 × (2n)² × 16 B,
+#: 64 MiB at 64²).
+_BATCH = 256
+
+
+@dataclass(frozen=True)
+class PowerLawPrior:
+    """A stationary image covariance with power spectrum ``(f0² + |f|²)^(−α/2)``.
+
+    Attributes:
+        alpha: spectral exponent α (natural images: ≈ 2, Field 1987; van der Schaaf & van
+            Hateren 1996).
+        f0: roll-off frequency, cycles per image side (> 0; the variance of the image mean).
+        mean: prior mean radiance (relative radiance), used when DC is not measured.
+    """
+
+    alpha: float
+    f0: float
+    mean: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.alpha) and 0 <= self.alpha <= 6):
+            raise ConfigError("alpha", self.alpha, "a spectral exponent in [0, 6]")
+        if not (np.isfinite(self.f0) and self.f0 > 0):
+            raise ConfigError("f0", self.f0, "a roll-off frequency > 0 (cycles per image side)")
+        if not np.isfinite(self.mean):
+            raise ConfigError("mean", self.mean, "a finite prior mean radiance")
+
+    @property
+    def cache_key(self) -> tuple:
+        """What identifies this prior's maps in the cache."""
+        return ("power_law", float(self.alpha), float(self.f0))
+
+    def spectrum(self, n: int) -> np.ndarray:
+        """``(2n, 2n)`` spectrum on the embedding torus, frequencies in cycles per image side
+        (``n`` pixels), unnormalised (the amplitude is fitted per acquisition)."""
+        f = np.fft.fftfreq(2 * n) * n
+        r2 = f[:, None] ** 2 + f[None, :] ** 2
+        return (self.f0**2 + r2) ** (-0.5 * self.alpha)
+
+    def covariance_apply(self, images: np.ndarray) -> np.ndarray:
+        """``C x`` for a batch ``(B, n, n)``: zero-padded circular convolution on the ``2n`` torus
+        (``O(B n² log n)``; the ``N × N`` matrix is never formed)."""
+        n = images.shape[-1]
+        spec = _spectrum_cached(self.alpha, self.f0, n)
+        out = np.empty(images.shape, dtype=np.float64)
+        for start in range(0, images.shape[0], _BATCH):
+            part = images[start : start + _BATCH]
+            f = np.fft.rfft2(part, s=(2 * n, 2 * n))
+            out[start : start + _BATCH] = np.fft.irfft2(f * spec, s=(2 * n, 2 * n))[:, :n, :n]
+        return out
+
+
+@lru_cache(maxsize=8)
+def _spectrum_cached(alpha: float, f0: float, n: int) -> np.ndarray:
+    spec = PowerLawPrior(alpha, f0).spectrum(n)
+    spec = spec / spec.mean()  # covariance 1 at lag 0: the amplitude s is the pixel variance
+    return np.ascontiguousarray(spec[:, : n + 1])  # the rfft2 half
+
+
+@lru_cache(maxsize=1)
+def _shipped() -> dict:
+    text = resources.files("nirspi_pipe").joinpath("data").joinpath(PRIOR_FILE).read_text()
+    return dict(json.loads(text)["prior"])
+
+
+def default_prior() -> PowerLawPrior:
+    """The shipped prior, the pooled fit (``nirspi_pipe/data/completion_prior.json``; its
+    ``training`` key lists the images it was fitted to, ``experiments/prior/build_prior.py``
+    rebuilds it)."""
+    p = _shipped()
+    return PowerLawPrior(alpha=float(p["alpha"]), f0=float(p["f0"]), mean=float(p["mean"]))
+
+
+def default_alphas() -> tuple[float, ...]:
+    """The shipped exponents among which ``alpha: auto`` chooses (ascending)."""
+    return tuple(sorted(float(a) for a in _shipped()["alphas"]))
+
+
+@dataclass(frozen=True)
+class _Maps:
+    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ``,
+    ``v2`` ``(m, m)`` = ``V ∘ V`` (the guard's diagonal of ``K⁻¹``) and ``g`` ``(N, m)`` = ``C Aᵀ V``
+    (float32)."""
+
+    lam: np.ndarray
+    vt: np.ndarray
+    v2: np.ndarray
+    g: np.ndarray
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.lam.nbytes + self.vt.nbytes + self.v2.nbytes + self.g.nbytes)
+
+
+class _ByteLRU:
+    """A least-recently-used cache bounded by the total ``nbytes`` of its values."""
+
+    def __init__(self, budget: int) -> None:
+        self.budget = budget
+        self.items: OrderedDict[tuple, _Maps] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: tuple) -> _Maps | None:
+        with self.lock:
+            hit = self.items.get(key)
+            if hit is not None:
+                self.items.move_to_end(key)
+            return hit
+
+    def put(self, key: tuple, value: _Maps) -> None:
+        with self.lock:
+            self.items[key] = value
+            self.items.move_to_end(key)
+            while len(self.items) > 1 and sum(v.nbytes for v in self.items.values()) > self.budget:
+                self.items.popitem(last=False)
+
+    def clear(self) -> None:
+        with self.lock:
+            self.items.clear()
+
+
+_CACHE = _ByteLRU(CACHE_BYTES)
+
+
+def _patterns(n: int, indices: np.ndarray) -> np.ndarray:
+    """``(m, n, n)`` the ±1 patterns ``h_i h_jᵀ`` of the flat indices (the rows of ``A``)."""
+    h = sylvester(n)
+    i, j = indices // n, indices % n
+    return h[i][:, :, None] * h[j][:, None, :]
+
+
+def completion_maps(n: int, indices: np.ndarray, prior: PowerLawPrior) -> _Maps:
+    """The cached maps of one (resolution, measured set, prior) (module doc: cost and size).
+
+    ``prior`` needs ``covariance_apply`` (``(B, n, n) ↦ C x``), ``cache_key`` and ``mean``: any
+    covariance can be plugged in (``experiments/prior/build_prior.py`` compares an empirical one)."""
+    idx = np.asarray(indices, dtype=np.int64)
+    key = (int(n), idx.tobytes(), prior.cache_key)
+    hit = _CACHE.get(key)
+    if hit is not None:
+        return hit
+    size = n * n
+    cp = prior.covariance_apply(_patterns(n, idx)).reshape(idx.size, size)  # rows: C aₖ
+    sigma_mm = fwht(cp, axis=-1)[:, idx]  # A C Aᵀ (symmetric)
+    sigma_mm = 0.5 * (sigma_mm + sigma_mm.T)
+    lam, v = np.linalg.eigh(sigma_mm)
+    lam = np.maximum(lam, 0.0)
+    g = (cp.T @ v).astype(np.float32)
+    v32 = v.astype(np.float32)
+    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v32.T), v2=v32 * v32, g=g)
+    _CACHE.put(key, maps)
+    return maps
+
+
+def _fit_scale(z2: np.ndarray, lam: np.ndarray, sigma2: float) -> float:
+    """Type-II maximum likelihood of the prior's amplitude ``s``: ``zᵢ ~ N(0, s λᵢ + σ²)``
+    (closed form when ``σ = 0``; else scipy's bounded Brent search on ``ln s``)."""
+    live = lam > EXACT_FLOOR * float(lam[-1])
+    z2, lam = z2[live], lam[live]
+    if sigma2 <= 0:  # closed form
+        return float(np.mean(z2 / lam))
+    guess = max(float(np.mean(np.maximum(z2 - sigma2, 0.0) / lam)), 1e-30)
+
+    def nll(log_s: float) -> float:
+        v = np.exp(log_s) * lam + sigma2
+        return float(np.sum(np.log(v) + z2 / v))
+
+    lo, hi = np.log(guess) - 12.0, np.log(guess) + 6.0
+    res = minimize_scalar(nll, bounds=(lo, hi), method="bounded", options={"xatol": 0.02})
+    return float(np.exp(res.x))
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """One prior fitted to one acquisition: maps, ``z = Vᵀ(y − Aμ)``, amplitude, noise variance
+    used, and the negative log marginal likelihood per measurement (up to ½ ln 2π)."""
+
+    maps: _Maps
+    z: np.ndarray
+    scale: float
+    noise2: float
+    nll: float
+
+
+def _fit(maps: _Maps, r: np.ndarray, sigma: float, scale: float | None) -> _Fit:
+    z = (maps.vt @ r.astype(np.float32)).astype(np.float64)
+    s = _fit_scale(z * z, maps.lam, sigma**2) if scale is None else float(scale)
+    lam_max = float(maps.lam[-1]) if maps.lam.size else 0.0
+    noise2 = max(sigma**2, EXACT_FLOOR * s * lam_max)
+    denom = s * maps.lam + noise2
+    live = denom > 0
+    nll = 0.5 * float(np.sum(np.log(denom[live]) + z[live] ** 2 / denom[live])) / max(int(live.sum()), 1)
+    return _Fit(maps, z, s, noise2, nll)
+
+
+def complete(
+    n: int,
+    indices: np.ndarray,
+    y: np.ndarray,
+    sigma: float,
+    prior: PowerLawPrior | Sequence[PowerLawPrior],
+    scale: float | None = None,
+    guard: bool = False,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The linear MMSE image ``(n, n)`` from measurements ``y`` (calibrated ±1 coefficients at
+    flat ``indices``) with noise ``sigma`` per measurement, and bookkeeping (module doc).
+
+    ``prior``: one prior, or several (then the one of highest marginal likelihood of ``y`` is used,
+    ``info["alpha"]``); ``scale``: the prior's amplitude ``s`` (None: fitted by marginal likelihood).
+    ``guard``: fall back to the white prior when it predicts the measurements better by
+    leave-one-out (:func:`_loo_ratio`, module doc)."""
+    priors = list(prior) if isinstance(prior, Sequence) else [prior]
+    size = n * n
+    r = np.asarray(y, dtype=np.float64).copy()
+    dc = np.flatnonzero(np.asarray(indices) == 0)
+    mu = float(r[dc[0]]) / size if dc.size else float(priors[0].mean)
+    if dc.size:
+        r[dc[0]] -= mu * size  # A μ: a flat image has only a DC coefficient
+    fits = [_fit(completion_maps(n, indices, p), r, sigma, scale) for p in priors]
+    best = int(np.argmin([f.nll for f in fits]))
+    f = fits[best]
+    denom = f.scale * f.maps.lam + f.noise2
+    safe = np.where(denom > 0, denom, 1.0)
+    info: dict[str, float] = {}
+    if guard:
+        live = np.ones(r.size, dtype=bool)
+        live[dc] = False
+        info["loo_ratio"] = ratio = _loo_ratio(f, safe, live, r)
+        if ratio > 1.0:  # the white prior predicts the measurements better: zero-filled, shrunk
+            s0 = max(float(np.mean(r[live] ** 2)) - sigma**2, 0.0) / size if live.any() else 0.0
+            gain = s0 * size / (s0 * size + sigma**2) if s0 * size + sigma**2 > 0 else 1.0
+            full = np.zeros(size)
+            full[np.asarray(indices, dtype=np.int64)] = r * gain
+            full[np.asarray(indices, dtype=np.int64)[dc]] = r[dc]
+            image = mu + fwht(full) / size
+            info.update(alpha=0.0, prior_scale=s0, noise_sigma=float(sigma), prior_mean=mu, neg_log_evidence=np.nan)
+            return image.reshape(n, n), info
+    w = np.where(denom > 0, f.scale * f.z / safe, 0.0)
+    image = mu + (f.maps.g @ w.astype(np.float32)).astype(np.float64)
+    info |= {
+        "alpha": float(getattr(priors[best], "alpha", np.nan)),
+        "prior_scale": f.scale,
+        "noise_sigma": float(sigma),
+        "prior_mean": mu,
+        "neg_log_evidence": f.nll,
+    }
+    return image.reshape(n, n), info
+
+
+def _loo_ratio(f: _Fit, denom: np.ndarray, live: np.ndarray, r: np.ndarray) -> float:
+    """Leave-one-out prediction error of the measured coefficients under the fitted prior, over
+    that of the white prior (which predicts every left-out coefficient as 0), DC excluded.
+
+    For a Gaussian model ``r ~ N(0, K)`` the residual of predicting ``rᵢ`` from the others is
+    ``(K⁻¹r)ᵢ / (K⁻¹)ᵢᵢ`` (Sundararajan & Keerthi, Neural Comput. 13, 2001; Rasmussen & Williams
+    2006, Eq. 5.12), here with ``K⁻¹ = V diag(1/(sλ + σ²)) Vᵀ``: two ``m × m`` products."""
+    if not live.any():
+        return 0.0
+    v = f.maps.vt.T
+    inv = (1.0 / denom).astype(np.float32)
+    k_r = (v @ (f.z / denom).astype(np.float32)).astype(np.float64)
+    k_ii = (f.maps.v2 @ inv).astype(np.float64)
+    loo = k_r[live] / k_ii[live]
+    white = float(np.sum(r[live] ** 2))
+    return float(np.sum(loo**2)) / white if white > 0 else 0.0
+
+
+@dataclass(frozen=True)
+class CompletionSolver:
+    """Solver ``completion``: linear MMSE completion and denoising of Hadamard coefficients under a
+    stationary power-law image prior (module doc; Lorente Mur et al. 2021).
+
+    Attributes:
+        noise: ``auto`` (σ from the acquisition: declared, or the split pairs' sums,
+            :func:`~nirspi_pipe.solvers.noise.estimate_noise`), or σ ≥ 0 per ±1 measurement in
+            calibrated units (relative radiance × pixels); 0 treats the data as exact.
+        alpha: spectral exponent of the prior; ``auto``: of the shipped exponents (the training
+            crops' 5th percentile, the pooled fit and the 90th percentile,
+            ``nirspi_pipe/data/completion_prior.json``), the one under which the measurements are
+            most likely (marginal likelihood; three maps cached instead of one).
+        f0: roll-off frequency of the prior, cycles per image side; null: the shipped one.
+        guard: when the white prior (no correlation between coefficients: the zero-filled image,
+            Wiener-shrunk with noise) predicts each measured coefficient from the others better than
+            the fitted prior does (leave-one-out, DC excluded; ``info.loo_ratio`` > 1), return
+            that instead (``info.alpha`` = 0). Images that are sparse in the Walsh basis (a
+            checkerboard aligned with the patterns) are where the power law is wrong.
+    """
+
+    noise: float | str = "auto"
+    alpha: float | str = "auto"
+    f0: float | None = None
+    guard: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.noise, str):
+            if self.noise != "auto":
+                raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
+        elif not (np.isfinite(self.noise) and self.noise >= 0):
+            raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
+        if isinstance(self.alpha, str) and self.alpha != "auto":
+            raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
+        self.priors()  # validates alpha and f0
+
+    def priors(self) -> list[PowerLawPrior]:
+        """The priors in use: the shipped exponents (``alpha: auto``) or the one given, with the
+        shipped ``f0`` unless ``f0`` is set."""
+        base = default_prior()
+        f0 = base.f0 if self.f0 is None else float(self.f0)
+        alphas = default_alphas() if isinstance(self.alpha, str) else (float(self.alpha),)
+        return [PowerLawPrior(alpha=a, f0=f0, mean=base.mean) for a in alphas]
+
+    def solve(self, acquisition: Acquisition) -> Image2D:
+        require_hadamard(acquisition, "completion")
+        n = acquisition.n
+        if not is_power_of_two(n):
+            raise ConfigError("camera.resolution", n, "a power of two (Hadamard patterns)", absolute=True)
+        y = checked_coefficients(acquisition, "completion")
+        info: dict[str, object] = {"iterations": 1, "stop_reason": "direct"}
+        if isinstance(self.noise, str):
+            est = estimate_noise(acquisition)
+            sigma, info["noise_method"] = float(est.sigma), est.method
+        else:
+            sigma, info["noise_method"] = float(self.noise), "fixed"
+        idx = np.asarray(acquisition.indices, dtype=np.int64)
+        image, extra = complete(n, idx, y, sigma, self.priors(), guard=bool(self.guard))
+        info.update(extra)
+        return Image2D(image, info=info)
+
+
+def clear_cache() -> None:
+    """Empty the in-memory map cache (tests, benchmarks)."""
+    _CACHE.clear()
