@@ -118,7 +118,10 @@ def check_overrides(args: list[str]) -> str | None:
         group = ov.key_or_group.split("@", 1)[0]
         if ov.is_delete() or group.startswith("hydra") or not _group_exists(group):
             continue
-        values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
+        try:
+            values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
+        except HydraException:  # interval(), glob(): checked by their candidates in nirspi_pipe.app.entry
+            continue
         allowed = group_options(group)
         for value in values:
             if value in ("null", "None") or value in allowed:
@@ -200,10 +203,16 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
     from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
 
     runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
+    from hydra.errors import HydraException
+
     for ov in values:
         if not ov.is_sweep_override():
             continue
-        for value in ov.sweep_iterator():
+        try:
+            swept = list(ov.sweep_iterator())
+        except HydraException:  # interval(), glob(): their candidates are checked in nirspi_pipe.app.entry
+            continue
+        for value in swept:
             one = cfg.copy()
             try:
                 OmegaConf.update(one, ov.key_or_group, value, merge=False)
