@@ -232,7 +232,7 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
 
 
 #: Top-level keys of a job's config that are not config groups (conf/config.yaml).
-PLAIN_KEYS = ("camera", "seed", "tables", "output")
+PLAIN_KEYS = ("camera", "seed", "tables", "output", "objective")
 #: ``output``'s keys, each true or false (conf/config.yaml).
 OUTPUT_KEYS = ("arrays", "images", "quiet")
 #: Hydra flags that load something other than configs: ``--experimental-rerun`` unpickles a file
@@ -286,6 +286,12 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
             return f"output.{key} is not a key of output; allowed keys: {', '.join(OUTPUT_KEYS)}"
         if not isinstance(value, bool):
             return f"output.{key}={value!r} is not allowed; allowed: true or false"
+    from nirspi_pipe.app.objective import ObjectiveError, objective_names
+
+    try:
+        objective_names(config.get("objective"))
+    except ObjectiveError as exc:
+        return str(exc)
     tables = config.get("tables")
     names = _table_names()
     if tables is not None and not isinstance(tables, list):
