@@ -417,6 +417,14 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
 
     sweeper = config.hydra.sweeper
     optimises = "n_trials" in sweeper  # Optuna's (and any sweeper that asks for trials)
+    if optimises and "nirspi" in str(sweeper.get("_target_", "")):
+        print(
+            "nirspi-run: error: hydra.sweeper.n_trials is set (an Optuna experiment?) but the sweeper is the nirspi "
+            "grid; allowed: hydra/sweeper=optuna on the command line (Hydra ignores an experiment's sweeper choice)",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(2)
     try:
         names = objective_names(config.get("objective"))
         if optimises and not names:

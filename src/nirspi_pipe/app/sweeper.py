@@ -383,8 +383,10 @@ class NirspiSweeperBase(Sweeper):
         experiments: list[str] | None = None,
         max_attempts: int = 3,
         allow_failures: bool = False,
+        direction: Any = None,
     ) -> None:
         self.max_batch_size = max_batch_size
+        self.direction = direction  # objective's directions: read by the results callback (pareto column)
         self.params = dict(params or {})
         self.resume = resume
         self.experiments = list(experiments or [])
