@@ -502,10 +502,11 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
     return the :class:`Invocation` to hand to Hydra; :class:`Refused` (one line) otherwise."""
     from nirspi_pipe.app import validate
 
+    if api:
+        for arg in args:
+            if arg.startswith("-"):
+                raise Refused(f"{arg[:60]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     flags, overrides = parse_args(list(args))
-    if api and flags:
-        first = next(iter(flags))
-        raise Refused(f"{first} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     if "--shell-completion" in flags:
         words = [o.partition("=") for o in overrides]
         if len(words) != 1 or words[0][0] not in ("install", "uninstall", "query") or words[0][2] not in _SHELLS:

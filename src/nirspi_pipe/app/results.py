@@ -146,10 +146,16 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
     info = load_sweep_file(sweep)  # SweepFileError (one line naming it) when malformed
-    if info:
-        paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]]
-    else:
+    paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]] if info else []
+    if not paths:  # no sweep.json, or one listing no jobs: every record below the folder (issue 32)
         paths = find_records(sweep)
+        if info and paths:
+            print(
+                f"nirspi-collect: warning: {sweep}/sweep.json lists no jobs; collected the {len(paths)} "
+                "record(s) found below the folder instead",
+                file=sys.stderr,
+                flush=True,
+            )
     records = []
     seen: set[Path] = set()
     for path in paths:
@@ -168,12 +174,32 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
             log.warning("unreadable record %s: %s", path, exc)
             records.append((job, {"meta": {"status": "failed", "error": f"unreadable record: {exc}"}}))
     frame = records_to_frame(records)
+    before = _rows_in(sweep / "results.parquet") if write else None
+    if before is not None and before > len(frame):  # never fewer rows without saying so (issue 32)
+        print(
+            f"nirspi-collect: warning: {sweep / 'results.parquet'} had {before} rows and now gets {len(frame)}: "
+            "the records of the missing rows are no longer in the folder",
+            file=sys.stderr,
+            flush=True,
+        )
     if write:  # atomically (unique temporary names): OutputError, one line, when it cannot be written
         buf = io.BytesIO()
         frame.to_parquet(buf, index=False)
         atomic_write(sweep / "results.parquet", buf.getvalue())
         atomic_write(sweep / "results.csv", frame.to_csv(index=False))
     return frame
+
+
+def _rows_in(path: Path) -> int | None:
+    """Rows of an existing parquet file (its metadata only), or None."""
+    if not path.is_file() or path.is_symlink():
+        return None
+    try:
+        import pyarrow.parquet as pq
+
+        return int(pq.read_metadata(path).num_rows)
+    except Exception:  # noqa: BLE001 - an unreadable old table is replaced
+        return None
 
 
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
