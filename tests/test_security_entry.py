@@ -375,7 +375,12 @@ def test_the_api_in_another_working_directory_ignores_its_plugins(tmp_path: Path
     (tmp_path / "hydra_plugins" / "evil_scan.py").write_text("open('MARK', 'w').close()\n")
     (tmp_path / "VICTIM").write_text(VICTIM_TEXT)
     res = subprocess.run(
-        [sys.executable, "-c", _API_SCRIPT], cwd=tmp_path, capture_output=True, text=True, timeout=240, env=_env(tmp_path)
+        [sys.executable, "-c", _API_SCRIPT],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=_env(tmp_path),
     )
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.count("REFUSED") == 4 and "RAN" not in res.stdout, res.stdout
