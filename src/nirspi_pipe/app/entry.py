@@ -172,7 +172,7 @@ def parse_args(args: list[str]) -> tuple[dict[str, str | None], list[str]]:
     return flags, overrides
 
 
-def _one_line(text: str, limit: int = 300) -> str:
+def _one_line(text: object, limit: int = 300) -> str:
     return " ".join(str(text).split())[:limit]
 
 
@@ -192,7 +192,7 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
         problem = yaml_problem(exc)
         if problem:
             raise Refused(problem) from None
-        cause = exc
+        cause: BaseException = exc
         while cause.__cause__ is not None and not str(cause).strip():
             cause = cause.__cause__
         text = str(cause).strip().splitlines()
