@@ -135,11 +135,12 @@ def trusted_paths() -> list[str]:
 
 
 def installed(ep: metadata.EntryPoint) -> bool:
-    """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry (an
-    entry point made in code, without a distribution, is taken as given)."""
+    """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry. An
+    entry point without a distribution (made in code, not installed) is refused: plugins come
+    only from installed distributions (tests/test_plugins.py)."""
     dist = getattr(ep, "dist", None)
     if dist is None:
-        return True
+        return False
     try:
         where = os.path.realpath(str(dist.locate_file("")))
     except Exception:  # noqa: BLE001 - a distribution that cannot say where it is: not trusted
