@@ -85,9 +85,7 @@ def test_targets_are_found_everywhere_in_a_tree() -> None:
     check_target("logging.StreamHandler", "hydra.job_logging.handlers.console.class")
 
 
-def test_plugins_register_targets_through_entry_point_metadata(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
-) -> None:
+def test_plugins_register_targets_through_entry_point_metadata(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """A plugin's registered class is allowed; another class of the same plugin is not. Read from
     the metadata of an installed distribution (a ``*.dist-info`` on an absolute ``sys.path``
     entry): the plugin is not imported."""

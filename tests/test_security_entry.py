@@ -103,6 +103,11 @@ HYDRA_ATTACKS = [
     "hydra.help.template=x",
     "hydra/job_logging=evil",
     "hydra/env=default,other",
+    # issue 32, tried again: a whole logging config inline, folders through an interpolation
+    "hydra.job_logging={version:1,handlers:{f:{class:logging.FileHandler,filename:VICTIM}},root:{handlers:[f]}}",
+    "+hydra.job_logging.handlers.f={class:logging.FileHandler,filename:VICTIM,mode:w}",
+    "hydra.output_subdir=${oc.env:HOME}",
+    "hydra.job.name=${oc.env:HOME}",
 ]
 
 
@@ -113,7 +118,20 @@ def test_hydra_settings_outside_the_allow_list_are_refused(attack: str, flags: l
 
 
 @pytest.mark.parametrize("attack", HYDRA_ATTACKS[:4])
-@pytest.mark.parametrize("flags", [["--hydra-help"], ["--cfg", "hydra"], ["--info", "config"], ["-m"]])
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["-h"],
+        ["--hydra-help"],
+        ["--cfg", "hydra"],
+        ["--cfg=all", "--resolve"],
+        ["-c", "job", "-p", "hydra"],
+        ["--info"],
+        *[["--info", value] for value in FLAGS["--info"][1][1]],
+        ["-i=searchpath"],
+        ["-m"],
+    ],
+)
 def test_hydra_settings_are_refused_for_every_flag(attack: str, flags: list[str]) -> None:
     _refused([*flags, attack])
 
@@ -132,6 +150,9 @@ def test_hydra_settings_are_refused_for_every_flag(attack: str, flags: list[str]
         (["-m", "+hydra.sweeper.params.scan=basic,nope"], "sweeping Hydra's own settings"),
         (["seed=0,1"], "a sweep with -m only"),
         (["-m", "seed=glob(*)"], "glob() is allowed only over a config group"),
+        (["-m", "seed=0,1", "hydra/sweeper=basic", "hydra.sweep.subdir=${oc.env:HOME}"], "hydra.sweep.subdir="),
+        (["-m", "seed=0,1", "hydra/sweeper=basic", "hydra.sweep.subdir=a/../../b"], "hydra.sweep.subdir="),
+        (["-m", "seed=0,1", "hydra/sweeper=basic", "hydra.sweep.subdir=${hydra.job.name}", "hydra.job.name=.."], ".."),
     ],
 )
 def test_sweeps_and_job_folders(args: list[str], message: str) -> None:
@@ -387,3 +408,122 @@ def test_the_api_in_another_working_directory_ignores_its_plugins(tmp_path: Path
     assert "OK (8, 8)" in res.stdout
     assert not (tmp_path / "MARK").exists()
     assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
+
+
+# ------------------------------------------------------------------ shell completion
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["-sc"], ["-sc", "query=pwsh"], ["-sc", "query=bash", "seed=1"], ["-sc", "install=bash", "query=bash"]],
+)
+def test_shell_completion_takes_one_shell_word(args: list[str]) -> None:
+    _refused(args, "-sc needs exactly one of")
+
+
+@pytest.mark.slow
+def test_shell_completion_runs_nothing(tmp_path: Path) -> None:
+    """``-sc query=bash`` composes what ``COMP_LINE`` holds to complete it: Hydra's handlers,
+    callbacks and logging given there are never applied (Hydra's completion builds nothing)."""
+    victim = tmp_path / "VICTIM"
+    victim.write_text(VICTIM_TEXT)
+    line = (
+        f"nirspi-run +hydra.callbacks.x={{_target_:logging.FileHandler,filename:{victim},mode:w}} "
+        f"+hydra.hydra_logging.handlers.x={{class:logging.FileHandler,filename:{victim},mode:w}} "
+        f"hydra.job_logging.handlers.file.filename={victim} +hydra.job.env_set.LD_PRELOAD=lib.so sc"
+    )
+    from conftest import script
+
+    before = _snapshot(tmp_path)
+    res = subprocess.run(
+        [script("nirspi-run"), "-sc", "query=bash"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env={**_env(tmp_path), "COMP_LINE": line},
+    )
+    assert res.returncode == 0 and "scene" in res.stdout, res.stderr[-2000:]
+    assert victim.read_text() == VICTIM_TEXT and _snapshot(tmp_path) == before
+
+
+# ------------------------------------------------------------------ one composition
+
+
+def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The default invocation and plain value overrides (no group, no ``+``/``~``, allow-listed
+    ``hydra.`` leaves) cost one composition, and the shortcut is sound: Hydra's node then differs
+    from the reference composition only at the ``hydra.`` keys the overrides set."""
+    import hydra
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.app import entry
+
+    calls: list[list[str]] = []
+    real = hydra.compose
+
+    def counting(config_name=None, overrides=(), **kw):  # type: ignore[no-untyped-def]
+        calls.append(list(overrides))
+        return real(config_name, overrides, **kw)
+
+    monkeypatch.setattr(hydra, "compose", counting)
+    entry._baseline.cache_clear()
+    plain = [
+        [],
+        ["scene.distance_mm=300", "seed=2", "output.quiet=true"],
+        ["hydra.run.dir=/tmp/x", "hydra.job.name=n", "hydra.verbose=true", "camera.resolution=16"],
+        ["-m", "seed=0,1", "hydra.launcher.n_jobs=2", "hydra.sweep.dir=out"],
+    ]
+    for args in plain:
+        calls.clear()
+        inv = check_invocation(args)
+        assert len(calls) == 1, (args, calls)
+        assert entry._baseline.cache_info().currsize == 0  # no reference composed
+        node = OmegaConf.to_container(inv.config.hydra, resolve=False)
+        user, ref = entry._leaves(node), entry._leaves(entry._baseline(()))
+        entry._baseline.cache_clear()
+        changed = {k for k in set(user) | set(ref) if user.get(k) != ref.get(k)}
+        changed = {k for k in changed if not any(entry._match(p, k) for p in allowlist.IGNORED_KEYS)}
+        set_keys = {a.split("=", 1)[0][len("hydra.") :] for a in args if a.startswith("hydra.")}
+        assert changed <= set_keys, (args, changed)
+    calls.clear()
+    check_invocation(["scene=cube", "hydra.run.dir=/tmp/x"])  # a group: the reference is composed
+    assert len(calls) == 2 and entry._baseline.cache_info().currsize == 1
+    calls.clear()
+    check_invocation(["scene=torus"])
+    assert len(calls) == 1  # the reference is cached per process
+    for attack in ("hydra.job.chdir=true", "hydra.run.dir=", "hydra.job.name=../x"):
+        _refused([attack])  # a plain override of a key off the allow-list or a bad value
+
+
+@pytest.mark.slow
+def test_the_cli_in_another_working_directory_ignores_its_plugins(tmp_path: Path) -> None:
+    """``nirspi-run`` in a folder with a ``*.dist-info`` registering ``os:system`` (target and
+    plugin) and a ``hydra_plugins`` module, with ``PYTHONPATH=.`` (Python makes it the folder's
+    absolute path): the target is refused, the plugin is not listed, MARK never appears."""
+    dist = tmp_path / "evil_plugin-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: evil-plugin\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(
+        "[nirspi_pipe.targets]\nsystem = os:system\n\n[nirspi_pipe.plugins]\nevil = evil_plugin_mod\n"
+    )
+    (tmp_path / "evil_plugin_mod.py").write_text("open('MARK', 'w').close()\n")
+    (tmp_path / "hydra_plugins").mkdir()
+    (tmp_path / "hydra_plugins" / "evil_scan.py").write_text("open('MARK', 'w').close()\n")
+    from conftest import script
+
+    env = _env(tmp_path)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (".", env.get("PYTHONPATH", "")) if p)
+    run = [script("nirspi-run")]
+    attack = subprocess.run(
+        [*run, "solver._target_=os.system", "+solver.command=touch MARK", "hydra.run.dir=out"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        env=env,
+    )
+    assert attack.returncode == 2 and "os.system" in attack.stderr, attack.stderr[-2000:]
+    listing = subprocess.run([*run, "--plugins"], cwd=tmp_path, capture_output=True, text=True, timeout=240, env=env)
+    assert listing.returncode == 0 and "evil" not in listing.stdout, listing.stdout + listing.stderr[-2000:]
+    assert not (tmp_path / "MARK").exists() and not (tmp_path / "out").exists()

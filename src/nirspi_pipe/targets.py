@@ -174,7 +174,10 @@ def allowed_targets() -> frozenset[str]:
 _LOGGING_CLASS_KEY = re.compile(r"^hydra\.(job|hydra)_logging\.handlers\.[^.]+\.(class|\(\))$")
 #: Optuna's samplers and pruners (hydra-optuna-sweeper, issue 34): only at these two keys, and
 #: only from these packages; :mod:`nirspi_pipe.app.entry` also requires the Optuna sweeper.
-OPTUNA_TARGET_KEYS = {"hydra.sweeper.sampler._target_": "optuna.samplers.", "hydra.sweeper.pruner._target_": "optuna.pruners."}
+OPTUNA_TARGET_KEYS = {
+    "hydra.sweeper.sampler._target_": "optuna.samplers.",
+    "hydra.sweeper.pruner._target_": "optuna.pruners.",
+}
 
 
 def _in_logging(key: str) -> bool:

@@ -433,7 +433,9 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
     return _check_diffs(user, diffs, hydra_node)
 
 
-def _check_diffs(user: dict[str, Any], diffs: list[tuple[int, str]], hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
+def _check_diffs(
+    user: dict[str, Any], diffs: list[tuple[int, str]], hydra_node: dict[str, Any]
+) -> list[tuple[str, str]]:
     """The leaves of Hydra's node that differ from the reference (``(order, key)``) against the
     allow-list; :class:`Refused` for the first that is not allowed. Returns the sweeps."""
     sweeps: list[tuple[str, str]] = []
@@ -637,7 +639,9 @@ def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
     return keys
 
 
-def _check_composed(cfg: Any, flags: dict[str, str | None], plain_keys: list[str] | None = None) -> list[tuple[str, str]]:
+def _check_composed(
+    cfg: Any, flags: dict[str, str | None], plain_keys: list[str] | None = None
+) -> list[tuple[str, str]]:
     """One composed configuration: Hydra's node against the allow-list, every target, the job's
     keys and stage nodes, and (``-m``) the sweep settings. Returns the sweeper's params.
     ``plain_keys``: see :func:`_hydra_keys_if_plain` (then only those keys of Hydra's node are
