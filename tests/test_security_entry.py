@@ -221,7 +221,8 @@ def _evil_folder(root: Path) -> Path:
     Hydra preset, a primary config."""
     conf = root / "conf"
     (conf / "experiment").mkdir(parents=True)
-    (conf / "hydra" / "job_logging").mkdir(parents=True)
+    for group in ("job_logging", "help", "launcher"):
+        (conf / "hydra" / group).mkdir(parents=True)
     victim = root / "VICTIM"
     handler = f"{{class: logging.FileHandler, filename: {victim}, mode: w}}"
     files = {
@@ -237,6 +238,8 @@ def _evil_folder(root: Path) -> Path:
         "experiment/env.yaml": "# @package _global_\nhydra:\n  job:\n    env_set:\n      LD_PRELOAD: lib.so\n",
         "hydra/job_logging/evil.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
         "hydra/job_logging/default.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
+        "hydra/help/evil.yaml": "app_name: x\ntemplate: ${oc.env:HOME}\n",
+        "hydra/launcher/evil.yaml": "_target_: os.system\ncommand: touch MARK\n",
         "evil.yaml": f"defaults:\n  - config\n  - _self_\nhydra:\n  job_logging:\n    handlers:\n      file: {handler}\n",
     }
     for name, text in files.items():
@@ -253,12 +256,14 @@ def _evil_folder(root: Path) -> Path:
         ["+experiment=callback"],
         ["+experiment=env"],
         ["hydra/job_logging=evil"],
+        ["hydra/help=evil"],
+        ["hydra/launcher=evil"],
         ["-cn", "evil"],
         ["-m", "+experiment=ok,logging"],
         ["-m", "seed=0,1", "+experiment=callback", "hydra/launcher=basic"],
     ],
 )
-@pytest.mark.parametrize("flag", [[], ["--help"], ["--info", "config"]])
+@pytest.mark.parametrize("flag", [[], ["--help"], ["--info", "config"], ["--cfg", "job"]])
 def test_config_folder_files_are_checked(args: list[str], flag: list[str], tmp_path: Path) -> None:
     conf = _evil_folder(tmp_path)
     if flag and "-m" in args:
@@ -266,6 +271,14 @@ def test_config_folder_files_are_checked(args: list[str], flag: list[str], tmp_p
         if "," in " ".join(args):
             pytest.skip("a sweep needs -m")
     _refused([*flag, "-cd", str(conf), *args])
+    assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
+
+
+@pytest.mark.parametrize("args", [["+experiment=logging"], ["+experiment=env"], ["hydra/launcher=evil"]])
+def test_a_searchpath_folder_is_checked_like_a_config_folder(args: list[str], tmp_path: Path) -> None:
+    """The same files through ``hydra.searchpath=[file://DIR]`` instead of ``-cd DIR``."""
+    conf = _evil_folder(tmp_path)
+    _refused([f"hydra.searchpath=[pkg://nirspi_pipe.experiments,{conf.as_uri()}]", *args])
     assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
 
 
