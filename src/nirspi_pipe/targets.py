@@ -135,11 +135,12 @@ def trusted_paths() -> list[str]:
 
 
 def installed(ep: metadata.EntryPoint) -> bool:
-    """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry (an
-    entry point made in code, without a distribution, is taken as given)."""
+    """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry. An
+    entry point without a distribution (made in code, not installed) is refused: plugins come
+    only from installed distributions (tests/test_plugins.py)."""
     dist = getattr(ep, "dist", None)
     if dist is None:
-        return True
+        return False
     try:
         where = os.path.realpath(str(dist.locate_file("")))
     except Exception:  # noqa: BLE001 - a distribution that cannot say where it is: not trusted
@@ -173,7 +174,10 @@ def allowed_targets() -> frozenset[str]:
 _LOGGING_CLASS_KEY = re.compile(r"^hydra\.(job|hydra)_logging\.handlers\.[^.]+\.(class|\(\))$")
 #: Optuna's samplers and pruners (hydra-optuna-sweeper, issue 34): only at these two keys, and
 #: only from these packages; :mod:`nirspi_pipe.app.entry` also requires the Optuna sweeper.
-OPTUNA_TARGET_KEYS = {"hydra.sweeper.sampler._target_": "optuna.samplers.", "hydra.sweeper.pruner._target_": "optuna.pruners."}
+OPTUNA_TARGET_KEYS = {
+    "hydra.sweeper.sampler._target_": "optuna.samplers.",
+    "hydra.sweeper.pruner._target_": "optuna.pruners.",
+}
 
 
 def _in_logging(key: str) -> bool:

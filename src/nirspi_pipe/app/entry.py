@@ -172,7 +172,7 @@ def parse_args(args: list[str]) -> tuple[dict[str, str | None], list[str]]:
     return flags, overrides
 
 
-def _one_line(text: str, limit: int = 300) -> str:
+def _one_line(text: object, limit: int = 300) -> str:
     return " ".join(str(text).split())[:limit]
 
 
@@ -192,7 +192,7 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
         problem = yaml_problem(exc)
         if problem:
             raise Refused(problem) from None
-        cause = exc
+        cause: BaseException = exc
         while cause.__cause__ is not None and not str(cause).strip():
             cause = cause.__cause__
         text = str(cause).strip().splitlines()
@@ -379,10 +379,18 @@ def _check_searchpath(value: Any) -> str | None:
     return None
 
 
-def check_hydra_node(hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
+def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = None) -> list[tuple[str, str]]:
     """Hydra's node of a composed config (a plain, unresolved tree) against the allow-list;
     raises :class:`Refused`. Returns the sweeps it holds (``hydra.sweeper.params``) as
-    ``(key, sweep string)`` pairs for the caller to check value by value."""
+    ``(key, sweep string)`` pairs for the caller to check value by value.
+
+    The reference is Hydra's node composed with nothing of the user's but the ``hydra/…``
+    choices (cached per process and per choices). With ``plain_keys`` (the node was composed
+    from the default config with plain value overrides only: :func:`_hydra_keys_if_plain`) it
+    is not composed: the node differs from it only at those keys, which are checked."""
+    user = _leaves(hydra_node)
+    if plain_keys is not None:
+        return _check_diffs(user, [(1, key) for key in sorted(set(plain_keys)) if key in user], hydra_node)
     choices = {k: v for k, v in (hydra_node.get("runtime", {}).get("choices") or {}).items() if k.startswith("hydra/")}
     defaults = {k: v for k, v in _default_choices().items() if k.startswith("hydra/")}
     changed: list[tuple[str, str | None]] = []
@@ -411,7 +419,7 @@ def check_hydra_node(hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
             f"{group}={option} is not an option; allowed: {', '.join(names) or '(none)'} "
             "(Hydra's, nirspi-pipe's and installed plugins' configs; a config folder cannot add one)"
         ) from None
-    user, ref = _leaves(hydra_node), _leaves(base)
+    ref = _leaves(base)
     ignored = allowlist.IGNORED_KEYS
     diffs: list[tuple[int, str]] = []
     for key in set(user) | set(ref):
@@ -422,6 +430,14 @@ def check_hydra_node(hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
         if key not in user and any(k.startswith(key + ".") for k in user):
             continue  # a node replaced by a subtree: its leaves are compared
         diffs.append((0 if key in user and key.endswith("_target_") else 1 if key in user else 2, key))
+    return _check_diffs(user, diffs, hydra_node)
+
+
+def _check_diffs(
+    user: dict[str, Any], diffs: list[tuple[int, str]], hydra_node: dict[str, Any]
+) -> list[tuple[str, str]]:
+    """The leaves of Hydra's node that differ from the reference (``(order, key)``) against the
+    allow-list; :class:`Refused` for the first that is not allowed. Returns the sweeps."""
     sweeps: list[tuple[str, str]] = []
     for _, key in sorted(diffs):
         value = user.get(key)
@@ -502,10 +518,11 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
     return the :class:`Invocation` to hand to Hydra; :class:`Refused` (one line) otherwise."""
     from nirspi_pipe.app import validate
 
+    if api:
+        for arg in args:
+            if arg.startswith("-"):
+                raise Refused(f"{arg[:60]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     flags, overrides = parse_args(list(args))
-    if api and flags:
-        first = next(iter(flags))
-        raise Refused(f"{first} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
     if "--shell-completion" in flags:
         words = [o.partition("=") for o in overrides]
         if len(words) != 1 or words[0][0] not in ("install", "uninstall", "query") or words[0][2] not in _SHELLS:
@@ -542,10 +559,7 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
             raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
         if ov.is_sweep_override() and "--multirun" not in flags:
             raise Refused(f"{ov.input_line} is a sweep; allowed: a sweep with -m only (nirspi-run -m ...)")
-    if not user_paths and "--shell-completion" not in flags:
-        problem = validate.check_overrides(compose_overrides)  # one-line names for options and keys
-        if problem:
-            raise Refused(problem)
+    name_options = not user_paths and "--shell-completion" not in flags  # one-line names for options and keys
     config_name = flags.get("--config-name") or CONFIG_NAME
     if config_name != CONFIG_NAME and not _primary_exists(config_name):
         raise Refused(
@@ -553,8 +567,21 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
             "nirspi-pipe's conf/ (files in a -cd folder are used as +experiment=NAME or group options)"
         )
     fixed = [o for o, ov in zip(compose_overrides, parsed, strict=True) if not ov.is_sweep_override()]
-    cfg = _compose(config_name, fixed)
-    _check_composed(cfg, flags)
+    try:
+        cfg = _compose(config_name, fixed)
+    except Refused:
+        problem = validate.check_overrides(compose_overrides) if name_options else None
+        if problem:  # the option or key by name, rather than Hydra's first line
+            raise Refused(problem) from None
+        raise
+    if name_options:
+        problem = validate.check_overrides(compose_overrides, composed=cfg)  # keys and types on this compose
+        if problem:
+            raise Refused(problem)
+    simple = None
+    if config_name == CONFIG_NAME and not user_paths:
+        simple = _hydra_keys_if_plain([ov for ov in parsed if not ov.is_sweep_override()])
+    _check_composed(cfg, flags, simple)
     sweeps = [ov for ov in parsed if ov.is_sweep_override()]
     _check_sweeps(cfg, sweeps, fixed, config_name, user_paths, flags)
     hydra_flags: list[str] = []
@@ -584,15 +611,47 @@ def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     return job, hydra_node  # type: ignore[return-value]
 
 
-def _check_composed(cfg: Any, flags: dict[str, str | None]) -> list[tuple[str, str]]:
+def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
+    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when every override in it is
+    a plain value override of an existing key (no config group, no ``+``/``~``/``@``) and each
+    ``hydra.…`` one sets one allow-listed leaf to a scalar; otherwise None.
+
+    Hydra composes the defaults tree first (only group choices and the config name shape it) and
+    then sets value overrides, so with such overrides Hydra's node differs from the default
+    composition at the keys they set and nowhere else (``hydra.overrides``,
+    ``hydra.job.override_dirname`` and ``hydra.runtime`` are not compared): those keys are all
+    that needs checking, and the reference composition is not needed."""
+    from nirspi_pipe.app.validate import _group_exists
+
+    keys: list[str] = []
+    for ov in fixed:
+        key = ov.key_or_group
+        if ov.is_add() or ov.is_delete() or ov.is_force_add() or "@" in key or key.startswith("hydra/"):
+            return None
+        if _group_exists(key.split("/", 1)[0]) or key == "hydra":
+            return None
+        if key.startswith("hydra."):
+            leaf = key[len("hydra.") :]
+            value = ov.value()
+            if _kind_of(leaf) is None or isinstance(value, (dict, list)) or _kind_of(leaf) == "searchpath":
+                return None
+            keys.append(leaf)
+    return keys
+
+
+def _check_composed(
+    cfg: Any, flags: dict[str, str | None], plain_keys: list[str] | None = None
+) -> list[tuple[str, str]]:
     """One composed configuration: Hydra's node against the allow-list, every target, the job's
-    keys and stage nodes, and (``-m``) the sweep settings. Returns the sweeper's params."""
+    keys and stage nodes, and (``-m``) the sweep settings. Returns the sweeper's params.
+    ``plain_keys``: see :func:`_hydra_keys_if_plain` (then only those keys of Hydra's node are
+    compared)."""
     from nirspi_pipe.app import validate
     from nirspi_pipe.errors import ConfigError
     from nirspi_pipe.targets import check_targets
 
     job, hydra_node = _plain(cfg)
-    params = check_hydra_node(hydra_node)
+    params = check_hydra_node(hydra_node, plain_keys)
     try:
         check_targets(job)
         check_targets(hydra_node, "hydra")

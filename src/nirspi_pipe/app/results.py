@@ -146,10 +146,16 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
     info = load_sweep_file(sweep)  # SweepFileError (one line naming it) when malformed
-    if info:
-        paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]]
-    else:
+    paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]] if info else []
+    if not paths:  # no sweep.json, or one listing no jobs: every record below the folder (issue 32)
         paths = find_records(sweep)
+        if info and paths:
+            print(
+                f"nirspi-collect: warning: {sweep}/sweep.json lists no jobs; collected the {len(paths)} "
+                "record(s) found below the folder instead",
+                file=sys.stderr,
+                flush=True,
+            )
     records = []
     seen: set[Path] = set()
     for path in paths:
@@ -171,6 +177,14 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     objective = read_objective(sweep)
     if objective is not None:
         frame = mark_pareto(frame, *objective)
+    before = _rows_in(sweep / "results.parquet") if write else None
+    if before is not None and before > len(frame):  # never fewer rows without saying so (issue 32)
+        print(
+            f"nirspi-collect: warning: {sweep / 'results.parquet'} had {before} rows and now gets {len(frame)}: "
+            "the records of the missing rows are no longer in the folder",
+            file=sys.stderr,
+            flush=True,
+        )
     if write:  # atomically (unique temporary names): OutputError, one line, when it cannot be written
         buf = io.BytesIO()
         frame.to_parquet(buf, index=False)
@@ -273,6 +287,18 @@ def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], pat
         log.error("front plot %s failed: %s: %s", path, type(exc).__name__, exc)
         return None
     return path
+
+
+def _rows_in(path: Path) -> int | None:
+    """Rows of an existing parquet file (its metadata only), or None."""
+    if not path.is_file() or path.is_symlink():
+        return None
+    try:
+        import pyarrow.parquet as pq
+
+        return int(pq.read_metadata(path).num_rows)
+    except Exception:  # noqa: BLE001 - an unreadable old table is replaced
+        return None
 
 
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:

@@ -99,9 +99,14 @@ def _override_args(args: list[str]) -> list[str]:
     return out
 
 
-def check_overrides(args: list[str]) -> str | None:
+def check_overrides(args: list[str], composed: Any = None) -> str | None:
     """Return a one-line problem with the group choices in ``args``, or None when they are fine
-    (or when they are not ours to judge: syntax errors and Hydra's own groups go to Hydra)."""
+    (or when they are not ours to judge: syntax errors and Hydra's own groups go to Hydra).
+
+    ``composed``: the configuration of every non-sweep override in ``args``, already composed
+    (:func:`nirspi_pipe.app.entry.check_invocation` composes it anyway); the keys and types are
+    then checked on it instead of composing again, unless a config group is swept (its first
+    option would be composed here)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -128,7 +133,9 @@ def check_overrides(args: list[str]) -> str | None:
                 continue
             return f"{group}={value} is not an option; allowed: {', '.join(allowed)} (or null)"
         choices.append(f"{'+' if ov.is_add() else ''}{ov.key_or_group}={values[0]}")
-    return _check_keys(parsed, choices)
+        if ov.is_sweep_override():
+            composed = None  # the sweep's first option is composed below, as a job will be
+    return _check_keys(parsed, choices, composed)
 
 
 def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra: bool = False) -> Any:
@@ -143,14 +150,15 @@ def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra
         return None
 
 
-def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
+def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> str | None:
     """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones; then
     values of the wrong type (``scene.distance_mm=abc``, also in a sweep list), in the words of a
     wrong value.
 
     One composition with the group choices and the single values when it succeeds (then no
     single-value key is unknown, and value overrides add no keys, so the keys are those of the
-    choices alone); only when it fails, a second with the choices alone to name the key."""
+    choices alone); only when it fails, a second with the choices alone to name the key. With
+    ``composed`` (all single-value overrides applied), that one is used instead of the first."""
     values = [
         ov
         for ov in parsed
@@ -163,6 +171,11 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     keys = [ov.key_or_group for ov in values]
     if not keys:
         return None
+    if composed is not None:
+        from omegaconf import OmegaConf
+
+        job = OmegaConf.masked_copy(composed, [str(k) for k in composed if k != "hydra"])
+        return _unknown_key(job, keys) or _check_types(job, values)
     fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
     cfg = _compose_or_none([*choices, *fixed])
     if cfg is None:
