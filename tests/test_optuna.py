@@ -159,3 +159,25 @@ def test_a_single_objective_study_where_every_trial_failed(cli) -> None:
     assert collected.returncode == 0, collected.stderr
     df = _results(sweep)
     assert list(df["status"]) == ["failed", "failed"] and not df["pareto"].any()
+
+
+def test_max_failure_rate_decides_the_exit_code(cli) -> None:
+    # the grid sampler, one trial at a time, runs each of the two weights once: one of two fails
+    res = cli(
+        "nirspi-run",
+        "-m",
+        "hydra/sweeper=optuna",
+        "hydra/sweeper/sampler=grid",
+        "hydra.sweeper.n_jobs=1",
+        "hydra.sweeper.n_trials=2",
+        "hydra.sweeper.max_failure_rate=0.5",
+        "hydra.sweeper.direction=maximize",
+        "objective=metrics.psnr",
+        *TINY,
+        "solver=fista_tv",
+        "solver.lam=choice(0.01,-1.0)",
+        "hydra.sweep.dir=sweep",
+    )
+    assert res.returncode == 0, res.stderr
+    df = _results(Path(cli.cwd) / "sweep")
+    assert sorted(df["status"]) == ["failed", "ok"] and df["pareto"].tolist() == list(df["status"] == "ok")
