@@ -111,6 +111,9 @@ HYDRA_KEYS: dict[str, str] = {
     "sweeper.direction": "direction",
     "sweeper.study_name": "name_or_null",
     "sweeper.storage": "null",
+    # TEMP (issue 34, for issue 32 to take over): the share of failed trials Optuna's sweeper, and
+    # the results callback's exit code, accept; should be a number in [0, 1] (the plugin asserts it)
+    "sweeper.max_failure_rate": "number_or_null",
     "sweeper.sampler._target_": "optuna_target",
     "sweeper.sampler.*": "scalar",
     "sweeper.pruner._target_": "optuna_target",
