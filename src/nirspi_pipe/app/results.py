@@ -268,9 +268,9 @@ def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], pat
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        fig, ax = plt.subplots(figsize=(6.4, 4.4))
+        fig, ax = plt.subplots(figsize=(7.6, 4.4))
         xs, ys = x[keep], y[keep]
-        ax.scatter(xs[~front], ys[~front], s=14, color="0.6", label=f"jobs ({keep.sum()})")
+        ax.scatter(xs[~front], ys[~front], s=14, color="0.6", label=f"dominated jobs ({(~front).sum()})")
         order = np.argsort(xs[front])
         ax.plot(xs[front][order], ys[front][order], "o-", color="C3", ms=5, lw=1, label=f"Pareto front ({front.sum()})")
         if x_name.startswith("timings_ms") and (xs > 0).all():
@@ -278,7 +278,7 @@ def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], pat
         ax.set_xlabel(f"{x_name} ({directions[0]})")
         ax.set_ylabel(f"{y_name} ({directions[1]})")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: never over a point
         ax.set_title(f"{len(ok)} ok jobs of {len(frame)}: the non-dominated ones joined", fontsize=9)
         fig.tight_layout()
         fig.savefig(path, dpi=120)
