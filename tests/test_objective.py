@@ -93,7 +93,9 @@ def _dominates(a: np.ndarray, b: np.ndarray) -> bool:
 
 @settings(max_examples=200, deadline=None)
 @given(
-    arrays(np.float64, st.tuples(st.integers(1, 25), st.just(3)), elements=st.sampled_from([0.0, 1.0, 2.0, 2.5, np.nan])),
+    arrays(
+        np.float64, st.tuples(st.integers(1, 25), st.just(3)), elements=st.sampled_from([0.0, 1.0, 2.0, 2.5, np.nan])
+    ),
     st.lists(st.sampled_from(["minimize", "maximize"]), min_size=3, max_size=3),
 )
 def test_the_front_is_exactly_the_non_dominated_finite_rows(values: np.ndarray, directions: list[str]) -> None:

@@ -107,7 +107,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("grid", type=Path)
     parser.add_argument("search", type=Path)
     parser.add_argument("--small", type=Path, default=None)
-    parser.add_argument("--replay", nargs="*", default=None, metavar="SAMPLER", help=f"also replay: {', '.join(SAMPLERS)}")
+    parser.add_argument(
+        "--replay", nargs="*", default=None, metavar="SAMPLER", help=f"also replay: {', '.join(SAMPLERS)}"
+    )
     ns = parser.parse_args(argv)
 
     grid = collect(ns.grid, write=False)
@@ -148,9 +150,10 @@ def main(argv: list[str] | None = None) -> None:
     print()
     print(f"found {found} of {len(front_configs)} front configurations in {len(search)} trials")
     marks = [n for n in (10, 20, 30, 40, 50, 60, 70, 80, 90, 100) if n <= len(tried)]
-    print("hypervolume of the search's front / the grid's, after n trials (grid values): " + ", ".join(
-        f"{n}: {hv_after(n):.3f}" for n in marks
-    ))
+    print(
+        "hypervolume of the search's front / the grid's, after n trials (grid values): "
+        + ", ".join(f"{n}: {hv_after(n):.3f}" for n in marks)
+    )
     for name in ns.replay if ns.replay is not None else []:
         r = replay(grid, name, range(8))
         print(

@@ -464,7 +464,9 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
         if direction is not None and not names:
             if optimises:
                 return None
-            raise ObjectiveError("hydra.sweeper.direction is set without objective; allowed: objective=[<key>,…] with it")
+            raise ObjectiveError(
+                "hydra.sweeper.direction is set without objective; allowed: objective=[<key>,…] with it"
+            )
         directions = directions_of(direction, len(names))
     except ObjectiveError as exc:
         print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
