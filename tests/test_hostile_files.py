@@ -61,6 +61,16 @@ def test_zip_bomb_is_refused_before_decompressing(tmp_path: Path, monkeypatch: p
     assert "bomb.npz" in one_line(err.value) and "itof_raw" in str(err.value) and "read budget" in str(err.value)
 
 
+def test_the_default_read_budget_is_one_gib(monkeypatch: pytest.MonkeyPatch) -> None:
+    """docs/hostile.md: 1 GiB unless ``NIRSPI_READ_BUDGET_MB`` says otherwise."""
+    from nirspi_pipe.safeio import read_budget
+
+    monkeypatch.delenv("NIRSPI_READ_BUDGET_MB", raising=False)
+    assert read_budget() == 1 << 30
+    monkeypatch.setenv("NIRSPI_READ_BUDGET_MB", "16")
+    assert read_budget() == 16 << 20
+
+
 def test_member_lying_about_its_size_names_the_key(tmp_path: Path) -> None:
     members = recording_members()
     data = npz_bytes(members)

@@ -35,12 +35,25 @@ def _write_module(root: Path, name: str, body: str) -> None:
 
 @pytest.fixture
 def fake_entry_points(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """Install entry points without pip: modules in tmp_path, entry_points() patched."""
+    """Install entry points without pip: modules and a ``*.dist-info`` folder in tmp_path (an
+    absolute ``sys.path`` entry, as a site folder is). Tests append :func:`_ep` entry points;
+    ``entry_points()`` then reads them from that real distribution (written on each call) and
+    from nothing else, so that installed plugins cannot change what a test sees."""
     monkeypatch.syspath_prepend(str(tmp_path))
+    tag = uuid.uuid4().hex[:8]
+    distinfo = tmp_path / f"nirspi_fake_{tag}-0.0.1.dist-info"
+    distinfo.mkdir()
+    (distinfo / "METADATA").write_text(f"Metadata-Version: 2.1\nName: nirspi-fake-{tag}\nVersion: 0.0.1\n")
     eps: list[metadata.EntryPoint] = []
 
     def entry_points(group: str | None = None, **_: object):
-        return [e for e in eps if group in (None, e.group)]
+        groups: dict[str, list[str]] = {}
+        for e in eps:
+            groups.setdefault(e.group, []).append(f"{e.name} = {e.value}")
+        (distinfo / "entry_points.txt").write_text("".join(f"[{g}]\n" + "\n".join(v) + "\n" for g, v in groups.items()))
+        found = metadata.Distribution.at(distinfo).entry_points
+        assert all(e.dist is not None for e in found)
+        return [e for e in found if group in (None, e.group)]
 
     monkeypatch.setattr(plugins.metadata, "entry_points", entry_points)
     yield tmp_path, eps
@@ -49,6 +62,38 @@ def fake_entry_points(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
 
 def _ep(name: str, value: str) -> metadata.EntryPoint:
     return metadata.EntryPoint(name=name, value=value, group=plugins.ENTRY_POINT_GROUP)
+
+
+def test_entry_points_without_an_installed_distribution_are_ignored(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Plugins come only from installed distributions: an entry point made in code (no
+    distribution behind it) and one whose ``*.dist-info`` lies in the working directory or on a
+    relative ``sys.path`` entry register nothing, neither a plugin nor a target."""
+    from nirspi_pipe import targets
+
+    tag = uuid.uuid4().hex[:8]
+    (tmp_path / f"mod_{tag}.py").write_text("def register():\n    return None\n")
+    distinfo = tmp_path / f"nirspi_cwd_{tag}-0.0.1.dist-info"
+    distinfo.mkdir()
+    (distinfo / "METADATA").write_text(f"Metadata-Version: 2.1\nName: nirspi-cwd-{tag}\nVersion: 0.0.1\n")
+    (distinfo / "entry_points.txt").write_text(
+        f"[nirspi_pipe.plugins]\ncwd = mod_{tag}:register\n[nirspi_pipe.targets]\nsystem = os:system\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    for entry in ("", ".", str(tmp_path)):  # the working directory, as python -c / a notebook put it there
+        monkeypatch.setattr(sys, "path", [entry, *[p for p in sys.path if p not in ("", ".")]])
+        real = [e for e in metadata.entry_points(group=plugins.ENTRY_POINT_GROUP) if e.name == "cwd"]
+        assert real and real[0].dist is not None  # importlib.metadata does find it there
+        assert not targets.installed(real[0])
+        assert "os.system" not in targets.plugin_targets.__wrapped__()  # uncached: read now
+        assert "cwd" not in [p.name for p in plugins.discover(refresh=True).plugins]
+    made_in_code = _ep("code", f"mod_{tag}:register")
+    assert made_in_code.dist is None and not targets.installed(made_in_code)
+    monkeypatch.setattr(plugins.metadata, "entry_points", lambda group=None, **_: [made_in_code])
+    report = plugins.discover(refresh=True)
+    assert not report.plugins and not report.failures
+    monkeypatch.setattr(plugins, "_REPORT", None)
 
 
 def test_failing_plugins_are_named_and_skipped(fake_entry_points, caplog: pytest.LogCaptureFixture) -> None:

@@ -85,12 +85,20 @@ def test_targets_are_found_everywhere_in_a_tree() -> None:
     check_target("logging.StreamHandler", "hydra.job_logging.handlers.console.class")
 
 
-def test_plugins_register_targets_through_entry_point_metadata(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_plugins_register_targets_through_entry_point_metadata(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     """A plugin's registered class is allowed; another class of the same plugin is not. Read from
-    the metadata: the plugin is not imported."""
-    from importlib.metadata import EntryPoint
+    the metadata of an installed distribution (a ``*.dist-info`` on an absolute ``sys.path``
+    entry): the plugin is not imported."""
+    from importlib.metadata import Distribution
 
-    eps = [EntryPoint("Good", "nirspi_fake_plugin.solver:GoodSolver", targets.TARGET_ENTRY_POINTS)]
+    dist = tmp_path / "nirspi_fake_plugin-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: nirspi-fake-plugin\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(
+        f"[{targets.TARGET_ENTRY_POINTS}]\nGood = nirspi_fake_plugin.solver:GoodSolver\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    eps = list(Distribution.at(dist).entry_points)
     monkeypatch.setattr(targets.metadata, "entry_points", lambda group=None: eps if group else [])
     targets.plugin_targets.cache_clear()
     try:

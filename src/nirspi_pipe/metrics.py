@@ -29,13 +29,48 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 
-__all__ = ["PSNR_CAP_DB", "ImageMetrics", "fit_gain_offset", "normalised_pair", "psnr", "rmse", "ssim"]
+__all__ = [
+    "DEGENERATE_FLAG",
+    "PSNR_CAP_DB",
+    "ImageMetrics",
+    "degenerate_reference",
+    "fit_gain_offset",
+    "normalised_pair",
+    "psnr",
+    "rmse",
+    "ssim",
+]
 
 _IMAGE_METRICS = ("ssim", "psnr", "rmse")
 
 #: Normalised PSNR is capped here (dB): float64 rounding of a noise-free fit lies far above it,
 #: and an infinite value would not survive the records' no-NaN/no-inf rule.
 PSNR_CAP_DB = 200.0
+
+#: A reference (the noise-free image the normalised scores fit to) is **degenerate** when its
+#: contrast ``(max − min) / max`` is below this: the gain-and-offset fit then maps any image onto
+#: a near-constant, and PSNR/SSIM say "perfect" for an image with no object in it (issue 32).
+#: Assumed: one part per million, 15 times below one step of a 16-bit ADC (1/65536).
+DEGENERATE_CONTRAST = 1e-6
+#: ... or when its peak is below this, in relative radiance (white target at the nominal distance
+#: = 1). Assumed: 1e-12 of a white target is far below one photon per pattern for the photon
+#: budgets the simulator models (Table 1), so nothing of the object reaches the detector.
+DEGENERATE_PEAK = 1e-12
+#: The flag a degenerate reference leaves in the metrics (1.0) instead of ``psnr``/``ssim``.
+DEGENERATE_FLAG = "degenerate_reference"
+
+
+def degenerate_reference(reference: np.ndarray) -> str | None:
+    """Why the normalised scores are undefined for ``reference`` (one phrase), or None."""
+    ref = np.asarray(reference, dtype=np.float64)
+    if ref.size == 0 or not np.all(np.isfinite(ref)):
+        return "the reference image is empty or not finite"
+    peak, low = float(ref.max()), float(ref.min())
+    if not peak > DEGENERATE_PEAK:
+        return f"the reference image is dark (peak {peak:.3g} of a white target; nothing of the object arrives)"
+    if (peak - low) / peak < DEGENERATE_CONTRAST:
+        return f"the reference image is uniform (contrast {(peak - low) / peak:.2g}; no object is visible)"
+    return None
 
 
 def rmse(a: np.ndarray, b: np.ndarray) -> float:
@@ -149,6 +184,13 @@ class ImageMetrics:
         norm_ref = ref if reference is None else np.asarray(reference, dtype=np.float64)
         if norm_ref.shape != est.shape:
             raise ValueError(f"reconstruction {est.shape} and reference {norm_ref.shape} differ in shape")
+        why = degenerate_reference(norm_ref)
+        if why is not None:
+            warnings.warn(
+                f"metrics: {why}, so the normalised {prefix}psnr/{prefix}ssim are undefined and left out "
+                f"({prefix}{DEGENERATE_FLAG}=1); the raw scores ({prefix}psnr_raw, {prefix}ssim_raw, {prefix}rmse) are kept",
+                stacklevel=2,
+            )
         nref, nest = normalised_pair(norm_ref, est)
         raw_est = np.clip(est, 0.0, 1.0) if self.clip else est
         out: dict[str, float] = {}
@@ -156,9 +198,13 @@ class ImageMetrics:
             if name == "rmse":
                 out[f"{prefix}rmse"] = rmse(ref, raw_est)
             elif name == "psnr":
-                out[f"{prefix}psnr"] = _psnr_normalised(nref, nest)
+                if why is None:
+                    out[f"{prefix}psnr"] = _psnr_normalised(nref, nest)
                 out[f"{prefix}psnr_raw"] = psnr(ref, raw_est)
             else:
-                out[f"{prefix}ssim"] = ssim(nref, nest)
+                if why is None:
+                    out[f"{prefix}ssim"] = ssim(nref, nest)
                 out[f"{prefix}ssim_raw"] = ssim(ref, raw_est)
+        if why is not None:
+            out[f"{prefix}{DEGENERATE_FLAG}"] = 1.0
         return out

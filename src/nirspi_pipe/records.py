@@ -97,9 +97,22 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
+#: Top-level config keys that say what reads a job's record, not how the job runs (``objective``:
+#: the record keys a sweeper optimises). They are left out of :func:`config_hash`, so setting one
+#: neither moves a job to another folder nor changes the seed ``seed: null`` derives.
+NOT_HASHED = ("objective",)
+
+
+def _run_part(config: Mapping[str, Any]) -> Mapping[str, Any]:
+    if not any(key in config for key in NOT_HASHED):
+        return config
+    return {k: v for k, v in config.items() if k not in NOT_HASHED}
+
+
 def config_hash(config: Mapping[str, Any]) -> str:
-    """Deterministic 16-hex-digit key of a resolved config (sha256 of canonical JSON)."""
-    text = json.dumps(_jsonable(config), sort_keys=True, separators=(",", ":"))
+    """Deterministic 16-hex-digit key of a resolved config (sha256 of canonical JSON), the keys of
+    :data:`NOT_HASHED` left out."""
+    text = json.dumps(_jsonable(_run_part(config)), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -312,7 +325,7 @@ def job_key_of(config: Mapping[str, Any], inputs: Mapping[str, str]) -> str:
     replacing a recording (same path, new content) gives the job a new key and it reruns."""
     if not inputs:
         return config_hash(config)
-    return config_hash({"config": config, "inputs": dict(inputs)})
+    return config_hash({"config": _run_part(config), "inputs": dict(inputs)})
 
 
 # ---------------------------------------------------------------------------------------------

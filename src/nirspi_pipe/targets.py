@@ -24,6 +24,9 @@ This module imports neither Hydra nor OmegaConf.
 from __future__ import annotations
 
 import importlib
+import os
+import re
+import sys
 from collections.abc import Iterator
 from functools import lru_cache
 from importlib import metadata
@@ -124,13 +127,37 @@ _HYDRA_PLUGIN_KEYS = ("hydra.launcher._target_", "hydra.sweeper._target_")
 LOGGING_CLASSES = frozenset({"logging.StreamHandler", "logging.FileHandler", "logging.NullHandler"})
 
 
+def trusted_paths() -> list[str]:
+    """The ``sys.path`` entries plugins may come from: absolute ones other than the working
+    directory (``''``, ``.``, relative entries and the working directory itself are left out,
+    so a ``*.dist-info`` or ``hydra_plugins`` folder next to a notebook is never used)."""
+    cwd = os.path.realpath(os.getcwd())
+    return [p for p in sys.path if p and os.path.isabs(p) and os.path.realpath(p) != cwd]
+
+
+def installed(ep: metadata.EntryPoint) -> bool:
+    """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry. An
+    entry point without a distribution (made in code, not installed) is refused: plugins come
+    only from installed distributions (tests/test_plugins.py)."""
+    dist = getattr(ep, "dist", None)
+    if dist is None:
+        return False
+    try:
+        where = os.path.realpath(str(dist.locate_file("")))
+    except Exception:  # noqa: BLE001 - a distribution that cannot say where it is: not trusted
+        return False
+    return where in {os.path.realpath(p) for p in trusted_paths()}
+
+
 @lru_cache(maxsize=1)
 def plugin_targets() -> frozenset[str]:
     """Dotted names that installed plugins register (entry-point group ``nirspi_pipe.targets``:
-    ``Name = "module:Attr"`` allows ``module.Attr``). Read from the distributions' metadata:
-    nothing is imported. Read once per process (installing a plugin needs a new process)."""
+    ``Name = "module:Attr"`` allows ``module.Attr``). Read from the installed distributions'
+    metadata (:func:`installed`: never from the working directory): nothing is imported. Read once per process (installing a plugin needs a new process)."""
     found = set()
     for ep in metadata.entry_points(group=TARGET_ENTRY_POINTS):
+        if not installed(ep):
+            continue
         module, _, attr = ep.value.partition(":")
         name = f"{module.strip()}.{attr.strip()}" if attr.strip() else module.strip()
         if all(part.isidentifier() for part in name.split(".")):
@@ -143,6 +170,21 @@ def allowed_targets() -> frozenset[str]:
     return PROJECT_TARGETS | plugin_targets()
 
 
+#: Keys where Python's ``logging.config`` builds a handler: a ``class``/``()`` there may name one of
+#: :data:`LOGGING_CLASSES` (nowhere else: a key path merely containing "logging" unlocks nothing).
+_LOGGING_CLASS_KEY = re.compile(r"^hydra\.(job|hydra)_logging\.handlers\.[^.]+\.(class|\(\))$")
+#: Optuna's samplers and pruners (hydra-optuna-sweeper, issue 34): only at these two keys, and
+#: only from these packages; :mod:`nirspi_pipe.app.entry` also requires the Optuna sweeper.
+OPTUNA_TARGET_KEYS = {
+    "hydra.sweeper.sampler._target_": "optuna.samplers.",
+    "hydra.sweeper.pruner._target_": "optuna.pruners.",
+}
+
+
+def _in_logging(key: str) -> bool:
+    return key.startswith(("hydra.job_logging.", "hydra.hydra_logging.")) or "logging" in key
+
+
 def find_targets(node: Any, path: str) -> Iterator[tuple[str, Any]]:
     """``(key, value)`` of every place in a plain config tree (dicts and lists) that names
     something to build: ``_target_`` keys, and ``()``/``class`` keys of logging factories
@@ -150,7 +192,7 @@ def find_targets(node: Any, path: str) -> Iterator[tuple[str, Any]]:
     if isinstance(node, dict):
         for k, v in node.items():
             key = f"{path}.{k}" if path else str(k)
-            if k == "_target_" or (k in ("()", "class") and "logging" in path):
+            if k == "_target_" or (k in ("()", "class") and _in_logging(key)):
                 yield key, v
             else:
                 yield from find_targets(v, key)
@@ -176,7 +218,10 @@ def check_target(target: Any, key: str) -> None:
         return
     if isinstance(target, str) and key in _HYDRA_PLUGIN_KEYS and target.startswith(HYDRA_PLUGIN_PREFIXES):
         return  # Hydra accepts only its registered plugin classes here (hydra.core.plugins)
-    if isinstance(target, str) and "logging" in key and target in LOGGING_CLASSES:
+    if isinstance(target, str) and _LOGGING_CLASS_KEY.match(key) and target in LOGGING_CLASSES:
+        return
+    prefix = OPTUNA_TARGET_KEYS.get(key)
+    if isinstance(target, str) and prefix and target.startswith(prefix) and target[len(prefix) :].isidentifier():
         return
     raise ConfigError(key, target, _allowed_text(), absolute=True)
 

@@ -159,36 +159,22 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     """The composed config of ``overrides`` (an OmegaConf ``DictConfig`` without the ``hydra``
     node, as a ``nirspi-run`` job sees it) and the group choices. Raises :class:`BadOverrides`
     (a :class:`ValueError`) with one line for an unknown option or a bad override."""
-    from hydra import compose as hydra_compose
-    from hydra import initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import open_dict
 
-    from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
+    from nirspi_pipe.app.entry import Refused, check_invocation
     from nirspi_pipe.app.plugins import activate
     from nirspi_pipe.app.registration import register_hydra_plugins
-    from nirspi_pipe.app.validate import check_config, check_overrides
 
     overrides = _override_list(overrides)
-    flags = [o for o in overrides if o.startswith("-")]
-    if flags:
-        raise BadOverrides(f"{flags[0]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
-    activate()  # installed plugins' config folders join the search path
-    problem = check_overrides(overrides)
-    register_hydra_plugins()
-    problem = problem or check_config(overrides)  # YAML files, allowed targets, known keys
-    if problem:
-        raise BadOverrides(problem)
     if GlobalHydra.instance().is_initialized():
         raise NirspiError("nirspi_pipe.run cannot be called inside a running Hydra app; call run_pipeline(cfg)")
-    try:
-        with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
-            cfg = hydra_compose(config_name=CONFIG_NAME, overrides=overrides, return_hydra_config=True)
-    except Exception as exc:
-        if isinstance(exc, NirspiError):
-            raise
-        text = str(exc).strip().splitlines()
-        raise BadOverrides(f"bad overrides {overrides}: {text[0] if text else type(exc).__name__}") from None
+    activate()  # installed plugins' config folders join the search path (never the working directory's)
+    register_hydra_plugins()
+    try:  # the same check as nirspi-run's: the composed config, Hydra's node included
+        cfg = check_invocation(overrides, api=True).config
+    except Refused as exc:
+        raise BadOverrides(str(exc)) from None
     choices = {k: v for k, v in cfg.hydra.runtime.choices.items() if not k.startswith("hydra/")}
     with open_dict(cfg):
         del cfg["hydra"]

@@ -17,7 +17,7 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
 
@@ -26,8 +26,6 @@ __all__ = ["run", "collect"]
 log = logging.getLogger("nirspi_pipe")
 
 _EXIT_CONFIG = 2
-#: Hydra flags after which nothing is built (help, completion, info): no composition is checked.
-_NO_RUN_FLAGS = frozenset({"--help", "-h", "--hydra-help", "--version", "-sc", "--shell-completion", "--info", "-i"})
 
 
 def _hydra_task(cfg: Any) -> None:
@@ -86,37 +84,54 @@ def _hydra_task(cfg: Any) -> None:
 
 
 def run(argv: list[str] | None = None) -> None:
-    """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …)."""
+    """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …), every
+    one checked first (:func:`nirspi_pipe.app.entry.check_invocation`): Hydra gets them only
+    when the composed configuration passes."""
     import hydra
 
+    from nirspi_pipe.app.entry import Refused, check_invocation, parse_args
     from nirspi_pipe.app.helptext import register_resolvers
     from nirspi_pipe.app.registration import register_hydra_plugins
-    from nirspi_pipe.app.validate import check_config, check_overrides, rewrite_nulls
+    from nirspi_pipe.targets import trusted_paths
 
     args = list(sys.argv[1:] if argv is None else argv)
-    if "--version" in args:  # the project's version (Hydra's own flag would print Hydra's)
+    try:
+        flags, _ = parse_args(args)
+    except Refused as exc:
+        _refuse(exc)
+    if "--version" in flags:  # the project's version (Hydra's own flag would print Hydra's)
         from importlib.metadata import version
 
         from nirspi_pipe import __version__
 
         print(f"nirspi-pipe {__version__} (hydra-core {version('hydra-core')})")
         return
-    if "--plugins" in args:
+    if "--plugins" in flags:
         _list_plugins()
         return
+    sys.path[:] = trusted_paths()  # nothing is imported from the working directory (plugins, Hydra's scan)
     _activate_plugins()
-    args, problem = rewrite_nulls(args)
-    problem = problem or check_overrides(args)
     register_hydra_plugins()
-    if not problem and not _NO_RUN_FLAGS.intersection(a.partition("=")[0] for a in args):
-        problem = check_config(args)  # YAML, allowed targets, known keys: before Hydra builds anything
-    if problem:
-        print(f"nirspi-run: error: {problem}", file=sys.stderr)
-        raise SystemExit(_EXIT_CONFIG)
+    try:
+        invocation = check_invocation(args)  # the composed config, Hydra's node included, before Hydra
+    except Refused as exc:
+        _refuse(exc)
     register_resolvers()  # ${nirspi_help:...} in the --help template
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(_hydra_task)
-    sys.argv = [sys.argv[0], *args]
-    main()
+    sys.argv = [sys.argv[0], *invocation.hydra_argv]
+    try:
+        main()
+    except KeyboardInterrupt:
+        print(
+            "nirspi-run: interrupted (Ctrl-C); a sweep resumes where it stopped when run again with the same arguments",
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None
+
+
+def _refuse(exc: Exception) -> NoReturn:
+    print(f"nirspi-run: error: {exc}", file=sys.stderr)
+    raise SystemExit(_EXIT_CONFIG)
 
 
 def _activate_plugins() -> None:

@@ -250,8 +250,11 @@ def _register_source() -> None:
     composition whose search path was made before this module was imported."""
     from hydra.core.plugins import Plugins
 
-    Plugins.instance().register(SchemaSource)
-    Plugins.instance().register(SchemaSearchPath)
+    from nirspi_pipe.app.plugins import trusted_import_path
+
+    with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory (issue 32)
+        Plugins.instance().register(SchemaSource)
+        Plugins.instance().register(SchemaSearchPath)
 
 
 class SchemaSource(ConfigSource):

@@ -200,16 +200,27 @@ class NirspiLauncherBase(Launcher):
 
 
 def _returns(items: list[tuple[Path, int, ComposedJob]], records: list[dict[str, Any] | None]) -> list[JobReturn]:
+    """Each job's return: the values of the ``objective`` its config names (what an optimising
+    sweeper reads: :func:`nirspi_pipe.app.objective.objective_values`, None for a failed job),
+    else its record."""
     return [
         JobReturn(
             overrides=list(job.task_overrides),
             working_dir=str(out_dir),
             task_name="nirspi_pipe",
             status=JobStatus.COMPLETED,
-            _return_value=rec,
+            _return_value=_return_value(job, rec),
         )
         for (out_dir, _num, job), rec in zip(items, records, strict=True)
     ]
+
+
+def _return_value(job: ComposedJob, rec: dict[str, Any] | None) -> Any:
+    from nirspi_pipe.app.objective import objective_values
+
+    if job.config.get("objective") is None:
+        return rec
+    return objective_values({**(rec or {}), "config": job.config})
 
 
 def _runner_main(conn: Any, items: list[tuple[Path, int, ComposedJob]]) -> None:

@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import metadata, resources
 from pathlib import Path
@@ -325,7 +327,9 @@ def discover(refresh: bool = False) -> PluginReport:
     plugins: list[PluginInfo] = []
     failures: list[PluginFailure] = []
     seen: set[str] = set()
-    eps = sorted(metadata.entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name)
+    from nirspi_pipe.targets import installed
+
+    eps = sorted((e for e in metadata.entry_points(group=ENTRY_POINT_GROUP) if installed(e)), key=lambda e: e.name)
     for ep in eps:
         if ep.name in seen:  # the same distribution found twice on sys.path
             continue
@@ -368,9 +372,29 @@ def activate() -> PluginReport:
     """
     from hydra.core.plugins import Plugins
 
-    report = discover()
-    Plugins.instance().register(NirspiPluginSearchPath)
+    with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory
+        Plugins.instance()
+        report = discover()
+        Plugins.instance().register(NirspiPluginSearchPath)
     return report
+
+
+@contextmanager
+def trusted_import_path() -> Iterator[None]:
+    """``sys.path`` without the working directory and relative entries while plugins load
+    (:func:`nirspi_pipe.targets.trusted_paths`): Hydra imports every module of the
+    ``hydra_plugins`` namespace it finds on ``sys.path`` on its first use, and ``python -c`` or a
+    notebook puts the working directory there. Restored afterwards."""
+    import sys
+
+    from nirspi_pipe.targets import trusted_paths
+
+    saved = list(sys.path)
+    sys.path[:] = trusted_paths()
+    try:
+        yield
+    finally:
+        sys.path[:] = saved
 
 
 def format_report(report: PluginReport) -> str:

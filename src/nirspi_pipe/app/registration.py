@@ -19,7 +19,10 @@ def register_hydra_plugins() -> None:
     """
     from hydra.core.plugins import Plugins
 
-    from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiSweeper
+    from nirspi_pipe.app.plugins import trusted_import_path
+
+    with trusted_import_path():  # never a hydra_plugins module of the working directory
+        from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiSweeper
 
     Plugins.instance().register(NirspiSweeper)
     Plugins.instance().register(NirspiLauncher)

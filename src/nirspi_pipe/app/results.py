@@ -146,10 +146,16 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
     info = load_sweep_file(sweep)  # SweepFileError (one line naming it) when malformed
-    if info:
-        paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]]
-    else:
+    paths = [sweep / job["key"] / RECORD_NAME for job in info["jobs"]] if info else []
+    if not paths:  # no sweep.json, or one listing no jobs: every record below the folder (issue 32)
         paths = find_records(sweep)
+        if info and paths:
+            print(
+                f"nirspi-collect: warning: {sweep}/sweep.json lists no jobs; collected the {len(paths)} "
+                "record(s) found below the folder instead",
+                file=sys.stderr,
+                flush=True,
+            )
     records = []
     seen: set[Path] = set()
     for path in paths:
@@ -168,6 +174,17 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
             log.warning("unreadable record %s: %s", path, exc)
             records.append((job, {"meta": {"status": "failed", "error": f"unreadable record: {exc}"}}))
     frame = records_to_frame(records)
+    objective = read_objective(sweep)
+    if objective is not None:
+        frame = mark_pareto(frame, *objective)
+    before = _rows_in(sweep / "results.parquet") if write else None
+    if before is not None and before > len(frame):  # never fewer rows without saying so (issue 32)
+        print(
+            f"nirspi-collect: warning: {sweep / 'results.parquet'} had {before} rows and now gets {len(frame)}: "
+            "the records of the missing rows are no longer in the folder",
+            file=sys.stderr,
+            flush=True,
+        )
     if write:  # atomically (unique temporary names): OutputError, one line, when it cannot be written
         buf = io.BytesIO()
         frame.to_parquet(buf, index=False)
@@ -181,6 +198,114 @@ def _prog() -> str:
     ``nirspi-run`` (issue 34: nirspi-collect printed "nirspi-run: table ...")."""
     name = Path(sys.argv[0]).name if sys.argv and sys.argv[0] else ""
     return name if name == "nirspi-collect" else "nirspi-run"
+
+
+#: The objective and directions of a sweep (``objective`` and ``hydra.sweeper.direction``),
+#: written by :class:`CollectResults` when the sweep starts, read by :func:`collect`.
+OBJECTIVE_FILE = "objective.json"
+#: The front's picture in the sweep folder (two objectives or more: the first two).
+FRONT_PNG = "front.png"
+
+
+def read_objective(sweep: Path) -> tuple[list[str], list[str]] | None:
+    """``(objective names, directions)`` of a sweep from its :data:`OBJECTIVE_FILE`; None when it
+    has none or it is unreadable (then no ``pareto`` column)."""
+    import json
+
+    from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_names
+
+    try:
+        info = json.loads((Path(sweep) / OBJECTIVE_FILE).read_text())
+        names = objective_names(info["objective"])
+        directions = directions_of(info["direction"], len(names))
+    except (OSError, ValueError, KeyError, TypeError, ObjectiveError):
+        return None
+    return (names, directions) if names and directions else None
+
+
+def write_objective(sweep: Path, names: list[str], directions: list[str]) -> None:
+    import json
+
+    atomic_write(Path(sweep) / OBJECTIVE_FILE, json.dumps({"objective": names, "direction": directions}))
+
+
+def mark_pareto(frame: pd.DataFrame, names: list[str], directions: list[str]) -> pd.DataFrame:
+    """``frame`` with a boolean column ``pareto``: the ``ok`` rows that no other ``ok`` row beats
+    in every objective (:func:`nirspi_pipe.app.objective.pareto_mask`); rows without a value of
+    each objective are False."""
+    import numpy as np
+
+    from nirspi_pipe.app.objective import pareto_mask
+
+    out = frame.copy()
+    out["pareto"] = False
+    if not len(out) or any(n not in out.columns for n in names):
+        return out
+    ok = (out["status"] == "ok").to_numpy()
+    values = np.column_stack([pd.to_numeric(out[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    mask = np.zeros(len(out), dtype=bool)
+    mask[ok] = pareto_mask(values[ok], directions)
+    out["pareto"] = mask
+    return out
+
+
+def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], path: Path) -> Path | None:
+    """Draw the first two objectives of every ``ok`` job, the ``pareto`` rows joined as the front,
+    into ``path`` (PNG); None when no job has both values. A failing plot is logged, never raised."""
+    import numpy as np
+
+    from nirspi_pipe.app.objective import pareto_mask
+
+    xi = 1 if names[1].startswith("timings_ms.") and not names[0].startswith("timings_ms.") else 0  # time on x
+    x_name, y_name = names[xi], names[1 - xi]
+    directions = [directions[xi], directions[1 - xi]]
+    ok = frame[frame["status"] == "ok"] if len(frame) else frame
+    if not len(ok) or x_name not in ok.columns or y_name not in ok.columns:
+        return None
+    x = pd.to_numeric(ok[x_name], errors="coerce").to_numpy(dtype=float)
+    y = pd.to_numeric(ok[y_name], errors="coerce").to_numpy(dtype=float)
+    keep = np.isfinite(x) & np.isfinite(y)
+    if not keep.any():
+        return None
+    # the front of these two objectives (equal to `pareto` when there are only two)
+    front = pareto_mask(np.column_stack([x[keep], y[keep]]), directions[:2])
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7.6, 4.4))
+        xs, ys = x[keep], y[keep]
+        ax.scatter(xs[~front], ys[~front], s=14, color="0.6", label=f"dominated jobs ({(~front).sum()})")
+        order = np.argsort(xs[front])
+        ax.plot(xs[front][order], ys[front][order], "o-", color="C3", ms=5, lw=1, label=f"Pareto front ({front.sum()})")
+        if x_name.startswith("timings_ms") and (xs > 0).all():
+            ax.set_xscale("log")
+        ax.set_xlabel(f"{x_name} ({directions[0]})")
+        ax.set_ylabel(f"{y_name} ({directions[1]})")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: never over a point
+        ax.set_title(f"{len(ok)} ok jobs of {len(frame)}: the non-dominated ones joined", fontsize=9)
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+    except Exception as exc:  # noqa: BLE001 - a picture must not cost the results
+        log.error("front plot %s failed: %s: %s", path, type(exc).__name__, exc)
+        return None
+    return path
+
+
+def _rows_in(path: Path) -> int | None:
+    """Rows of an existing parquet file (its metadata only), or None."""
+    if not path.is_file() or path.is_symlink():
+        return None
+    try:
+        import pyarrow.parquet as pq
+
+        return int(pq.read_metadata(path).num_rows)
+    except Exception:  # noqa: BLE001 - an unreadable old table is replaced
+        return None
 
 
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
@@ -231,6 +356,12 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
 
     sweep = Path(sweep_dir)
     frame = collect(sweep)
+    objective = read_objective(sweep)
+    if objective is not None and len(objective[0]) >= 2 and "pareto" in frame.columns:
+        path = plot_front(frame, *objective, sweep / FRONT_PNG)
+        if path is not None:
+            n = int(frame["pareto"].sum())
+            print(f"nirspi-run: {n} non-dominated jobs (column pareto) -> {path}")
     built: list[str] = []
     if tables is not None:
         built += build_tables(frame, sweep, tables)
@@ -301,6 +432,68 @@ def sweep_problem(frame: pd.DataFrame, sweep: Path) -> str | None:
     return "; ".join(parts)
 
 
+def _plain_job_config(config: Any) -> dict[str, Any]:
+    """A job's config without the ``hydra`` node, resolved, as plain data."""
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(config, resolve=False)
+    assert isinstance(plain, dict)
+    plain.pop("hydra", None)
+    return {str(k): v for k, v in plain.items()}
+
+
+def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
+    """``(objective names, directions)`` of a sweep's config (``objective``,
+    ``hydra.sweeper.direction``), checked: None when the sweep has no objective. Exits 2 with one
+    line when the optimising sweeper has none, or the directions do not fit (before any job runs)."""
+    from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_names
+
+    sweeper = config.hydra.sweeper
+    optimises = "n_trials" in sweeper  # Optuna's (and any sweeper that asks for trials)
+    if optimises and "nirspi" in str(sweeper.get("_target_", "")):
+        print(
+            "nirspi-run: error: hydra.sweeper.n_trials is set (an Optuna experiment?) but the sweeper is the nirspi "
+            "grid; allowed: hydra/sweeper=optuna on the command line (Hydra ignores an experiment's sweeper choice)",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(2)
+    try:
+        names = objective_names(config.get("objective"))
+        if optimises and not names:
+            raise ObjectiveError(
+                f"hydra/sweeper={_sweeper_name(sweeper)} optimises what objective names, and it is not set; "
+                "allowed: objective=<record key> or objective=[<key>,<key>], e.g. objective=[metrics.psnr,timings_ms.solver]"
+            )
+        direction = _plain_value(sweeper.get("direction"))
+        if names and direction is None:
+            return None  # the grid sweeper without directions: values returned, no front marked
+        if direction is not None and not names:
+            if optimises:
+                return None
+            raise ObjectiveError(
+                "hydra.sweeper.direction is set without objective; allowed: objective=[<key>,…] with it"
+            )
+        directions = directions_of(direction, len(names))
+    except ObjectiveError as exc:
+        print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    return names, directions
+
+
+def _sweeper_name(sweeper: Any) -> str:
+    target = str(sweeper.get("_target_", ""))
+    return "optuna" if "optuna" in target else target.rsplit(".", 1)[-1]
+
+
+def _plain_value(value: Any) -> Any:
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(value, (ListConfig, DictConfig)):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
 try:  # the callback base class is Hydra's; keep import errors out of the pure functions above
     from hydra.experimental.callback import Callback
 except ImportError:  # pragma: no cover
@@ -332,7 +525,28 @@ class CollectResults(Callback):
 
         unwritten_jobs.clear()  # this sweep's, in this process
         launcher_failures.clear()
-        _refuse_link(Path(str(config.hydra.sweep.dir)), "sweep folder (hydra.sweep.dir)")  # before anything is written
+        sweep = Path(str(config.hydra.sweep.dir))
+        _refuse_link(sweep, "sweep folder (hydra.sweep.dir)")  # before anything is written
+        objective = sweep_objective(config)
+        if objective is not None:
+            write_objective(sweep, *objective)
+
+    def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
+        """A job run through Hydra's ``run_job`` (launchers other than ``nirspi``: basic, joblib,
+        submitit): its return value becomes the values of ``objective`` read from its record
+        (:func:`nirspi_pipe.app.objective.objective_values`), what an optimising sweeper reads.
+        Without ``objective`` the task function's return stays."""
+        if config.get("objective") is None or getattr(job_return, "hydra_cfg", None) is None:
+            return
+        from nirspi_pipe.app.objective import objective_values
+
+        out_dir = Path(str(job_return.hydra_cfg.hydra.runtime.output_dir))
+        try:
+            record = read_record(out_dir / RECORD_NAME)
+        except (OSError, ValueError):
+            record = {"meta": {"status": "failed"}}
+        plain = _plain_job_config(config)
+        job_return.return_value = objective_values({**record, "config": plain})
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         sweep = Path(config.hydra.sweep.dir)
@@ -351,7 +565,11 @@ class CollectResults(Callback):
         print(f"nirspi-run: {len(frame)} jobs ({summary}) -> {sweep / 'results.parquet'}")
         problem = sweep_problem(frame, sweep)
         allow = config.hydra.sweeper.get("allow_failures")  # the nirspi sweeper's; others have none
+        rate = config.hydra.sweeper.get("max_failure_rate")  # Optuna's: the share of failed trials it accepts
+        hint = "; hydra.sweeper.allow_failures=true exits 0" if allow is not None else ""
+        if rate is not None and len(frame):
+            allow = float((frame["status"] != "ok").mean()) <= float(rate)
+            hint = f"; more than hydra.sweeper.max_failure_rate={rate} of the trials"
         if problem and not allow:
-            hint = "; hydra.sweeper.allow_failures=true exits 0" if allow is not None else ""
             print(f"nirspi-run: error: {problem}{hint}", file=sys.stderr, flush=True)
             raise SystemExit(1)

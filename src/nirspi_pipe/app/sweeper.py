@@ -383,8 +383,10 @@ class NirspiSweeperBase(Sweeper):
         experiments: list[str] | None = None,
         max_attempts: int = 3,
         allow_failures: bool = False,
+        direction: Any = None,
     ) -> None:
         self.max_batch_size = max_batch_size
+        self.direction = direction  # objective's directions: read by the results callback (pareto column)
         self.params = dict(params or {})
         self.resume = resume
         self.experiments = list(experiments or [])
@@ -432,14 +434,20 @@ class NirspiSweeperBase(Sweeper):
     def _expand(self, arguments: list[str]) -> list[list[str]]:
         """Every job's overrides. With ``experiments`` (a meta-experiment such as ``paper``),
         the union of each listed experiment's own grid, each job tagged ``+experiment=<name>``;
-        command-line overrides other than the experiment apply to all of them."""
+        command-line overrides other than the experiment apply to all of them, sweeps included: a
+        command-line sweep of a key an experiment also sweeps replaces the experiment's values
+        (``+experiment=paper 'seed=range(20,30)'`` runs every table on seeds 20-29)."""
         if not self.experiments:
             return self._grid(self.params, arguments)
         shared = [a for a in arguments if not a.lstrip("+~").startswith("experiment=")]
+        # each experiment's own grid is read from its config, composed without the command-line
+        # sweeps (Hydra composes one value per key: a list there is "ambiguous"); the sweeps then
+        # join the grid below, after the experiment's params, so that they win
+        fixed = [a for a in shared if not self._parse_one(a).is_sweep_override()]
         loader = self.hydra_context.config_loader
         jobs: list[list[str]] = []
         for name in self.experiments:
-            sub = loader.load_sweep_config(self.config, [f"+experiment={name}", *shared])
+            sub = loader.load_sweep_config(self.config, [f"+experiment={name}", *fixed])
             raw = cast("dict[Any, Any]", OmegaConf.to_container(sub.hydra.sweeper.params or {}, resolve=False))
             params = {str(k): str(v) for k, v in raw.items()}
             jobs.extend([f"+experiment={name}", *job] for job in self._grid(params, shared))

@@ -99,9 +99,14 @@ def _override_args(args: list[str]) -> list[str]:
     return out
 
 
-def check_overrides(args: list[str]) -> str | None:
+def check_overrides(args: list[str], composed: Any = None) -> str | None:
     """Return a one-line problem with the group choices in ``args``, or None when they are fine
-    (or when they are not ours to judge: syntax errors and Hydra's own groups go to Hydra)."""
+    (or when they are not ours to judge: syntax errors and Hydra's own groups go to Hydra).
+
+    ``composed``: the configuration of every non-sweep override in ``args``, already composed
+    (:func:`nirspi_pipe.app.entry.check_invocation` composes it anyway); the keys and types are
+    then checked on it instead of composing again, unless a config group is swept (its first
+    option would be composed here)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -118,14 +123,19 @@ def check_overrides(args: list[str]) -> str | None:
         group = ov.key_or_group.split("@", 1)[0]
         if ov.is_delete() or group.startswith("hydra") or not _group_exists(group):
             continue
-        values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
+        try:
+            values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
+        except HydraException:  # interval(), glob(): checked by their candidates in nirspi_pipe.app.entry
+            continue
         allowed = group_options(group)
         for value in values:
             if value in ("null", "None") or value in allowed:
                 continue
             return f"{group}={value} is not an option; allowed: {', '.join(allowed)} (or null)"
         choices.append(f"{'+' if ov.is_add() else ''}{ov.key_or_group}={values[0]}")
-    return _check_keys(parsed, choices)
+        if ov.is_sweep_override():
+            composed = None  # the sweep's first option is composed below, as a job will be
+    return _check_keys(parsed, choices, composed)
 
 
 def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra: bool = False) -> Any:
@@ -140,14 +150,15 @@ def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra
         return None
 
 
-def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
+def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> str | None:
     """Unknown keys (``scene.fooo=1`` without ``+``): name the key and list the valid ones; then
     values of the wrong type (``scene.distance_mm=abc``, also in a sweep list), in the words of a
     wrong value.
 
     One composition with the group choices and the single values when it succeeds (then no
     single-value key is unknown, and value overrides add no keys, so the keys are those of the
-    choices alone); only when it fails, a second with the choices alone to name the key."""
+    choices alone); only when it fails, a second with the choices alone to name the key. With
+    ``composed`` (all single-value overrides applied), that one is used instead of the first."""
     values = [
         ov
         for ov in parsed
@@ -160,6 +171,11 @@ def _check_keys(parsed: list[Any], choices: list[str]) -> str | None:
     keys = [ov.key_or_group for ov in values]
     if not keys:
         return None
+    if composed is not None:
+        from omegaconf import OmegaConf
+
+        job = OmegaConf.masked_copy(composed, [str(k) for k in composed if k != "hydra"])
+        return _unknown_key(job, keys) or _check_types(job, values)
     fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
     cfg = _compose_or_none([*choices, *fixed])
     if cfg is None:
@@ -200,10 +216,16 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
     from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
 
     runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
+    from hydra.errors import HydraException
+
     for ov in values:
         if not ov.is_sweep_override():
             continue
-        for value in ov.sweep_iterator():
+        try:
+            swept = list(ov.sweep_iterator())
+        except HydraException:  # interval(), glob(): their candidates are checked in nirspi_pipe.app.entry
+            continue
+        for value in swept:
             one = cfg.copy()
             try:
                 OmegaConf.update(one, ov.key_or_group, value, merge=False)
@@ -223,7 +245,7 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
 
 
 #: Top-level keys of a job's config that are not config groups (conf/config.yaml).
-PLAIN_KEYS = ("camera", "seed", "tables", "output")
+PLAIN_KEYS = ("camera", "seed", "tables", "output", "objective")
 #: ``output``'s keys, each true or false (conf/config.yaml).
 OUTPUT_KEYS = ("arrays", "images", "quiet")
 #: Hydra flags that load something other than configs: ``--experimental-rerun`` unpickles a file
@@ -277,6 +299,12 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
             return f"output.{key} is not a key of output; allowed keys: {', '.join(OUTPUT_KEYS)}"
         if not isinstance(value, bool):
             return f"output.{key}={value!r} is not allowed; allowed: true or false"
+    from nirspi_pipe.app.objective import ObjectiveError, objective_names
+
+    try:
+        objective_names(config.get("objective"))
+    except ObjectiveError as exc:
+        return str(exc)
     tables = config.get("tables")
     names = _table_names()
     if tables is not None and not isinstance(tables, list):

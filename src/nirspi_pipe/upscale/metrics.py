@@ -97,6 +97,6 @@ class UpscaleMetrics(ImageMetrics):
         if scale > 1:
             bic = finish(bicubic(np.asarray(products.image.data, dtype=np.float64), scale), True)
             out.update(self.score(ref, bic, reference, prefix="bicubic_"))
-            if "psnr" in self.names:
+            if "upscale_psnr" in out and "bicubic_psnr" in out:  # not with a degenerate reference
                 out["upscale_gain_db"] = out["upscale_psnr"] - out["bicubic_psnr"]
         return out

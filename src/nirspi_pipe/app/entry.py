@@ -1,0 +1,759 @@
+"""The one checked entry path to Hydra (issue 32): ``nirspi-run`` (every flag and ``-m``) and the
+Python API reach Hydra only through :func:`check_invocation`, which fails closed.
+
+1. **Flags are matched exactly** against :data:`FLAGS` before anything else. Anything that starts
+   with ``-`` and is not spelled exactly as there (an abbreviation argparse would expand,
+   ``--experimental-rerun``, ``--run``, ``--``) is refused with one line. Hydra then gets the
+   canonical spelling (``--cfg=job``), so argparse has nothing left to expand.
+2. ``-cd DIR`` becomes a ``hydra.searchpath`` override, so the check and Hydra use the same
+   search path *by construction*: Hydra never sees ``-cd``.
+3. **The composed configuration is checked**, Hydra's node included, with Hydra's public compose
+   API, the same config name and the same overrides Hydra gets. A configuration that does not
+   compose is refused (one line), never handed on.
+4. **Hydra's node is compared** with the one composed without the user's overrides, config
+   folder or config name (only the ``hydra/…`` choices kept); a difference outside the allow-list
+   of :mod:`nirspi_pipe.app.allowlist` is refused. The job part is checked as before
+   (:mod:`nirspi_pipe.app.validate`: allowed targets, known keys, types).
+5. **Sweeps**: each swept value (command line and ``hydra.sweeper.params``) is checked for its
+   key; a sweep that cannot be enumerated (Optuna's ``interval(a,b)``) by its bounds. A swept
+   config group whose options may come from a user's folder (``-cd``, a ``hydra.searchpath``
+   entry) is composed once per value and checked in full.
+
+Refusals raise :class:`Refused` (one line; ``nirspi-run`` prints it with exit 2, the API raises
+:class:`~nirspi_pipe.app.api.BadOverrides`).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from nirspi_pipe.app import allowlist
+from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
+
+__all__ = ["FLAGS", "REFUSED_FLAGS", "Invocation", "Refused", "check_invocation", "parse_args", "check_hydra_node"]
+
+
+class Refused(ValueError):
+    """An invocation the entry check refuses; the message is one line naming the flag or key."""
+
+
+#: Every flag ``nirspi-run`` accepts, exactly as spelled: ``{spelling: (canonical, value)}``;
+#: ``value`` is None (a switch), ``"any"`` (one value), a tuple of allowed values, or
+#: ``("?", choices)`` (an optional value, ``--info``). ``--version`` and ``--plugins`` are ours.
+FLAGS: dict[str, tuple[str, Any]] = {
+    "-h": ("--help", None),
+    "--help": ("--help", None),
+    "--hydra-help": ("--hydra-help", None),
+    "--version": ("--version", None),
+    "--plugins": ("--plugins", None),
+    "-c": ("--cfg", ("job", "hydra", "all")),
+    "--cfg": ("--cfg", ("job", "hydra", "all")),
+    "--resolve": ("--resolve", None),
+    "-p": ("--package", "any"),
+    "--package": ("--package", "any"),
+    "-m": ("--multirun", None),
+    "--multirun": ("--multirun", None),
+    "-i": ("--info", ("?", ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath"))),
+    "--info": ("--info", ("?", ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath"))),
+    "-sc": ("--shell-completion", None),
+    "--shell-completion": ("--shell-completion", None),
+    "-cd": ("--config-dir", "any"),
+    "--config-dir": ("--config-dir", "any"),
+    "-cn": ("--config-name", "any"),
+    "--config-name": ("--config-name", "any"),
+}
+#: Hydra flags that are refused, with the reason.
+REFUSED_FLAGS: dict[str, str] = {
+    "--experimental-rerun": "it unpickles a file, and unpickling runs code",
+    "-cp": "use -cd/--config-dir (added to the search path) instead",
+    "--config-path": "use -cd/--config-dir (added to the search path) instead",
+    "-r": "a run is what nirspi-run does without a flag; leave it out",
+    "--run": "a run is what nirspi-run does without a flag; leave it out",
+}
+#: Flags that select what Hydra does; at most one.
+_COMMANDS = ("--multirun", "--cfg", "--shell-completion", "--info")
+_SHELLS = ("bash", "zsh", "fish")
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,99}$")
+_CONFIG_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*$")
+_PACKAGE = re.compile(r"^[A-Za-z0-9_]+(\.[A-Za-z0-9_]+)*$")
+_WORD = re.compile(r"^[A-Za-z0-9_.:+-]{1,100}$")
+_SUBDIR_PART = re.compile(r"^[A-Za-z0-9_.=,+-]+$")
+_SUBDIR_INTERPOLATIONS = ("${hydra.job.num}", "${hydra.job.id}", "${hydra.job.name}")
+
+
+@dataclass(frozen=True)
+class Invocation:
+    """A checked invocation.
+
+    Attributes:
+        flags: canonical flag → value (None for a switch).
+        overrides: the overrides as checked and as Hydra gets them (``-cd`` turned into
+            ``hydra.searchpath``, ``group=null`` into the group's ``off`` option).
+        hydra_argv: what Hydra's argument parser gets: canonical flags, then the overrides.
+        config_name: the primary config's name.
+        config: the composed configuration that was checked (Hydra's node included).
+    """
+
+    flags: dict[str, str | None] = field(default_factory=dict)
+    overrides: tuple[str, ...] = ()
+    hydra_argv: tuple[str, ...] = ()
+    config_name: str = CONFIG_NAME
+    config: Any = field(default=None, compare=False, repr=False)
+
+    @property
+    def multirun(self) -> bool:
+        return "--multirun" in self.flags
+
+
+def parse_args(args: list[str]) -> tuple[dict[str, str | None], list[str]]:
+    """Split ``args`` into canonical flags and overrides; :class:`Refused` for any flag not
+    spelled exactly as in :data:`FLAGS`, a flag given twice, or a missing/wrong flag value."""
+    flags: dict[str, str | None] = {}
+    overrides: list[str] = []
+    i = 0
+    while i < len(args):
+        arg = args[i]
+        i += 1
+        if not arg.startswith("-"):
+            overrides.append(arg)
+            continue
+        spelled, eq, inline = arg.partition("=")
+        if spelled in REFUSED_FLAGS:
+            raise Refused(f"{spelled} is not allowed: {REFUSED_FLAGS[spelled]}")
+        if spelled not in FLAGS:
+            raise Refused(
+                f"{arg[:60]!r} is not a flag nirspi-run accepts (flags are matched exactly, no abbreviations); "
+                f"allowed: {', '.join(sorted(FLAGS))}"
+            )
+        canonical, kind = FLAGS[spelled]
+        if canonical in flags:
+            raise Refused(f"{spelled} is given twice; allowed: once")
+        value: str | None = None
+        if kind is None:
+            if eq:
+                raise Refused(f"{spelled} takes no value; allowed: {spelled} alone")
+        elif isinstance(kind, tuple) and kind and kind[0] == "?":
+            choices = kind[1]
+            if eq:
+                value = inline
+            elif i < len(args) and args[i] in choices:
+                value = args[i]
+                i += 1
+            else:
+                value = choices[0]
+            if value not in choices:
+                raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(choices)}")
+        else:
+            if eq:
+                value = inline
+            elif i < len(args) and not args[i].startswith("-"):
+                value = args[i]
+                i += 1
+            else:
+                raise Refused(f"{spelled} needs a value; allowed: {spelled} VALUE")
+            if isinstance(kind, tuple) and value not in kind:
+                raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(kind)}")
+        flags[canonical] = value
+    commands = [c for c in _COMMANDS if c in flags]
+    if len(commands) > 1:
+        raise Refused(f"{' and '.join(commands)} cannot be combined; allowed: one of {', '.join(_COMMANDS)}")
+    if "--resolve" in flags and not ({"--cfg", "--help"} & set(flags)):
+        raise Refused("--resolve is only allowed with --cfg or --help")
+    if "--package" in flags and not _PACKAGE.match(str(flags["--package"])):
+        raise Refused(f"--package={flags['--package']!r} is not allowed; allowed: a dotted key path (scene, hydra.run)")
+    name = flags.get("--config-name")
+    if name is not None and (not _CONFIG_NAME.match(name) or ".." in name.split("/")):
+        raise Refused(f"--config-name={name!r} is not allowed; allowed: a config name (letters, digits, _ . -)")
+    return flags, overrides
+
+
+def _one_line(text: object, limit: int = 300) -> str:
+    return " ".join(str(text).split())[:limit]
+
+
+# --------------------------------------------------------------------------- composition
+
+
+def _compose(config_name: str, overrides: list[str]) -> Any:
+    """The configuration Hydra will compose (``return_hydra_config``), or :class:`Refused`."""
+    from hydra import compose, initialize_config_module
+
+    from nirspi_pipe.errors import yaml_problem
+
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            return compose(config_name, overrides, return_hydra_config=True)
+    except Exception as exc:  # noqa: BLE001 - any composition failure is a refusal (fail closed)
+        problem = yaml_problem(exc)
+        if problem:
+            raise Refused(problem) from None
+        cause: BaseException = exc
+        while cause.__cause__ is not None and not str(cause).strip():
+            cause = cause.__cause__
+        text = str(cause).strip().splitlines()
+        raise Refused(
+            f"the configuration does not compose: {_one_line(text[0] if text else type(exc).__name__)}"
+        ) from None
+
+
+@lru_cache(maxsize=8)
+def _baseline(choices: tuple[tuple[str, str | None], ...]) -> dict[str, Any]:
+    """Hydra's node composed from the default config and search path, with the given
+    ``hydra/…`` choices only (unresolved, as plain containers). Cached per process."""
+    from omegaconf import OmegaConf
+
+    overrides = [f"{g}={'null' if o is None else o}" for g, o in choices]
+    cfg = _compose(CONFIG_NAME, overrides)
+    return OmegaConf.to_container(cfg.hydra, resolve=False)  # type: ignore[return-value]
+
+
+def _default_choices() -> dict[str, str | None]:
+    return dict(_baseline(()).get("runtime", {}).get("choices", {}))
+
+
+def _hydra_group_options(group: str) -> list[str]:
+    """Options of a Hydra group (``hydra/launcher``) on the default search path."""
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.object_type import ObjectType
+
+    try:
+        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+            return sorted(GlobalHydra.instance().config_loader().get_group_options(group, ObjectType.CONFIG))
+    except Exception:  # noqa: BLE001 - only used to name the allowed options
+        return []
+
+
+def _primary_exists(name: str) -> bool:
+    """Whether ``name`` is a primary config on the default search path (a ``-cd`` folder joins
+    Hydra's search path as a ``hydra.searchpath`` entry, after the primary config is chosen)."""
+    from hydra import initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+        return bool(GlobalHydra.instance().config_loader().get_sources()) and any(
+            src.is_config(name) for src in GlobalHydra.instance().config_loader().get_sources()
+        )
+
+
+def default_searchpath() -> list[str]:
+    """``hydra.searchpath`` of the primary config (conf/config.yaml)."""
+    return [str(p) for p in _baseline(()).get("searchpath", [])]
+
+
+# --------------------------------------------------------------------------- Hydra's node
+
+
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    """Dotted key → value for every leaf of a plain tree (lists and empty dicts are leaves)."""
+    if isinstance(node, dict) and node:
+        out: dict[str, Any] = {}
+        for k, v in node.items():
+            out.update(_leaves(v, f"{prefix}.{k}" if prefix else str(k)))
+        return out
+    return {prefix: node}
+
+
+def _match(pattern: str, key: str) -> bool:
+    pp, kk = pattern.split("."), key.split(".")
+    if pp[-1] == "**":
+        return len(kk) >= len(pp) and all(p in ("*", k) for p, k in zip(pp[:-1], kk, strict=False))
+    return len(pp) == len(kk) and all(p in ("*", k) for p, k in zip(pp, kk, strict=True))
+
+
+def _kind_of(key: str) -> str | None:
+    for pattern, kind in allowlist.HYDRA_KEYS.items():
+        if _match(pattern, key):
+            return kind
+    return None
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check_subdir(value: Any) -> str | None:
+    if not isinstance(value, str) or not value:
+        return "a relative folder name"
+    text = value
+    for interp in _SUBDIR_INTERPOLATIONS:
+        text = text.replace(interp, "x")
+    parts = text.split("/")
+    if text.startswith("/") or any(p in ("", ".", "..") or not _SUBDIR_PART.match(p) for p in parts):
+        return (
+            "a relative folder below the sweep folder: letters, digits and _ . = , + -, no '..', "
+            f"interpolations only {', '.join(_SUBDIR_INTERPOLATIONS)}"
+        )
+    return None
+
+
+def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    """None when ``value`` fits ``kind``, else the allowed values (for the message)."""
+    if kind == "dir":
+        ok = isinstance(value, str) and value.strip() != "" and not any(ord(c) < 32 for c in value)
+        return None if ok else "a folder name (a non-empty string)"
+    if kind == "subdir":
+        return _check_subdir(value)
+    if kind == "output_subdir":
+        return None if value in (None, ".hydra") else "null or .hydra (Hydra's default)"
+    if kind == "name":
+        ok = isinstance(value, str) and bool(_NAME.match(value)) and value not in (".", "..")
+        return None if ok else "a name of letters, digits and _ . - (not a path)"
+    if kind == "name_or_null":
+        return None if value is None else _check_kind("name", key, value, hydra_node)
+    if kind == "mode":
+        return None if value in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
+    if kind == "verbose":
+        items = value if isinstance(value, list) else [value]
+        ok = isinstance(value, bool) or all(isinstance(v, str) and _PACKAGE.match(v) for v in items)
+        return None if ok else "true, false, or logger name(s)"
+    if kind == "bool":
+        return None if isinstance(value, bool) else "true or false"
+    if kind == "int":
+        return None if _is_int(value) and value >= 1 else "an integer >= 1"
+    if kind == "n_jobs":
+        return None if _is_int(value) and (value >= 1 or value == -1) else "-1 (one per core) or an integer >= 1"
+    if kind == "int_or_null":
+        return None if value is None or (_is_int(value) and value >= 0) else "an integer >= 0 or null"
+    if kind == "number_or_null":
+        return None if value is None or (_is_number(value) and value > 0) else "a number > 0 or null"
+    if kind == "scalar":
+        if key.rsplit(".", 1)[-1] in allowlist.OPTUNA_REFUSED_OPTIONS:
+            return "(nothing: this option names code or a nested object)"
+        ok = value is None or isinstance(value, bool) or _is_number(value)
+        ok = ok or (isinstance(value, str) and bool(_WORD.match(value)))
+        return None if ok else "a number, true/false, null or a single word"
+    if kind == "joblib_backend":
+        return None if value in ("loky", "multiprocessing", "threading") else "loky, multiprocessing or threading"
+    if kind == "direction":
+        items = value if isinstance(value, list) else [value]
+        ok = bool(items) and all(v in ("minimize", "maximize") for v in items)
+        return None if ok else "minimize, maximize or a list of them"
+    if kind == "null":
+        return None if value is None else "null only (a storage URL would write a database outside the output folder)"
+    if kind == "optuna_target":
+        prefix = allowlist.OPTUNA_TARGET_PREFIXES.get(key, "")
+        sweeper = str((hydra_node.get("sweeper") or {}).get("_target_", ""))
+        ok = (
+            sweeper == allowlist.OPTUNA_SWEEPER
+            and isinstance(value, str)
+            and value.startswith(prefix)
+            and value[len(prefix) :].isidentifier()
+        )
+        return None if ok else f"a class of {prefix.rstrip('.')} (with hydra/sweeper=optuna)"
+    if kind == "experiments":
+        from nirspi_pipe.app.configs import group_options
+
+        names = group_options("experiment")
+        ok = value is None or (isinstance(value, list) and all(isinstance(v, str) and v in names for v in value))
+        return None if ok else f"a list of experiments among {', '.join(names)}"
+    if kind == "searchpath":
+        return _check_searchpath(value)
+    if kind == "sweep":
+        return None if isinstance(value, (str, int, float)) and not isinstance(value, bool) else "a sweep string"
+    return "(nothing)"  # an unknown kind: fail closed
+
+
+def _check_searchpath(value: Any) -> str | None:
+    allowed = "the default entries and file:// folders that exist"
+    if not isinstance(value, list):
+        return allowed
+    defaults = set(default_searchpath())
+    for entry in value:
+        if entry in defaults:
+            continue
+        if not isinstance(entry, str) or not entry.startswith("file://"):
+            return allowed
+        folder = Path(entry[len("file://") :])
+        if not folder.is_dir() or any(ord(c) < 32 for c in entry):
+            return allowed
+    return None
+
+
+def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = None) -> list[tuple[str, str]]:
+    """Hydra's node of a composed config (a plain, unresolved tree) against the allow-list;
+    raises :class:`Refused`. Returns the sweeps it holds (``hydra.sweeper.params``) as
+    ``(key, sweep string)`` pairs for the caller to check value by value.
+
+    The reference is Hydra's node composed with nothing of the user's but the ``hydra/…``
+    choices (cached per process and per choices). With ``plain_keys`` (the node was composed
+    from the default config with plain value overrides only: :func:`_hydra_keys_if_plain`) it
+    is not composed: the node differs from it only at those keys, which are checked."""
+    user = _leaves(hydra_node)
+    if plain_keys is not None:
+        return _check_diffs(user, [(1, key) for key in sorted(set(plain_keys)) if key in user], hydra_node)
+    choices = {k: v for k, v in (hydra_node.get("runtime", {}).get("choices") or {}).items() if k.startswith("hydra/")}
+    defaults = {k: v for k, v in _default_choices().items() if k.startswith("hydra/")}
+    changed: list[tuple[str, str | None]] = []
+    for group in sorted(set(choices) | set(defaults)):
+        if choices.get(group) == defaults.get(group):
+            continue
+        if group not in allowlist.HYDRA_CHOICE_GROUPS and not (
+            group not in defaults and group.startswith(tuple(f"{g}/" for g in allowlist.HYDRA_CHOICE_GROUPS))
+        ):
+            raise Refused(
+                f"{group}={choices.get(group)} is not allowed: only the default may be used for {group}; "
+                f"allowed changes: {', '.join(sorted(allowlist.HYDRA_CHOICE_GROUPS))}"
+            )
+        if group in choices:
+            changed.append((group, choices[group]))
+    try:
+        base = _baseline(tuple(changed))
+    except Refused:
+        group, option = changed[-1] if changed else ("hydra", None)
+        names = _hydra_group_options(group)
+        for g, o in changed:
+            if o not in _hydra_group_options(g):
+                group, option, names = g, o, _hydra_group_options(g)
+                break
+        raise Refused(
+            f"{group}={option} is not an option; allowed: {', '.join(names) or '(none)'} "
+            "(Hydra's, nirspi-pipe's and installed plugins' configs; a config folder cannot add one)"
+        ) from None
+    ref = _leaves(base)
+    ignored = allowlist.IGNORED_KEYS
+    diffs: list[tuple[int, str]] = []
+    for key in set(user) | set(ref):
+        if any(_match(p, key) for p in ignored):
+            continue
+        if key in user and key in ref and user[key] == ref[key]:
+            continue
+        if key not in user and any(k.startswith(key + ".") for k in user):
+            continue  # a node replaced by a subtree: its leaves are compared
+        diffs.append((0 if key in user and key.endswith("_target_") else 1 if key in user else 2, key))
+    return _check_diffs(user, diffs, hydra_node)
+
+
+def _check_diffs(
+    user: dict[str, Any], diffs: list[tuple[int, str]], hydra_node: dict[str, Any]
+) -> list[tuple[str, str]]:
+    """The leaves of Hydra's node that differ from the reference (``(order, key)``) against the
+    allow-list; :class:`Refused` for the first that is not allowed. Returns the sweeps."""
+    sweeps: list[tuple[str, str]] = []
+    for _, key in sorted(diffs):
+        value = user.get(key)
+        kind = _kind_of(key) if key in user else None
+        shown = f"hydra.{key}"
+        if kind is None:
+            how = "removed" if key not in user else f"={_short(value)}"
+            raise Refused(
+                f"{shown}{how if how.startswith('=') else ' ' + how} is not allowed: Hydra's own settings may "
+                f"change only at {_allowed_keys_text()}"
+            )
+        problem = _check_kind(kind, key, value, hydra_node)
+        if problem:
+            raise Refused(f"{shown}={_short(value)} is not allowed; allowed: {problem}")
+        if kind == "sweep":
+            sweeps.append((key[len("sweeper.params.") :], str(value)))
+    return sweeps
+
+
+def _allowed_keys_text() -> str:
+    keys = ("run.dir", "sweep.dir", "sweep.subdir", "job.name", "verbose", "searchpath", "sweeper.params")
+    return (
+        ", ".join(f"hydra.{k}" for k in keys)
+        + ", the launcher's and sweeper's documented options (nirspi_pipe.app.allowlist)"
+    )
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    from nirspi_pipe.safeio import short_repr
+
+    return short_repr(value, limit)
+
+
+# --------------------------------------------------------------------------- sweeps
+
+
+def _candidates(ov: Any, group_opts: list[str] | None) -> list[Any]:
+    """The values a sweep override can take: every one of a choice or range; the bounds of an
+    interval (Optuna's ``interval(a,b)``); the matching options of a ``glob`` over a group."""
+    from hydra.core.override_parser.types import Glob, IntervalSweep
+
+    value = ov.value()
+    if isinstance(value, IntervalSweep):
+        return [value.start, value.end]
+    if isinstance(value, Glob):
+        if group_opts is None:
+            raise Refused(f"{ov.key_or_group}: glob() is allowed only over a config group")
+        return list(value.filter(group_opts))
+    try:
+        return list(ov.sweep_iterator())
+    except Exception as exc:  # noqa: BLE001 - what cannot be enumerated is refused
+        raise Refused(f"{ov.key_or_group}={ov.input_line}: the sweep cannot be enumerated ({_one_line(exc)})") from None
+
+
+def _parse(overrides: list[str]) -> list[Any]:
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    out = []
+    for text in overrides:
+        try:
+            out.append(parser.parse_override(text))
+        except Exception as exc:  # noqa: BLE001 - a syntax error is refused here, not handed on
+            first = str(exc).strip().splitlines()
+            raise Refused(f"{text[:80]!r} is not a valid override: {_one_line(first[0] if first else exc)}") from None
+    return out
+
+
+def _is_hydra_key(key: str) -> bool:
+    return key == "hydra" or key.startswith(("hydra.", "hydra/"))
+
+
+# --------------------------------------------------------------------------- the check
+
+
+def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
+    """Check what ``nirspi-run ARGS`` (or ``nirspi_pipe.run(ARGS)`` with ``api``) would do and
+    return the :class:`Invocation` to hand to Hydra; :class:`Refused` (one line) otherwise."""
+    from nirspi_pipe.app import validate
+
+    if api:
+        for arg in args:
+            if arg.startswith("-"):
+                raise Refused(f"{arg[:60]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
+    flags, overrides = parse_args(list(args))
+    if "--shell-completion" in flags:
+        words = [o.partition("=") for o in overrides]
+        if len(words) != 1 or words[0][0] not in ("install", "uninstall", "query") or words[0][2] not in _SHELLS:
+            raise Refused(
+                "-sc needs exactly one of install=SHELL, uninstall=SHELL, query=SHELL; allowed shells: "
+                + ", ".join(_SHELLS)
+            )
+        compose_overrides: list[str] = []
+    else:
+        rewritten, problem = validate.rewrite_nulls(overrides)
+        if problem:
+            raise Refused(problem)
+        overrides = rewritten
+        compose_overrides = overrides
+    config_dir = flags.pop("--config-dir", None)
+    parsed = _parse(compose_overrides)
+    user_paths = bool(config_dir) or any(ov.key_or_group == "hydra.searchpath" for ov in parsed)
+    if config_dir is not None:
+        folder = Path(config_dir).resolve()
+        if not folder.is_dir():
+            raise Refused(f"--config-dir={config_dir!r} is not allowed; allowed: a folder that exists")
+        given = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath"]
+        base = given[-1].value() if given else default_searchpath()
+        if not isinstance(base, list):
+            raise Refused("hydra.searchpath is not allowed; allowed: a list of folders")
+        entries = [*map(str, base), folder.as_uri()]
+        compose_overrides = [o for o, ov in zip(compose_overrides, parsed, strict=True) if ov not in given]
+        compose_overrides.append(f"hydra.searchpath=[{','.join(entries)}]")
+        if "--shell-completion" not in flags:
+            overrides = compose_overrides
+        parsed = _parse(compose_overrides)
+    for ov in parsed:
+        if ov.is_sweep_override() and _is_hydra_key(ov.key_or_group):
+            raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
+        if ov.is_sweep_override() and "--multirun" not in flags:
+            raise Refused(f"{ov.input_line} is a sweep; allowed: a sweep with -m only (nirspi-run -m ...)")
+    name_options = not user_paths and "--shell-completion" not in flags  # one-line names for options and keys
+    config_name = flags.get("--config-name") or CONFIG_NAME
+    if config_name != CONFIG_NAME and not _primary_exists(config_name):
+        raise Refused(
+            f"--config-name={config_name}: no such primary config; allowed: {CONFIG_NAME} or a config of "
+            "nirspi-pipe's conf/ (files in a -cd folder are used as +experiment=NAME or group options)"
+        )
+    fixed = [o for o, ov in zip(compose_overrides, parsed, strict=True) if not ov.is_sweep_override()]
+    try:
+        cfg = _compose(config_name, fixed)
+    except Refused:
+        problem = validate.check_overrides(compose_overrides) if name_options else None
+        if problem:  # the option or key by name, rather than Hydra's first line
+            raise Refused(problem) from None
+        raise
+    if name_options:
+        problem = validate.check_overrides(compose_overrides, composed=cfg)  # keys and types on this compose
+        if problem:
+            raise Refused(problem)
+    simple = None
+    if config_name == CONFIG_NAME and not user_paths:
+        simple = _hydra_keys_if_plain([ov for ov in parsed if not ov.is_sweep_override()])
+    _check_composed(cfg, flags, simple)
+    sweeps = [ov for ov in parsed if ov.is_sweep_override()]
+    _check_sweeps(cfg, sweeps, fixed, config_name, user_paths, flags)
+    hydra_flags: list[str] = []
+    for canonical, value in flags.items():
+        if canonical in ("--version", "--plugins"):
+            continue
+        hydra_flags.append(canonical if value is None else f"{canonical}={value}")
+    return Invocation(
+        flags=flags,
+        overrides=tuple(overrides),
+        hydra_argv=(*hydra_flags, *overrides),
+        config_name=config_name,
+        config=cfg,
+    )
+
+
+def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The job part (resolved where it resolves) and Hydra's node (unresolved)."""
+    from omegaconf import OmegaConf
+
+    job_part = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
+    try:
+        job = OmegaConf.to_container(job_part, resolve=True)
+    except Exception:  # noqa: BLE001 - then checked unresolved
+        job = OmegaConf.to_container(job_part, resolve=False)
+    hydra_node = OmegaConf.to_container(cfg.hydra, resolve=False)
+    return job, hydra_node  # type: ignore[return-value]
+
+
+def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
+    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when every override in it is
+    a plain value override of an existing key (no config group, no ``+``/``~``/``@``) and each
+    ``hydra.…`` one sets one allow-listed leaf to a scalar; otherwise None.
+
+    Hydra composes the defaults tree first (only group choices and the config name shape it) and
+    then sets value overrides, so with such overrides Hydra's node differs from the default
+    composition at the keys they set and nowhere else (``hydra.overrides``,
+    ``hydra.job.override_dirname`` and ``hydra.runtime`` are not compared): those keys are all
+    that needs checking, and the reference composition is not needed."""
+    from nirspi_pipe.app.validate import _group_exists
+
+    keys: list[str] = []
+    for ov in fixed:
+        key = ov.key_or_group
+        if ov.is_add() or ov.is_delete() or ov.is_force_add() or "@" in key or key.startswith("hydra/"):
+            return None
+        if _group_exists(key.split("/", 1)[0]) or key == "hydra":
+            return None
+        if key.startswith("hydra."):
+            leaf = key[len("hydra.") :]
+            value = ov.value()
+            if _kind_of(leaf) is None or isinstance(value, (dict, list)) or _kind_of(leaf) == "searchpath":
+                return None
+            keys.append(leaf)
+    return keys
+
+
+def _check_composed(
+    cfg: Any, flags: dict[str, str | None], plain_keys: list[str] | None = None
+) -> list[tuple[str, str]]:
+    """One composed configuration: Hydra's node against the allow-list, every target, the job's
+    keys and stage nodes, and (``-m``) the sweep settings. Returns the sweeper's params.
+    ``plain_keys``: see :func:`_hydra_keys_if_plain` (then only those keys of Hydra's node are
+    compared)."""
+    from nirspi_pipe.app import validate
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.targets import check_targets
+
+    job, hydra_node = _plain(cfg)
+    params = check_hydra_node(hydra_node, plain_keys)
+    try:
+        check_targets(job)
+        check_targets(hydra_node, "hydra")
+    except ConfigError as exc:
+        raise Refused(str(exc)) from None
+    problem = validate.check_plain_keys(job) or validate._check_stage_nodes(job)
+    if not problem and "--multirun" in flags:
+        resolved = _resolved_hydra(cfg)
+        problem = validate._check_sweep_settings(resolved)
+    if problem:
+        raise Refused(problem)
+    _check_output_paths(cfg)
+    return params
+
+
+def _resolved_hydra(cfg: Any) -> dict[str, Any]:
+    from omegaconf import OmegaConf
+
+    out: dict[str, Any] = {}
+    for key in ("launcher", "sweeper"):
+        try:
+            out[key] = OmegaConf.to_container(cfg.hydra[key], resolve=True)
+        except Exception:  # noqa: BLE001 - values only a running app has
+            out[key] = OmegaConf.to_container(cfg.hydra[key], resolve=False)
+    return out
+
+
+def _check_output_paths(cfg: Any) -> None:
+    """The job folders after resolution: ``hydra.sweep.subdir`` and ``hydra.output_subdir``
+    relative and without ``..``, so nothing is written above the run or sweep folder."""
+    from omegaconf import OmegaConf
+
+    for key in ("sweep.subdir", "output_subdir", "job.name"):
+        try:
+            value = OmegaConf.select(cfg, f"hydra.{key}", throw_on_missing=True)
+        except Exception:  # noqa: BLE001 - job.num exists only in a running sweep: checked unresolved
+            continue
+        if value is None:
+            continue
+        text = str(value)
+        if text.startswith("/") or ".." in Path(text).parts or "\\" in text:
+            raise Refused(f"hydra.{key}={text!r} is not allowed; allowed: a relative folder without '..'")
+
+
+def _check_sweeps(
+    cfg: Any,
+    sweeps: list[Any],
+    fixed: list[str],
+    config_name: str,
+    user_paths: bool,
+    flags: dict[str, str | None],
+) -> None:
+    """Every value of every sweep (command line and ``hydra.sweeper.params``) for its key."""
+    from omegaconf import OmegaConf
+
+    from nirspi_pipe.app import validate
+    from nirspi_pipe.app.configs import all_groups, group_options
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.targets import check_target, check_targets
+
+    job, hydra_node = _plain(cfg)
+    params = (hydra_node.get("sweeper") or {}).get("params") or {}
+    sweep_texts = [ov.input_line for ov in sweeps]
+    sweep_texts += [f"{k}={v}" for k, v in params.items()]
+    experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
+    if user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
+        for name in experiments:
+            one = _compose(config_name, [*fixed, f"+experiment={name}"])
+            _check_composed(one, flags)
+            for k, v in ((_plain(one)[1].get("sweeper") or {}).get("params") or {}).items():
+                sweep_texts.append(f"{k}={v}")
+    groups = all_groups()
+    for ov in _parse(sweep_texts):
+        key = ov.key_or_group.split("@", 1)[0].lstrip("+~")
+        if _is_hydra_key(key):
+            raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
+        if ov.is_delete():
+            continue
+        is_group = key in groups
+        values = _candidates(ov, group_options(key) if is_group else None) if ov.is_sweep_override() else [ov.value()]
+        for value in values:
+            if is_group:
+                text = "null" if value is None else str(value)
+                allowed = group_options(key)
+                if text not in ("null", "None", validate.OFF_OPTION) and text not in allowed and not user_paths:
+                    raise Refused(f"{key}={text} is not an option; allowed: {', '.join(allowed)} (or null)")
+                if user_paths:  # the option may come from the user's folder: compose it
+                    prefix = "+" if ov.is_add() else ""
+                    _check_composed(_compose(config_name, [*fixed, f"{prefix}{ov.key_or_group}={text}"]), flags)
+                continue
+            try:
+                if key == "_target_" or key.endswith("._target_"):
+                    check_target(value, key)
+                else:
+                    check_targets(value, key)
+            except ConfigError as exc:
+                raise Refused(str(exc)) from None
+            one = OmegaConf.create(job)
+            try:
+                OmegaConf.update(one, key, value, merge=False, force_add=True)
+            except Exception as exc:  # noqa: BLE001 - a value that cannot be set is refused
+                raise Refused(f"{key}={_short(value)} cannot be set: {_one_line(exc)}") from None
+            problem = validate.check_plain_keys(OmegaConf.to_container(one, resolve=False))
+            if problem:
+                raise Refused(problem)
