@@ -238,6 +238,10 @@ def _evil_folder(root: Path) -> Path:
         "experiment/env.yaml": "# @package _global_\nhydra:\n  job:\n    env_set:\n      LD_PRELOAD: lib.so\n",
         "hydra/job_logging/evil.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
         "hydra/job_logging/default.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
+        "experiment/meta_evil.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, logging]\n",
+        "experiment/meta_nope.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, nope]\n",
+        "experiment/meta_up.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, ../x]\n",
+        "experiment/meta_ok.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, table2_ci]\n",
         "hydra/help/evil.yaml": "app_name: x\ntemplate: ${oc.env:HOME}\n",
         "hydra/launcher/evil.yaml": "_target_: os.system\ncommand: touch MARK\n",
         "evil.yaml": f"defaults:\n  - config\n  - _self_\nhydra:\n  job_logging:\n    handlers:\n      file: {handler}\n",
@@ -280,6 +284,16 @@ def test_a_searchpath_folder_is_checked_like_a_config_folder(args: list[str], tm
     conf = _evil_folder(tmp_path)
     _refused([f"hydra.searchpath=[pkg://nirspi_pipe.experiments,{conf.as_uri()}]", *args])
     assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
+
+
+@pytest.mark.parametrize("meta", ["meta_evil", "meta_nope", "meta_up"])
+def test_a_meta_experiment_in_a_config_folder_is_checked_experiment_by_experiment(meta: str, tmp_path: Path) -> None:
+    """``hydra.sweeper.experiments`` naming experiments of a user's folder: each is composed and
+    checked as the sweeper will run it; one that sets a logging handler, does not exist or is a
+    path is refused. The same list from the package's experiments only is fine."""
+    conf = _evil_folder(tmp_path)
+    _refused(["-m", "-cd", str(conf), f"+experiment={meta}"])
+    check_invocation(["-m", "-cd", str(conf), "+experiment=meta_ok"])
 
 
 def test_a_config_folder_is_fine_when_its_files_are(tmp_path: Path) -> None:

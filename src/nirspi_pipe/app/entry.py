@@ -354,6 +354,11 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
         from nirspi_pipe.app.configs import group_options
 
         names = group_options("experiment")
+        if _user_searchpath(hydra_node):  # a user's folder may hold them: each is composed and checked (_check_sweeps)
+            ok = isinstance(value, list) and all(
+                isinstance(v, str) and bool(_CONFIG_NAME.match(v)) and ".." not in v.split("/") for v in value
+            )
+            return None if value is None or ok else "a list of experiment names"
         ok = value is None or (isinstance(value, list) and all(isinstance(v, str) and v in names for v in value))
         return None if ok else f"a list of experiments among {', '.join(names)}"
     if kind == "searchpath":
@@ -361,6 +366,12 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
     if kind == "sweep":
         return None if isinstance(value, (str, int, float)) and not isinstance(value, bool) else "a sweep string"
     return "(nothing)"  # an unknown kind: fail closed
+
+
+def _user_searchpath(hydra_node: dict[str, Any]) -> bool:
+    """Whether Hydra's search path holds an entry besides the default ones (a user's folder)."""
+    defaults = set(default_searchpath())
+    return any(str(entry) not in defaults for entry in hydra_node.get("searchpath") or [])
 
 
 def _check_searchpath(value: Any) -> str | None:
@@ -717,9 +728,10 @@ def _check_sweeps(
     sweep_texts = [ov.input_line for ov in sweeps]
     sweep_texts += [f"{k}={v}" for k, v in params.items()]
     experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
-    if user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
+    if user_paths or _user_searchpath(hydra_node):  # each experiment of a meta-experiment, composed as the sweeper will
+        shared = [o for o in fixed if not o.lstrip("+~").startswith("experiment=")]  # as NirspiSweeper does
         for name in experiments:
-            one = _compose(config_name, [*fixed, f"+experiment={name}"])
+            one = _compose(config_name, [f"+experiment={name}", *shared])
             _check_composed(one, flags)
             for k, v in ((_plain(one)[1].get("sweeper") or {}).get("params") or {}).items():
                 sweep_texts.append(f"{k}={v}")
