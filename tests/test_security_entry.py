@@ -478,9 +478,9 @@ def test_shell_completion_runs_nothing(tmp_path: Path) -> None:
 
 
 def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The default invocation and plain value overrides (no group, no ``+``/``~``, allow-listed
-    ``hydra.`` leaves) cost one composition, and the shortcut is sound: Hydra's node then differs
-    from the reference composition only at the ``hydra.`` keys the overrides set."""
+    """The default invocation, job group choices and plain value overrides (no ``+``/``~``,
+    allow-listed ``hydra.`` leaves) cost one composition, and the shortcut is sound: with plain
+    value overrides Hydra's node differs from the reference only at the ``hydra.`` keys they set."""
     import hydra
     from omegaconf import OmegaConf
 
@@ -513,12 +513,16 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
         changed = {k for k in changed if not any(entry._match(p, k) for p in allowlist.IGNORED_KEYS)}
         set_keys = {a.split("=", 1)[0][len("hydra.") :] for a in args if a.startswith("hydra.")}
         assert changed <= set_keys, (args, changed)
+    for args in (["scene=cube", "hydra.run.dir=/tmp/x"], ["-m", "+experiment=paper_ci", "hydra.launcher.n_jobs=2"]):
+        calls.clear()
+        check_invocation(args)  # job group choices: shipped option files (trusted), no reference
+        assert len(calls) == 1 and entry._baseline.cache_info().currsize == 0, (args, calls)
     calls.clear()
-    check_invocation(["scene=cube", "hydra.run.dir=/tmp/x"])  # a group: the reference is composed
-    assert len(calls) == 2 and entry._baseline.cache_info().currsize == 1
+    check_invocation(["hydra/launcher=joblib", "hydra.run.dir=/tmp/x"])  # a hydra/ choice: the reference
+    assert len(calls) == 3 and entry._baseline.cache_info().currsize == 2  # the default's choices, then joblib's
     calls.clear()
-    check_invocation(["scene=torus"])
-    assert len(calls) == 1  # the reference is cached per process
+    check_invocation(["hydra/launcher=joblib", "scene=torus"])
+    assert len(calls) == 1  # the reference is cached per process and choices
     for attack in ("hydra.job.chdir=true", "hydra.run.dir=", "hydra.job.name=../x"):
         _refused([attack])  # a plain override of a key off the allow-list or a bad value
 

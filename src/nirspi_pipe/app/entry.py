@@ -397,8 +397,9 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
 
     The reference is Hydra's node composed with nothing of the user's but the ``hydra/…``
     choices (cached per process and per choices). With ``plain_keys`` (the node was composed
-    from the default config with plain value overrides only: :func:`_hydra_keys_if_plain`) it
-    is not composed: the node differs from it only at those keys, which are checked."""
+    from the default config and search path with job group choices and plain value overrides
+    only: :func:`_hydra_keys_if_plain`) it is not composed: what the user set in the node is
+    those keys, which are checked."""
     user = _leaves(hydra_node)
     if plain_keys is not None:
         return _check_diffs(user, [(1, key) for key in sorted(set(plain_keys)) if key in user], hydra_node)
@@ -623,28 +624,33 @@ def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
-    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when every override in it is
-    a plain value override of an existing key (no config group, no ``+``/``~``/``@``) and each
-    ``hydra.…`` one sets one allow-listed leaf to a scalar; otherwise None.
+    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when Hydra's node can differ
+    from the default composition only at those keys or through trusted files; otherwise None.
 
-    Hydra composes the defaults tree first (only group choices and the config name shape it) and
-    then sets value overrides, so with such overrides Hydra's node differs from the default
-    composition at the keys they set and nowhere else (``hydra.overrides``,
-    ``hydra.job.override_dirname`` and ``hydra.runtime`` are not compared): those keys are all
-    that needs checking, and the reference composition is not needed."""
+    That holds when (the caller checks) the config is the default one and the search path is
+    the default one (no ``-cd``, no ``hydra.searchpath``), and every override in ``fixed`` is
+    either a choice of a job's config group (``scene=cube``, ``+experiment=paper_ci``: an option
+    file of nirspi-pipe or an installed plugin, which is trusted and may set Hydra's settings) or
+    a plain value override of an existing key (no ``+``/``~``/``@``), each ``hydra.…`` one
+    setting one allow-listed leaf to a scalar. Hydra composes the defaults tree first (only the
+    config name, the search path and group choices shape it) and then sets value overrides, so
+    those keys are all that comes from the user, and the reference composition is not needed.
+    A ``hydra/…`` choice, a package (``@``) or a deletion needs the reference: None."""
     from nirspi_pipe.app.validate import _group_exists
 
     keys: list[str] = []
     for ov in fixed:
         key = ov.key_or_group
-        if ov.is_add() or ov.is_delete() or ov.is_force_add() or "@" in key or key.startswith("hydra/"):
+        if ov.is_delete() or "@" in key or key == "hydra" or key.startswith("hydra/"):
             return None
-        if _group_exists(key.split("/", 1)[0]) or key == "hydra":
+        if _group_exists(key):
+            continue  # a trusted option file (its name is checked to exist: validate.check_overrides)
+        if ov.is_add() or ov.is_force_add() or _group_exists(key.split("/", 1)[0]):
             return None
         if key.startswith("hydra."):
             leaf = key[len("hydra.") :]
-            value = ov.value()
-            if _kind_of(leaf) is None or isinstance(value, (dict, list)) or _kind_of(leaf) == "searchpath":
+            kind = _kind_of(leaf)
+            if kind is None or kind == "searchpath" or isinstance(ov.value(), (dict, list)):
                 return None
             keys.append(leaf)
     return keys
@@ -728,7 +734,7 @@ def _check_sweeps(
     sweep_texts = [ov.input_line for ov in sweeps]
     sweep_texts += [f"{k}={v}" for k, v in params.items()]
     experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
-    if user_paths or _user_searchpath(hydra_node):  # each experiment of a meta-experiment, composed as the sweeper will
+    if experiments and user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
         shared = [o for o in fixed if not o.lstrip("+~").startswith("experiment=")]  # as NirspiSweeper does
         for name in experiments:
             one = _compose(config_name, [f"+experiment={name}", *shared])
