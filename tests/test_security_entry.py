@@ -178,6 +178,8 @@ ALLOWED = [
     ["-m", "seed=0,1", "hydra.launcher.timeout_s=60", "hydra.sweeper.allow_failures=true"],
     ["hydra/job_logging=disabled", "hydra/hydra_logging=none"],
     ["hydra.output_subdir=.hydra"],
+    ["scene=cube", "hydra.mode=RUN"],
+    ["-m", "seed=0,1", "hydra.mode=MULTIRUN"],
 ]
 
 

@@ -311,7 +311,8 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
     if kind == "name_or_null":
         return None if value is None else _check_kind("name", key, value, hydra_node)
     if kind == "mode":
-        return None if value in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
+        name = getattr(value, "name", value)  # Hydra's RunMode enum once composed
+        return None if name in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
     if kind == "verbose":
         items = value if isinstance(value, list) else [value]
         ok = isinstance(value, bool) or all(isinstance(v, str) and _PACKAGE.match(v) for v in items)
