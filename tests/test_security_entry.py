@@ -178,6 +178,8 @@ ALLOWED = [
     ["-m", "seed=0,1", "hydra.launcher.timeout_s=60", "hydra.sweeper.allow_failures=true"],
     ["hydra/job_logging=disabled", "hydra/hydra_logging=none"],
     ["hydra.output_subdir=.hydra"],
+    ["scene=cube", "hydra.mode=RUN"],
+    ["-m", "seed=0,1", "hydra.mode=MULTIRUN"],
 ]
 
 
@@ -238,6 +240,10 @@ def _evil_folder(root: Path) -> Path:
         "experiment/env.yaml": "# @package _global_\nhydra:\n  job:\n    env_set:\n      LD_PRELOAD: lib.so\n",
         "hydra/job_logging/evil.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
         "hydra/job_logging/default.yaml": f"version: 1\nhandlers:\n  file: {handler}\nroot:\n  handlers: [file]\n",
+        "experiment/meta_evil.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, logging]\n",
+        "experiment/meta_nope.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, nope]\n",
+        "experiment/meta_up.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, ../x]\n",
+        "experiment/meta_ok.yaml": "# @package _global_\nhydra:\n  sweeper:\n    experiments: [ok, table2_ci]\n",
         "hydra/help/evil.yaml": "app_name: x\ntemplate: ${oc.env:HOME}\n",
         "hydra/launcher/evil.yaml": "_target_: os.system\ncommand: touch MARK\n",
         "evil.yaml": f"defaults:\n  - config\n  - _self_\nhydra:\n  job_logging:\n    handlers:\n      file: {handler}\n",
@@ -280,6 +286,16 @@ def test_a_searchpath_folder_is_checked_like_a_config_folder(args: list[str], tm
     conf = _evil_folder(tmp_path)
     _refused([f"hydra.searchpath=[pkg://nirspi_pipe.experiments,{conf.as_uri()}]", *args])
     assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
+
+
+@pytest.mark.parametrize("meta", ["meta_evil", "meta_nope", "meta_up"])
+def test_a_meta_experiment_in_a_config_folder_is_checked_experiment_by_experiment(meta: str, tmp_path: Path) -> None:
+    """``hydra.sweeper.experiments`` naming experiments of a user's folder: each is composed and
+    checked as the sweeper will run it; one that sets a logging handler, does not exist or is a
+    path is refused. The same list from the package's experiments only is fine."""
+    conf = _evil_folder(tmp_path)
+    _refused(["-m", "-cd", str(conf), f"+experiment={meta}"])
+    check_invocation(["-m", "-cd", str(conf), "+experiment=meta_ok"])
 
 
 def test_a_config_folder_is_fine_when_its_files_are(tmp_path: Path) -> None:
@@ -464,9 +480,9 @@ def test_shell_completion_runs_nothing(tmp_path: Path) -> None:
 
 
 def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The default invocation and plain value overrides (no group, no ``+``/``~``, allow-listed
-    ``hydra.`` leaves) cost one composition, and the shortcut is sound: Hydra's node then differs
-    from the reference composition only at the ``hydra.`` keys the overrides set."""
+    """The default invocation, job group choices and plain value overrides (no ``+``/``~``,
+    allow-listed ``hydra.`` leaves) cost one composition, and the shortcut is sound: with plain
+    value overrides Hydra's node differs from the reference only at the ``hydra.`` keys they set."""
     import hydra
     from omegaconf import OmegaConf
 
@@ -499,12 +515,16 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
         changed = {k for k in changed if not any(entry._match(p, k) for p in allowlist.IGNORED_KEYS)}
         set_keys = {a.split("=", 1)[0][len("hydra.") :] for a in args if a.startswith("hydra.")}
         assert changed <= set_keys, (args, changed)
+    for args in (["scene=cube", "hydra.run.dir=/tmp/x"], ["-m", "+experiment=paper_ci", "hydra.launcher.n_jobs=2"]):
+        calls.clear()
+        check_invocation(args)  # job group choices: shipped option files (trusted), no reference
+        assert len(calls) == 1 and entry._baseline.cache_info().currsize == 0, (args, calls)
     calls.clear()
-    check_invocation(["scene=cube", "hydra.run.dir=/tmp/x"])  # a group: the reference is composed
-    assert len(calls) == 2 and entry._baseline.cache_info().currsize == 1
+    check_invocation(["hydra/launcher=joblib", "hydra.run.dir=/tmp/x"])  # a hydra/ choice: the reference
+    assert len(calls) == 3 and entry._baseline.cache_info().currsize == 2  # the default's choices, then joblib's
     calls.clear()
-    check_invocation(["scene=torus"])
-    assert len(calls) == 1  # the reference is cached per process
+    check_invocation(["hydra/launcher=joblib", "scene=torus"])
+    assert len(calls) == 1  # the reference is cached per process and choices
     for attack in ("hydra.job.chdir=true", "hydra.run.dir=", "hydra.job.name=../x"):
         _refused([attack])  # a plain override of a key off the allow-list or a bad value
 

@@ -311,7 +311,8 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
     if kind == "name_or_null":
         return None if value is None else _check_kind("name", key, value, hydra_node)
     if kind == "mode":
-        return None if value in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
+        name = getattr(value, "name", value)  # Hydra's RunMode enum once composed
+        return None if name in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
     if kind == "verbose":
         items = value if isinstance(value, list) else [value]
         ok = isinstance(value, bool) or all(isinstance(v, str) and _PACKAGE.match(v) for v in items)
@@ -354,6 +355,11 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
         from nirspi_pipe.app.configs import group_options
 
         names = group_options("experiment")
+        if _user_searchpath(hydra_node):  # a user's folder may hold them: each is composed and checked (_check_sweeps)
+            ok = isinstance(value, list) and all(
+                isinstance(v, str) and bool(_CONFIG_NAME.match(v)) and ".." not in v.split("/") for v in value
+            )
+            return None if value is None or ok else "a list of experiment names"
         ok = value is None or (isinstance(value, list) and all(isinstance(v, str) and v in names for v in value))
         return None if ok else f"a list of experiments among {', '.join(names)}"
     if kind == "searchpath":
@@ -361,6 +367,12 @@ def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> 
     if kind == "sweep":
         return None if isinstance(value, (str, int, float)) and not isinstance(value, bool) else "a sweep string"
     return "(nothing)"  # an unknown kind: fail closed
+
+
+def _user_searchpath(hydra_node: dict[str, Any]) -> bool:
+    """Whether Hydra's search path holds an entry besides the default ones (a user's folder)."""
+    defaults = set(default_searchpath())
+    return any(str(entry) not in defaults for entry in hydra_node.get("searchpath") or [])
 
 
 def _check_searchpath(value: Any) -> str | None:
@@ -386,8 +398,9 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
 
     The reference is Hydra's node composed with nothing of the user's but the ``hydra/…``
     choices (cached per process and per choices). With ``plain_keys`` (the node was composed
-    from the default config with plain value overrides only: :func:`_hydra_keys_if_plain`) it
-    is not composed: the node differs from it only at those keys, which are checked."""
+    from the default config and search path with job group choices and plain value overrides
+    only: :func:`_hydra_keys_if_plain`) it is not composed: what the user set in the node is
+    those keys, which are checked."""
     user = _leaves(hydra_node)
     if plain_keys is not None:
         return _check_diffs(user, [(1, key) for key in sorted(set(plain_keys)) if key in user], hydra_node)
@@ -612,28 +625,33 @@ def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
-    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when every override in it is
-    a plain value override of an existing key (no config group, no ``+``/``~``/``@``) and each
-    ``hydra.…`` one sets one allow-listed leaf to a scalar; otherwise None.
+    """The ``hydra.…`` keys (below ``hydra.``) that ``fixed`` sets, when Hydra's node can differ
+    from the default composition only at those keys or through trusted files; otherwise None.
 
-    Hydra composes the defaults tree first (only group choices and the config name shape it) and
-    then sets value overrides, so with such overrides Hydra's node differs from the default
-    composition at the keys they set and nowhere else (``hydra.overrides``,
-    ``hydra.job.override_dirname`` and ``hydra.runtime`` are not compared): those keys are all
-    that needs checking, and the reference composition is not needed."""
+    That holds when (the caller checks) the config is the default one and the search path is
+    the default one (no ``-cd``, no ``hydra.searchpath``), and every override in ``fixed`` is
+    either a choice of a job's config group (``scene=cube``, ``+experiment=paper_ci``: an option
+    file of nirspi-pipe or an installed plugin, which is trusted and may set Hydra's settings) or
+    a plain value override of an existing key (no ``+``/``~``/``@``), each ``hydra.…`` one
+    setting one allow-listed leaf to a scalar. Hydra composes the defaults tree first (only the
+    config name, the search path and group choices shape it) and then sets value overrides, so
+    those keys are all that comes from the user, and the reference composition is not needed.
+    A ``hydra/…`` choice, a package (``@``) or a deletion needs the reference: None."""
     from nirspi_pipe.app.validate import _group_exists
 
     keys: list[str] = []
     for ov in fixed:
         key = ov.key_or_group
-        if ov.is_add() or ov.is_delete() or ov.is_force_add() or "@" in key or key.startswith("hydra/"):
+        if ov.is_delete() or "@" in key or key == "hydra" or key.startswith("hydra/"):
             return None
-        if _group_exists(key.split("/", 1)[0]) or key == "hydra":
+        if _group_exists(key):
+            continue  # a trusted option file (its name is checked to exist: validate.check_overrides)
+        if ov.is_add() or ov.is_force_add() or _group_exists(key.split("/", 1)[0]):
             return None
         if key.startswith("hydra."):
             leaf = key[len("hydra.") :]
-            value = ov.value()
-            if _kind_of(leaf) is None or isinstance(value, (dict, list)) or _kind_of(leaf) == "searchpath":
+            kind = _kind_of(leaf)
+            if kind is None or kind == "searchpath" or isinstance(ov.value(), (dict, list)):
                 return None
             keys.append(leaf)
     return keys
@@ -717,9 +735,10 @@ def _check_sweeps(
     sweep_texts = [ov.input_line for ov in sweeps]
     sweep_texts += [f"{k}={v}" for k, v in params.items()]
     experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
-    if user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
+    if experiments and user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
+        shared = [o for o in fixed if not o.lstrip("+~").startswith("experiment=")]  # as NirspiSweeper does
         for name in experiments:
-            one = _compose(config_name, [*fixed, f"+experiment={name}"])
+            one = _compose(config_name, [f"+experiment={name}", *shared])
             _check_composed(one, flags)
             for k, v in ((_plain(one)[1].get("sweeper") or {}).get("params") or {}).items():
                 sweep_texts.append(f"{k}={v}")
