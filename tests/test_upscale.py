@@ -21,7 +21,7 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.metrics import psnr
 from nirspi_pipe.pipeline import build, run_pipeline
 from nirspi_pipe.types import Image2D
-from nirspi_pipe.upscale import FSRCNN, Bicubic, NoUpscale, bicubic, block_mean
+from nirspi_pipe.upscale import FSRCNN, Bicubic, bicubic, block_mean
 from nirspi_pipe.upscale.data import heldout_pairs, spi_lowres
 from nirspi_pipe.upscale.fsrcnn import (
     ConvLayer,
@@ -192,7 +192,6 @@ def test_output_shapes(scale: int, shape: tuple[int, int]) -> None:
         out = stage.upscale(img)
         assert out.data.shape == (shape[0] * scale, shape[1] * scale)
         assert out.info["scale"] == scale and out.info["model"] in ("bicubic", "fsrcnn")
-    assert NoUpscale().upscale(img).data.shape == shape
 
 
 @pytest.mark.parametrize("scale", SCALES)
@@ -231,7 +230,7 @@ def test_non_finite_input_warns_and_stays_finite() -> None:
 def test_inputs_are_not_modified() -> None:
     data = np.random.default_rng(3).uniform(0, 1, (8, 8))
     copy = data.copy()
-    for stage in (NoUpscale(), Bicubic(scale=3), FSRCNN(scale=3)):
+    for stage in (Bicubic(scale=3), FSRCNN(scale=3)):
         stage.upscale(Image2D(data))
     np.testing.assert_array_equal(data, copy)
 

@@ -97,7 +97,6 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         # upscalers
         "nirspi_pipe.upscale.Bicubic",
         "nirspi_pipe.upscale.FSRCNN",
-        "nirspi_pipe.upscale.NoUpscale",
         # 3D
         "nirspi_pipe.sfs.models.LaxFriedrichsSFS",
         "nirspi_pipe.sfs.models.OrenNayarSFS",

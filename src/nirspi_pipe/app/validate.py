@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
+from nirspi_pipe.pipeline import MODEL_OF_NOTHING
 
 __all__ = [
     "check_config",
@@ -72,6 +73,12 @@ def rewrite_nulls(args: list[str]) -> tuple[list[str], str | None]:
             continue
         head, value = arg.split("=", 1)
         tokens = [t.strip() for t in value.split(",")]
+        if group in MODEL_OF_NOTHING and any(t in (*_NULLS, OFF_OPTION) for t in tokens):
+            # refused before any job runs (the runner refuses it too: pipeline.run_pipeline)
+            return args, (
+                f"{group}={value} is not allowed; allowed: {MODEL_OF_NOTHING[group]}; "
+                f"{group} is a model of the simulated camera, not a stage"
+            )
         if not any(t in _NULLS for t in tokens) or any(c in value for c in "()[]{}'\""):
             out.append(arg)  # no null, or a sweep function/quoted value: left to Hydra
             continue

@@ -10,14 +10,12 @@ high-resolution one (:func:`block_mean`), which is how the training and evaluati
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.types import Image2D
 
-__all__ = ["SCALES", "check_scale", "as_finite_image", "finish", "block_mean", "NoUpscale"]
+__all__ = ["SCALES", "check_scale", "as_finite_image", "finish", "block_mean"]
 
 #: Supported upscaling factors (the paper's FSRCNN step; Dong et al. 2016 train ×2, ×3, ×4).
 SCALES = (2, 3, 4)
@@ -54,13 +52,3 @@ def block_mean(hr: np.ndarray, scale: int) -> np.ndarray:
     times larger integrates (relative radiance in, relative radiance out)."""
     h, w = hr.shape[0] // scale, hr.shape[1] // scale
     return hr[: h * scale, : w * scale].reshape(h, scale, w, scale).mean(axis=(1, 3))
-
-
-@dataclass(frozen=True)
-class NoUpscale:
-    """The identity upscaler (scale 1), for tests of the upscale interface. It is no config
-    option: no upscaling is ``upscale=null`` (one way to switch a stage off)."""
-
-    def upscale(self, image: Image2D) -> Image2D:
-        x = as_finite_image(image.data, "none")
-        return Image2D(x.copy(), info={"model": "none", "scale": 1, "shape": list(x.shape)})
