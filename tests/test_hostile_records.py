@@ -60,9 +60,12 @@ def test_resolution_2_records_no_nan_and_says_why(tmp_path: Path) -> None:
         cfg = compose("config", overrides=["camera.resolution=2"])
     rec = execute_job(cfg, tmp_path, {}, [])
     assert rec["meta"]["status"] == "ok"
-    assert "ssim" not in rec["metrics"] and math.isfinite(rec["metrics"]["rmse"])
+    # 2x2 pixels of the centred sphere see the same radiance: a degenerate (uniform) reference, so
+    # the normalised scores are left out too (issue 32), and the raw SSIM is undefined below 3x3
+    assert "ssim" not in rec["metrics"] and "ssim_raw" not in rec["metrics"] and math.isfinite(rec["metrics"]["rmse"])
+    assert rec["metrics"]["degenerate_reference"] == 1.0
     assert any(
-        "metrics.ssim=nan" in w and "SSIM is undefined for images smaller than 3x3" in w
+        "metrics.ssim_raw=nan" in w and "SSIM is undefined for images smaller than 3x3" in w
         for w in rec["meta"]["warnings"]
     )
     stored = json.loads((tmp_path / "record.json").read_text())

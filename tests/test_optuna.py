@@ -162,12 +162,13 @@ def test_a_single_objective_study_where_every_trial_failed(cli) -> None:
 
 
 def test_max_failure_rate_decides_the_exit_code(cli) -> None:
-    # the grid sampler, one trial at a time, runs each of the two weights once: one of two fails
+    # the random sampler with seed 0 draws the two weights -1.0 then 0.01 (optuna 2.10.1): one of two fails
     res = cli(
         "nirspi-run",
         "-m",
         "hydra/sweeper=optuna",
-        "hydra/sweeper/sampler=grid",
+        "hydra/sweeper/sampler=random",
+        "hydra.sweeper.sampler.seed=0",
         "hydra.sweeper.n_jobs=1",
         "hydra.sweeper.n_trials=2",
         "hydra.sweeper.max_failure_rate=0.5",
@@ -181,3 +182,12 @@ def test_max_failure_rate_decides_the_exit_code(cli) -> None:
     assert res.returncode == 0, res.stderr
     df = _results(Path(cli.cwd) / "sweep")
     assert sorted(df["status"]) == ["failed", "ok"] and df["pareto"].tolist() == list(df["status"] == "ok")
+
+
+def test_the_grid_sampler_is_refused_in_one_line(cli) -> None:
+    # optuna 2.10's GridSampler stops the study from outside Study.optimize once its grid is used
+    # up, which crashed the plugin's sweep with a traceback: refused before any job runs
+    res = cli("nirspi-run", "-m", "hydra/sweeper=optuna", "hydra/sweeper/sampler=grid", "objective=metrics.psnr", *TINY)
+    assert res.returncode == 2, res.stderr
+    line = res.stderr.strip().splitlines()[-1]
+    assert "hydra/sweeper/sampler=grid is not allowed" in line and "plain -m sweep" in line

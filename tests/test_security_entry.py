@@ -254,28 +254,41 @@ def _evil_folder(root: Path) -> Path:
     return conf
 
 
-@pytest.mark.parametrize(
-    "args",
-    [
-        ["+experiment=logging"],
-        ["+experiment=hlogging"],
-        ["+experiment=callback"],
-        ["+experiment=env"],
-        ["hydra/job_logging=evil"],
-        ["hydra/help=evil"],
-        ["hydra/launcher=evil"],
-        ["-cn", "evil"],
-        ["-m", "+experiment=ok,logging"],
-        ["-m", "seed=0,1", "+experiment=callback", "hydra/launcher=basic"],
-    ],
-)
-@pytest.mark.parametrize("flag", [[], ["--help"], ["--info", "config"], ["--cfg", "job"]])
+_FOLDER_ARGS = [
+    ["+experiment=logging"],
+    ["+experiment=hlogging"],
+    ["+experiment=callback"],
+    ["+experiment=env"],
+    ["hydra/job_logging=evil"],
+    ["hydra/help=evil"],
+    ["hydra/launcher=evil"],
+    ["-cn", "evil"],
+    ["-m", "+experiment=ok,logging"],
+    ["-m", "seed=0,1", "+experiment=callback", "hydra/launcher=basic"],
+]
+_FOLDER_FLAGS = [[], ["--help"], ["--info", "config"], ["--cfg", "job"]]
+
+
+def _folder_cases() -> list[tuple[list[str], list[str]]]:
+    """Each folder attack with each flag; with a flag, a sweep's attack (which needs -m, and -m
+    does not combine with --info/--cfg) is tried as its single-run form, without the sweep."""
+    cases = []
+    for args in _FOLDER_ARGS:
+        for flag in _FOLDER_FLAGS:
+            if flag and "-m" in args:
+                single = ["+experiment=" + a.split(",")[-1] if a.startswith("+experiment=") else a for a in args if a != "-m"]
+                single = [a for a in single if not a.startswith("seed=")]
+                if (single, flag) in cases:
+                    continue
+                cases.append((single, flag))
+            else:
+                cases.append((args, flag))
+    return cases
+
+
+@pytest.mark.parametrize(("args", "flag"), _folder_cases())
 def test_config_folder_files_are_checked(args: list[str], flag: list[str], tmp_path: Path) -> None:
     conf = _evil_folder(tmp_path)
-    if flag and "-m" in args:
-        args = [a for a in args if a != "-m"] if "," not in " ".join(args) else args
-        if "," in " ".join(args):
-            pytest.skip("a sweep needs -m")
     _refused([*flag, "-cd", str(conf), *args])
     assert (tmp_path / "VICTIM").read_text() == VICTIM_TEXT
 

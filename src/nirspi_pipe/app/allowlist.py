@@ -23,6 +23,7 @@ __all__ = [
     "OPTUNA_SWEEPER",
     "OPTUNA_TARGET_PREFIXES",
     "LOGGING_PRESETS_NOTE",
+    "REFUSED_HYDRA_CHOICES",
 ]
 
 #: ``hydra/<group>`` choices a user may change (to an option on the default search path).
@@ -39,6 +40,16 @@ HYDRA_CHOICE_GROUPS: frozenset[str] = frozenset(
         "hydra/hydra_help",
     }
 )
+
+#: ``hydra/<group>=<option>`` choices that exist but are refused, with the reason (one line).
+REFUSED_HYDRA_CHOICES: dict[tuple[str, str], str] = {
+    # optuna 2.10's GridSampler calls Study.stop() once its grid is used up; outside
+    # Study.optimize (the plugin asks and tells) that raises, so the sweep ends in a traceback
+    ("hydra/sweeper/sampler", "grid"): (
+        "optuna 2.10's grid sampler stops the study from outside an objective, which the Hydra plugin "
+        "turns into a crash; for a grid use nirspi's own sweeper (a plain -m sweep, docs/sweeps.md)"
+    ),
+}
 
 LOGGING_PRESETS_NOTE = "a preset among Hydra's and nirspi-pipe's (hydra/job_logging=disabled), never given inline"
 

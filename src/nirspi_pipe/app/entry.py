@@ -417,6 +417,9 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
                 f"{group}={choices.get(group)} is not allowed: only the default may be used for {group}; "
                 f"allowed changes: {', '.join(sorted(allowlist.HYDRA_CHOICE_GROUPS))}"
             )
+        why = allowlist.REFUSED_HYDRA_CHOICES.get((group, str(choices.get(group))))
+        if why:
+            raise Refused(f"{group}={choices.get(group)} is not allowed: {why}")
         if group in choices:
             changed.append((group, choices[group]))
     try:

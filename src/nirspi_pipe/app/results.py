@@ -466,6 +466,8 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
                 "allowed: objective=<record key> or objective=[<key>,<key>], e.g. objective=[metrics.psnr,timings_ms.solver]"
             )
         direction = _plain_value(sweeper.get("direction"))
+        if not names and direction is None:
+            return None  # no objective: nothing to write or mark
         if names and direction is None:
             return None  # the grid sweeper without directions: values returned, no front marked
         if direction is not None and not names:
