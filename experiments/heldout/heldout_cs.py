@@ -198,7 +198,7 @@ def summary(runs: pd.DataFrame, fx: pd.DataFrame, orc: pd.DataFrame, ns: argpars
         f"--{k} {' '.join(map(str, v))}" for k, v in (("ratios", ns.ratios), ("noise", ns.noise)) if v
     )
     lines = [f"# Held-out images, 64² ({cmd})", ""]
-    if "completion" in set(runs["solver"]):
+    if {"completion", "fwht"} <= set(runs["solver"]):
         for which in ("heldout", "tuning"):
             if (runs["set"] == which).any():
                 lines += [completion_check(runs[runs["set"] == which], orc, which), ""]
