@@ -46,7 +46,8 @@ Gaussian model, is compared with that of the white prior (every coefficient inde
 Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
 ``Σ_MM = V Λ Vᵀ``, ``V ∘ V`` (the guard) and ``G = C Aᵀ V`` (``N × m``), as float32:
 ``(N + 2m)·m·4`` bytes, 7.7 MiB at 64² and 10 %, 24 MiB at 25 %, 64 MiB at 50 %, 192 MiB at 100 %
-(three times that with ``alpha: auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
+(three times that with ``alpha: auto``); in process memory, least recently used first out beyond
+``CACHE_BYTES`` (1 GiB; no files).
 Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
 Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
 then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
@@ -85,8 +86,9 @@ __all__ = [
 
 #: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
 PRIOR_FILE = "completion_prior.json"
-#: In-memory cache budget of the completion maps, bytes (assumed: a few 64² maps at 25–50 %).
-CACHE_BYTES = 512 * 2**20
+#: In-memory cache budget of the completion maps, bytes (assumed: the three maps of ``alpha: auto``
+#: for a full 64² acquisition, 3 × 192 MiB, must fit, or every solve would rebuild two of them).
+CACHE_BYTES = 1024 * 2**20
 #: With ``σ = 0`` the noise variance is floored at this fraction of ``s·λ_max`` (the largest
 #: eigenvalue of ``s Σ_MM``): float64 eigenvalues below it are rounding, not signal.
 EXACT_FLOOR = 1e-12
