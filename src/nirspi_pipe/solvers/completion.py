@@ -69,6 +69,7 @@ from scipy.optimize import minimize_scalar
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
 from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
+from nirspi_pipe.solvers.fista_tv import FistaTVSolver
 from nirspi_pipe.solvers.noise import estimate_noise
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -82,8 +83,11 @@ __all__ = [
     "CACHE_BYTES",
     "EXACT_FLOOR",
     "PRIOR_FILE",
+    "REFINE",
 ]
 
+#: ``refine`` values: the linear estimate alone, or TV started from it.
+REFINE = ("none", "tv")
 #: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
 PRIOR_FILE = "completion_prior.json"
 #: In-memory cache budget of the completion maps, bytes (assumed: the three maps of ``alpha: auto``
@@ -379,12 +383,20 @@ class CompletionSolver:
             the fitted prior does (leave-one-out, DC excluded; ``info.loo_ratio`` > 1), return
             that instead (``info.alpha`` = 0). Images that are sparse in the Walsh basis (a
             checkerboard aligned with the patterns) are where the power law is wrong.
+        refine: ``none`` (the linear estimate), or ``tv``: ``fista_tv`` at its defaults (hold-out
+            cross-validated weight, :class:`~nirspi_pipe.solvers.fista_tv.FistaTVSolver`) started
+            from the completion estimate: each training fit of the weight's cross-validation from
+            the completion of its own training measurements (under the prior the full data chose,
+            or zero-filled when the guard fired), the final fit from the completion of all of them.
+            λ = 0 is then the completion with the measured coefficients set to the data. About one
+            ``fista_tv`` solve plus a second map (the training set's) per acquisition.
     """
 
     noise: float | str = "auto"
     alpha: float | str = "auto"
     f0: float | None = None
     guard: bool = True
+    refine: str = "none"
 
     def __post_init__(self) -> None:
         if isinstance(self.noise, str):
@@ -395,6 +407,8 @@ class CompletionSolver:
         if isinstance(self.alpha, str) and self.alpha != "auto":
             raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
         self.priors()  # validates alpha and f0
+        if self.refine not in REFINE:
+            raise ConfigError("refine", self.refine, " or ".join(REFINE))
 
     def priors(self) -> list[PowerLawPrior]:
         """The priors in use: the shipped exponents (``alpha: auto``) or the one given, with the
@@ -417,9 +431,26 @@ class CompletionSolver:
         else:
             sigma, info["noise_method"] = float(self.noise), "fixed"
         idx = np.asarray(acquisition.indices, dtype=np.int64)
-        image, extra = complete(n, idx, y, sigma, self.priors(), guard=bool(self.guard))
+        priors = self.priors()
+        image, extra = complete(n, idx, y, sigma, priors, guard=bool(self.guard))
         info.update(extra)
-        return Image2D(image, info=info)
+        if self.refine == "none":
+            return Image2D(image, info=info)
+        fired = bool(self.guard) and float(extra.get("loo_ratio", 0.0)) > 1.0
+        chosen = [] if fired else [p for p in priors if p.alpha == extra["alpha"]]
+
+        def start(rows: np.ndarray | None) -> np.ndarray:
+            if rows is None:
+                return image
+            if not chosen:  # zero-filled on the training rows: fista_tv's own start
+                full = np.zeros(n * n)
+                full[idx[rows]] = y[rows]
+                return fwht(full).reshape(n, n) / (n * n)
+            return complete(n, idx[rows], y[rows], sigma, chosen)[0]
+
+        tv = FistaTVSolver().solve(acquisition, start=start)
+        completion_info = {f"completion_{k}": v for k, v in info.items()}
+        return Image2D(tv.data, info={**tv.info, **completion_info})
 
 
 def clear_cache() -> None:
