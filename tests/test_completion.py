@@ -145,7 +145,13 @@ def test_maps_are_cached_and_the_cache_is_bounded(monkeypatch):
 
 @pytest.mark.parametrize(
     ("kwargs", "key"),
-    [({"noise": "loud"}, "noise"), ({"noise": -1.0}, "noise"), ({"alpha": -1.0}, "alpha"), ({"f0": 0.0}, "f0"), ({"refine": "l1"}, "refine")],
+    [
+        ({"noise": "loud"}, "noise"),
+        ({"noise": -1.0}, "noise"),
+        ({"alpha": -1.0}, "alpha"),
+        ({"f0": 0.0}, "f0"),
+        ({"refine": "l1"}, "refine"),
+    ],
 )
 def test_bad_config_names_the_key(kwargs, key):
     with pytest.raises(ConfigError) as err:
@@ -260,6 +266,11 @@ def test_refine_tv_starts_from_the_completion_and_only_lowers_fista_tvs_objectiv
 
     assert objective(out.data) <= objective(start.data) + 1e-12
     assert out.info["completion_alpha"] == start.info["alpha"]
+    # the lower hold-out score wins: the completion itself, or TV from it
+    own, tv = out.info["cv_score_completion"], out.info["cv_score"]
+    assert out.info["refine_chosen"] == ("completion" if own <= tv else "tv")
+    if own <= tv:
+        np.testing.assert_array_equal(out.data, start.data)
 
 
 def test_fista_tv_starts_where_it_is_told():

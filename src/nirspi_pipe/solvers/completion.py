@@ -69,6 +69,7 @@ from scipy.optimize import minimize_scalar
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
 from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
+from nirspi_pipe.solvers.crossval import holdout
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
 from nirspi_pipe.solvers.noise import estimate_noise
 from nirspi_pipe.types import Acquisition, Image2D
@@ -439,18 +440,54 @@ class CompletionSolver:
         fired = bool(self.guard) and float(extra.get("loo_ratio", 0.0)) > 1.0
         chosen = [] if fired else [p for p in priors if p.alpha == extra["alpha"]]
 
-        def start(rows: np.ndarray | None) -> np.ndarray:
-            if rows is None:
-                return image
+        def complete_on(data: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            """The completion of ``data[rows]`` alone (zero-filled when the guard fired)."""
             if not chosen:  # zero-filled on the training rows: fista_tv's own start
                 full = np.zeros(n * n)
-                full[idx[rows]] = y[rows]
+                full[idx[rows]] = data[rows]
                 return fwht(full).reshape(n, n) / (n * n)
-            return complete(n, idx[rows], y[rows], sigma, chosen)[0]
+            return complete(n, idx[rows], data[rows], sigma, chosen)[0]
+
+        def start(rows: np.ndarray | None) -> np.ndarray:
+            return image if rows is None else complete_on(y, rows)
 
         tv = FistaTVSolver().solve(acquisition, start=start)
-        completion_info = {f"completion_{k}": v for k, v in info.items()}
-        return Image2D(tv.data, info={**tv.info, **completion_info})
+        record = {**tv.info, **{f"completion_{k}": v for k, v in info.items()}}
+        if tv.info.get("lam_rule") == "cv":
+            record["cv_score_completion"] = own = _holdout_score(n, idx, y, sigma, complete_on)
+            if own <= float(tv.info["cv_score"]):  # the completion itself predicts better than any TV
+                return Image2D(image, info={**record, "refine_chosen": "completion"})
+        return Image2D(tv.data, info={**record, "refine_chosen": "tv"})
+
+
+def _holdout_score(n: int, idx: np.ndarray, y: np.ndarray, sigma: float, complete_on) -> float:
+    """The completion's own score under ``fista_tv``'s cross-validation
+    (:func:`~nirspi_pipe.solvers.crossval.cv_weight`, the same held-out set, Stein correction and
+    Monte-Carlo probe): an estimate of its image's mean squared error, comparable with ``fista_tv``'s
+    ``cv_score`` (the chosen weight's). ``complete_on(data, rows)`` is the completion of
+    ``data[rows]``."""
+    size = n * n
+    train, held = holdout(y)
+    if held.size == 0:
+        train, held = holdout(np.ones(y.size))
+
+    def predict(image: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return fwht(image.ravel())[idx[rows]]
+
+    x = complete_on(y, train)
+    y_t = y[train]
+    fitted_t = predict(x, train)
+    res_t = float(np.sum((fitted_t - y_t) ** 2))
+    if sigma > 0:  # Stein's correction, the divergence by one probe (as cv_weight)
+        probe = np.random.default_rng(0).standard_normal(y_t.size)
+        eps = 0.01 * sigma
+        shifted = y.copy()
+        shifted[train] = y_t + eps * probe
+        x1 = complete_on(shifted, train)
+        div = float((predict(x1, train) - fitted_t) @ probe / eps)
+        res_t += -train.size * sigma**2 + 2.0 * sigma**2 * div
+    err_h = float(np.sum((predict(x, held) - y[held]) ** 2)) - held.size * sigma**2
+    return res_t / float(size) ** 2 + err_h * (size - y.size) / held.size / float(size) ** 2
 
 
 def clear_cache() -> None:
