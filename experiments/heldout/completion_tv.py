@@ -87,7 +87,12 @@ def report(frame: pd.DataFrame) -> str:
         )  # fmt: skip
     lines += [md(pd.DataFrame(counts).set_index("noise, sampling")), ""]
     for (noise, ratio), g in frame.groupby(["noise", "ratio"]):
-        lines += [f"## {noise}, {ratio:.0%}", "", md(g.drop(columns=["noise", "ratio"]).set_index("image")), ""]
+        lines += [
+            f"## {noise}, {ratio:.0%}",
+            "",
+            md(g.drop(columns=["noise", "ratio"]).assign(lam=g["lam"].map(lambda v: f"{v:.2g}")).set_index("image")),
+            "",
+        ]
     return "\n".join(lines)
 
 

@@ -202,6 +202,10 @@ def summary(runs: pd.DataFrame, fx: pd.DataFrame, orc: pd.DataFrame, ns: argpars
         for which in ("heldout", "tuning"):
             if (runs["set"] == which).any():
                 lines += [completion_check(runs[runs["set"] == which], orc, which), ""]
+    refined = Path(ns.out) / "completion_tv.md"
+    if refined.exists():  # issue 36 step 3, a separate run on one order per image
+        text = refined.read_text().replace("# completion, refine: tv", "## completion, refine: tv", 1)
+        lines += [text.replace("\n## ", "\n### "), ""]
     lines += ["Every table below is over the held-out images only (the tuning images: above).", ""]
     runs = runs[runs["set"] == "heldout"]
     best = runs.groupby(["image", "noise", "ratio", "solver"])["psnr_db"].max().unstack("solver")
