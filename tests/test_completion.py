@@ -145,7 +145,13 @@ def test_maps_are_cached_and_the_cache_is_bounded(monkeypatch):
 
 @pytest.mark.parametrize(
     ("kwargs", "key"),
-    [({"noise": "loud"}, "noise"), ({"noise": -1.0}, "noise"), ({"alpha": -1.0}, "alpha"), ({"f0": 0.0}, "f0")],
+    [
+        ({"noise": "loud"}, "noise"),
+        ({"noise": -1.0}, "noise"),
+        ({"alpha": -1.0}, "alpha"),
+        ({"f0": 0.0}, "f0"),
+        ({"refine": "l1"}, "refine"),
+    ],
 )
 def test_bad_config_names_the_key(kwargs, key):
     with pytest.raises(ConfigError) as err:
@@ -235,3 +241,51 @@ def test_guard_returns_zero_filling_on_a_walsh_sparse_image():
     assert guarded.info["loo_ratio"] > 1 and guarded.info["alpha"] == 0.0
     np.testing.assert_allclose(guarded.data, zero, atol=1e-9)
     assert np.linalg.norm(plain.data - img) > np.linalg.norm(zero - img)
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.05])
+def test_refine_tv_starts_from_the_completion_and_only_lowers_fista_tvs_objective(sigma):
+    """``refine: tv`` is ``fista_tv`` (monotone FISTA) started from the completion estimate: at the
+    weight it chose, its objective ``½‖Ax − y‖²/N + λ TV(x)`` is no higher than the completion's,
+    and the completion's record is kept under ``completion_*``."""
+    from nirspi_pipe.solvers.fista_tv import total_variation
+
+    n = 16
+    img = smooth_image(n)
+    idx = O.Zigzag(0.25).select(n)
+    acq = acquisition(img, idx, sigma)
+    start = C.CompletionSolver(noise=sigma).solve(acq)
+    out = C.CompletionSolver(noise=sigma, refine="tv").solve(acq)
+    y = acq.y_pos
+    lam = float(out.info["lam"])
+    assert out.info["lam_rule"] == "cv" and lam >= 0
+
+    def objective(x: np.ndarray) -> float:
+        r = fwht(x.ravel())[idx] - y
+        return 0.5 * float(r @ r) / n**2 + lam * float(total_variation(x[None])[0])
+
+    assert objective(out.data) <= objective(start.data) + 1e-12
+    assert out.info["completion_alpha"] == start.info["alpha"]
+    # the lower hold-out score wins: the completion itself, or TV from it
+    own, tv = out.info["cv_score_completion"], out.info["cv_score"]
+    assert out.info["refine_chosen"] == ("completion" if own <= tv else "tv")
+    if own <= tv:
+        np.testing.assert_array_equal(out.data, start.data)
+
+
+def test_fista_tv_starts_where_it_is_told():
+    """``FistaTVSolver.solve(acq, start=…)``: with λ = 0 one gradient step (step 1/L = 1 on the
+    Hadamard path) from ``x0`` sets the measured coefficients to the data and keeps ``x0``'s
+    unmeasured ones, so the result is exactly the start's completion by the data."""
+    from nirspi_pipe.solvers.fista_tv import FistaTVSolver
+
+    n = 16
+    img = smooth_image(n)
+    idx = O.Zigzag(0.25).select(n)
+    acq = acquisition(img, idx)
+    x0 = smooth_image(n, seed=3)[::-1]
+    out = FistaTVSolver(lam=0.0, max_iter=1).solve(acq, start=lambda rows: x0)
+    coef = fwht(x0.ravel())
+    coef[idx] = acq.y_pos
+    np.testing.assert_allclose(out.data.ravel(), fwht(coef) / n**2, atol=1e-9)
+    assert not np.allclose(out.data, FistaTVSolver(lam=0.0, max_iter=1).solve(acq).data, atol=1e-3)

@@ -198,10 +198,14 @@ def summary(runs: pd.DataFrame, fx: pd.DataFrame, orc: pd.DataFrame, ns: argpars
         f"--{k} {' '.join(map(str, v))}" for k, v in (("ratios", ns.ratios), ("noise", ns.noise)) if v
     )
     lines = [f"# Held-out images, 64² ({cmd})", ""]
-    if "completion" in set(runs["solver"]):
+    if {"completion", "fwht"} <= set(runs["solver"]):
         for which in ("heldout", "tuning"):
             if (runs["set"] == which).any():
                 lines += [completion_check(runs[runs["set"] == which], orc, which), ""]
+    refined = Path(ns.out) / "completion_tv.md"
+    if refined.exists():  # issue 36 step 3, a separate run on one order per image
+        text = refined.read_text().replace("# completion, refine: tv", "## completion, refine: tv", 1)
+        lines += [text.replace("\n## ", "\n### "), ""]
     lines += ["Every table below is over the held-out images only (the tuning images: above).", ""]
     runs = runs[runs["set"] == "heldout"]
     best = runs.groupby(["image", "noise", "ratio", "solver"])["psnr_db"].max().unstack("solver")

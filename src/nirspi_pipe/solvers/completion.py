@@ -46,7 +46,8 @@ Gaussian model, is compared with that of the white prior (every coefficient inde
 Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
 ``Σ_MM = V Λ Vᵀ``, ``V ∘ V`` (the guard) and ``G = C Aᵀ V`` (``N × m``), as float32:
 ``(N + 2m)·m·4`` bytes, 7.7 MiB at 64² and 10 %, 24 MiB at 25 %, 64 MiB at 50 %, 192 MiB at 100 %
-(three times that with ``alpha: auto``); in process memory, least recently used first out beyond ``CACHE_BYTES`` (no files).
+(three times that with ``alpha: auto``); in process memory, least recently used first out beyond
+``CACHE_BYTES`` (1 GiB; no files).
 Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
 Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
 then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
@@ -68,6 +69,8 @@ from scipy.optimize import minimize_scalar
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
 from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
+from nirspi_pipe.solvers.crossval import holdout
+from nirspi_pipe.solvers.fista_tv import FistaTVSolver
 from nirspi_pipe.solvers.noise import estimate_noise
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -81,12 +84,16 @@ __all__ = [
     "CACHE_BYTES",
     "EXACT_FLOOR",
     "PRIOR_FILE",
+    "REFINE",
 ]
 
+#: ``refine`` values: the linear estimate alone, or TV started from it.
+REFINE = ("none", "tv")
 #: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
 PRIOR_FILE = "completion_prior.json"
-#: In-memory cache budget of the completion maps, bytes (assumed: a few 64² maps at 25–50 %).
-CACHE_BYTES = 512 * 2**20
+#: In-memory cache budget of the completion maps, bytes (assumed: the three maps of ``alpha: auto``
+#: for a full 64² acquisition, 3 × 192 MiB, must fit, or every solve would rebuild two of them).
+CACHE_BYTES = 1024 * 2**20
 #: With ``σ = 0`` the noise variance is floored at this fraction of ``s·λ_max`` (the largest
 #: eigenvalue of ``s Σ_MM``): float64 eigenvalues below it are rounding, not signal.
 EXACT_FLOOR = 1e-12
@@ -377,12 +384,20 @@ class CompletionSolver:
             the fitted prior does (leave-one-out, DC excluded; ``info.loo_ratio`` > 1), return
             that instead (``info.alpha`` = 0). Images that are sparse in the Walsh basis (a
             checkerboard aligned with the patterns) are where the power law is wrong.
+        refine: ``none`` (the linear estimate), or ``tv``: ``fista_tv`` at its defaults (hold-out
+            cross-validated weight, :class:`~nirspi_pipe.solvers.fista_tv.FistaTVSolver`) started
+            from the completion estimate: each training fit of the weight's cross-validation from
+            the completion of its own training measurements (under the prior the full data chose,
+            or zero-filled when the guard fired), the final fit from the completion of all of them.
+            λ = 0 is then the completion with the measured coefficients set to the data. About one
+            ``fista_tv`` solve plus a second map (the training set's) per acquisition.
     """
 
     noise: float | str = "auto"
     alpha: float | str = "auto"
     f0: float | None = None
     guard: bool = True
+    refine: str = "none"
 
     def __post_init__(self) -> None:
         if isinstance(self.noise, str):
@@ -393,6 +408,8 @@ class CompletionSolver:
         if isinstance(self.alpha, str) and self.alpha != "auto":
             raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
         self.priors()  # validates alpha and f0
+        if self.refine not in REFINE:
+            raise ConfigError("refine", self.refine, " or ".join(REFINE))
 
     def priors(self) -> list[PowerLawPrior]:
         """The priors in use: the shipped exponents (``alpha: auto``) or the one given, with the
@@ -415,9 +432,62 @@ class CompletionSolver:
         else:
             sigma, info["noise_method"] = float(self.noise), "fixed"
         idx = np.asarray(acquisition.indices, dtype=np.int64)
-        image, extra = complete(n, idx, y, sigma, self.priors(), guard=bool(self.guard))
+        priors = self.priors()
+        image, extra = complete(n, idx, y, sigma, priors, guard=bool(self.guard))
         info.update(extra)
-        return Image2D(image, info=info)
+        if self.refine == "none":
+            return Image2D(image, info=info)
+        fired = bool(self.guard) and float(extra.get("loo_ratio", 0.0)) > 1.0
+        chosen = [] if fired else [p for p in priors if p.alpha == extra["alpha"]]
+
+        def complete_on(data: np.ndarray, rows: np.ndarray) -> np.ndarray:
+            """The completion of ``data[rows]`` alone (zero-filled when the guard fired)."""
+            if not chosen:  # zero-filled on the training rows: fista_tv's own start
+                full = np.zeros(n * n)
+                full[idx[rows]] = data[rows]
+                return fwht(full).reshape(n, n) / (n * n)
+            return complete(n, idx[rows], data[rows], sigma, chosen)[0]
+
+        def start(rows: np.ndarray | None) -> np.ndarray:
+            return image if rows is None else complete_on(y, rows)
+
+        tv = FistaTVSolver().solve(acquisition, start=start)
+        record = {**tv.info, **{f"completion_{k}": v for k, v in info.items()}}
+        if tv.info.get("lam_rule") == "cv":
+            record["cv_score_completion"] = own = _holdout_score(n, idx, y, sigma, complete_on)
+            if own <= float(tv.info["cv_score"]):  # the completion itself predicts better than any TV
+                return Image2D(image, info={**record, "refine_chosen": "completion"})
+        return Image2D(tv.data, info={**record, "refine_chosen": "tv"})
+
+
+def _holdout_score(n: int, idx: np.ndarray, y: np.ndarray, sigma: float, complete_on) -> float:
+    """The completion's own score under ``fista_tv``'s cross-validation
+    (:func:`~nirspi_pipe.solvers.crossval.cv_weight`, the same held-out set, Stein correction and
+    Monte-Carlo probe): an estimate of its image's mean squared error, comparable with ``fista_tv``'s
+    ``cv_score`` (the chosen weight's). ``complete_on(data, rows)`` is the completion of
+    ``data[rows]``."""
+    size = n * n
+    train, held = holdout(y)
+    if held.size == 0:
+        train, held = holdout(np.ones(y.size))
+
+    def predict(image: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return fwht(image.ravel())[idx[rows]]
+
+    x = complete_on(y, train)
+    y_t = y[train]
+    fitted_t = predict(x, train)
+    res_t = float(np.sum((fitted_t - y_t) ** 2))
+    if sigma > 0:  # Stein's correction, the divergence by one probe (as cv_weight)
+        probe = np.random.default_rng(0).standard_normal(y_t.size)
+        eps = 0.01 * sigma
+        shifted = y.copy()
+        shifted[train] = y_t + eps * probe
+        x1 = complete_on(shifted, train)
+        div = float((predict(x1, train) - fitted_t) @ probe / eps)
+        res_t += -train.size * sigma**2 + 2.0 * sigma**2 * div
+    err_h = float(np.sum((predict(x, held) - y[held]) ** 2)) - held.size * sigma**2
+    return res_t / float(size) ** 2 + err_h * (size - y.size) / held.size / float(size) ** 2
 
 
 def clear_cache() -> None:

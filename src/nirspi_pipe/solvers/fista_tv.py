@@ -287,7 +287,15 @@ class FistaTVSolver:
                 break
         return x, it, stop
 
-    def solve(self, acquisition: Acquisition) -> Image2D:
+    def solve(self, acquisition: Acquisition, start=None) -> Image2D:
+        """The TV image of ``acquisition``.
+
+        ``start``: ``rows ↦ (n, n)``, the image from which FISTA starts when fitting the
+        measurements at positions ``rows`` (``None``: all of them), for the cross-validation's
+        training fits and the final fit alike (``completion``'s ``refine: tv`` passes its own
+        estimate); ``None`` (default) starts from ``Aᵀy/s`` (the training fits) and from the chosen
+        weight's training fit (the final fit).
+        """
         y = checked_coefficients(acquisition, "fista_tv")
         op = measurement_operator(acquisition)
         n = acquisition.n
@@ -302,7 +310,8 @@ class FistaTVSolver:
 
         def fit(rows: np.ndarray, data: np.ndarray, lams: np.ndarray, iterations: int) -> np.ndarray:
             f, a = _batch_operator(acquisition, rows)
-            return self._fista(f, a, data, n, scale, big_l, lams, max_iter=iterations)[0]
+            x0 = None if start is None else np.broadcast_to(start(rows), (lams.size, n, n))
+            return self._fista(f, a, data, n, scale, big_l, lams, x0=x0, max_iter=iterations)[0]
 
         def predict(images: np.ndarray, rows: np.ndarray) -> np.ndarray:
             return _batch_operator(acquisition, rows)[0](images.reshape(images.shape[0], -1))
@@ -314,6 +323,8 @@ class FistaTVSolver:
             self.lam, self.lam_floor, acquisition, y, scale, solve_for, op.matvec, fit, predict, self.max_iter
         )
         x0 = weight_info.pop("cv_fit", None)
+        if start is not None:
+            x0 = start(None)
         if lam == 0.0 and not hadamard:
             from nirspi_pipe.solvers.lstsq import LstsqSolver
 
