@@ -276,7 +276,9 @@ def _folder_cases() -> list[tuple[list[str], list[str]]]:
     for args in _FOLDER_ARGS:
         for flag in _FOLDER_FLAGS:
             if flag and "-m" in args:
-                single = ["+experiment=" + a.split(",")[-1] if a.startswith("+experiment=") else a for a in args if a != "-m"]
+                single = [
+                    "+experiment=" + a.split(",")[-1] if a.startswith("+experiment=") else a for a in args if a != "-m"
+                ]
                 single = [a for a in single if not a.startswith("seed=")]
                 if (single, flag) in cases:
                     continue
