@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -296,77 +297,149 @@ def _check_subdir(value: Any) -> str | None:
     return None
 
 
-def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
-    """None when ``value`` fits ``kind``, else the allowed values (for the message)."""
-    if kind == "dir":
-        ok = isinstance(value, str) and value.strip() != "" and not any(ord(c) < 32 for c in value)
-        return None if ok else "a folder name (a non-empty string)"
-    if kind == "subdir":
-        return _check_subdir(value)
-    if kind == "output_subdir":
-        return None if value in (None, ".hydra") else "null or .hydra (Hydra's default)"
-    if kind == "name":
-        ok = isinstance(value, str) and bool(_NAME.match(value)) and value not in (".", "..")
-        return None if ok else "a name of letters, digits and _ . - (not a path)"
-    if kind == "name_or_null":
-        return None if value is None else _check_kind("name", key, value, hydra_node)
-    if kind == "mode":
-        name = getattr(value, "name", value)  # Hydra's RunMode enum once composed
-        return None if name in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
-    if kind == "verbose":
-        items = value if isinstance(value, list) else [value]
-        ok = isinstance(value, bool) or all(isinstance(v, str) and _PACKAGE.match(v) for v in items)
-        return None if ok else "true, false, or logger name(s)"
-    if kind == "bool":
-        return None if isinstance(value, bool) else "true or false"
-    if kind == "int":
-        return None if _is_int(value) and value >= 1 else "an integer >= 1"
-    if kind == "n_jobs":
-        return None if _is_int(value) and (value >= 1 or value == -1) else "-1 (one per core) or an integer >= 1"
-    if kind == "int_or_null":
-        return None if value is None or (_is_int(value) and value >= 0) else "an integer >= 0 or null"
-    if kind == "number_or_null":
-        return None if value is None or (_is_number(value) and value > 0) else "a number > 0 or null"
-    if kind == "scalar":
-        if key.rsplit(".", 1)[-1] in allowlist.OPTUNA_REFUSED_OPTIONS:
-            return "(nothing: this option names code or a nested object)"
-        ok = value is None or isinstance(value, bool) or _is_number(value)
-        ok = ok or (isinstance(value, str) and bool(_WORD.match(value)))
-        return None if ok else "a number, true/false, null or a single word"
-    if kind == "joblib_backend":
-        return None if value in ("loky", "multiprocessing", "threading") else "loky, multiprocessing or threading"
-    if kind == "direction":
-        items = value if isinstance(value, list) else [value]
-        ok = bool(items) and all(v in ("minimize", "maximize") for v in items)
-        return None if ok else "minimize, maximize or a list of them"
-    if kind == "null":
-        return None if value is None else "null only (a storage URL would write a database outside the output folder)"
-    if kind == "optuna_target":
-        prefix = allowlist.OPTUNA_TARGET_PREFIXES.get(key, "")
-        sweeper = str((hydra_node.get("sweeper") or {}).get("_target_", ""))
-        ok = (
-            sweeper == allowlist.OPTUNA_SWEEPER
-            and isinstance(value, str)
-            and value.startswith(prefix)
-            and value[len(prefix) :].isidentifier()
-        )
-        return None if ok else f"a class of {prefix.rstrip('.')} (with hydra/sweeper=optuna)"
-    if kind == "experiments":
-        from nirspi_pipe.app.configs import group_options
+# ----- the kinds of Hydra keys (allowlist.HYDRA_KEYS): each checker returns None when the value
+# fits, else the allowed values (for the message). All take (key, value, hydra_node).
 
-        names = group_options("experiment")
-        if _user_searchpath(hydra_node):  # a user's folder may hold them: each is composed and checked (_check_sweeps)
-            ok = isinstance(value, list) and all(
-                isinstance(v, str) and bool(_CONFIG_NAME.match(v)) and ".." not in v.split("/") for v in value
-            )
-            return None if value is None or ok else "a list of experiment names"
-        ok = value is None or (isinstance(value, list) and all(isinstance(v, str) and v in names for v in value))
-        return None if ok else f"a list of experiments among {', '.join(names)}"
-    if kind == "searchpath":
-        return _check_searchpath(value)
-    if kind == "sweep":
-        return None if isinstance(value, (str, int, float)) and not isinstance(value, bool) else "a sweep string"
-    return "(nothing)"  # an unknown kind: fail closed
+
+def _kind_dir(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    ok = isinstance(value, str) and value.strip() != "" and not any(ord(c) < 32 for c in value)
+    return None if ok else "a folder name (a non-empty string)"
+
+
+def _kind_subdir(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return _check_subdir(value)
+
+
+def _kind_output_subdir(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value in (None, ".hydra") else "null or .hydra (Hydra's default)"
+
+
+def _kind_name(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    ok = isinstance(value, str) and bool(_NAME.match(value)) and value not in (".", "..")
+    return None if ok else "a name of letters, digits and _ . - (not a path)"
+
+
+def _kind_name_or_null(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value is None else _kind_name(key, value, hydra_node)
+
+
+def _kind_mode(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    name = getattr(value, "name", value)  # Hydra's RunMode enum once composed
+    return None if name in (None, "RUN", "MULTIRUN") else "RUN, MULTIRUN or null"
+
+
+def _kind_verbose(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    items = value if isinstance(value, list) else [value]
+    ok = isinstance(value, bool) or all(isinstance(v, str) and _PACKAGE.match(v) for v in items)
+    return None if ok else "true, false, or logger name(s)"
+
+
+def _kind_bool(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if isinstance(value, bool) else "true or false"
+
+
+def _kind_int(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if _is_int(value) and value >= 1 else "an integer >= 1"
+
+
+def _kind_n_jobs(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if _is_int(value) and (value >= 1 or value == -1) else "-1 (one per core) or an integer >= 1"
+
+
+def _kind_int_or_null(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value is None or (_is_int(value) and value >= 0) else "an integer >= 0 or null"
+
+
+def _kind_number_or_null(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value is None or (_is_number(value) and value > 0) else "a number > 0 or null"
+
+
+def _kind_scalar(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    if key.rsplit(".", 1)[-1] in allowlist.OPTUNA_REFUSED_OPTIONS:
+        return "(nothing: this option names code or a nested object)"
+    ok = value is None or isinstance(value, bool) or _is_number(value)
+    ok = ok or (isinstance(value, str) and bool(_WORD.match(value)))
+    return None if ok else "a number, true/false, null or a single word"
+
+
+def _kind_joblib_backend(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value in ("loky", "multiprocessing", "threading") else "loky, multiprocessing or threading"
+
+
+def _kind_direction(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    items = value if isinstance(value, list) else [value]
+    ok = bool(items) and all(v in ("minimize", "maximize") for v in items)
+    return None if ok else "minimize, maximize or a list of them"
+
+
+def _kind_null(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if value is None else "null only (a storage URL would write a database outside the output folder)"
+
+
+def _kind_optuna_target(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    prefix = allowlist.OPTUNA_TARGET_PREFIXES.get(key, "")
+    sweeper = str((hydra_node.get("sweeper") or {}).get("_target_", ""))
+    ok = (
+        sweeper == allowlist.OPTUNA_SWEEPER
+        and isinstance(value, str)
+        and value.startswith(prefix)
+        and value[len(prefix) :].isidentifier()
+    )
+    return None if ok else f"a class of {prefix.rstrip('.')} (with hydra/sweeper=optuna)"
+
+
+def _kind_experiments(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    from nirspi_pipe.app.configs import group_options
+
+    names = group_options("experiment")
+    if _user_searchpath(hydra_node):  # a user's folder may hold them: each is composed and checked (_check_sweeps)
+        ok = isinstance(value, list) and all(
+            isinstance(v, str) and bool(_CONFIG_NAME.match(v)) and ".." not in v.split("/") for v in value
+        )
+        return None if value is None or ok else "a list of experiment names"
+    ok = value is None or (isinstance(value, list) and all(isinstance(v, str) and v in names for v in value))
+    return None if ok else f"a list of experiments among {', '.join(names)}"
+
+
+def _kind_searchpath(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return _check_searchpath(value)
+
+
+def _kind_sweep(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if isinstance(value, (str, int, float)) and not isinstance(value, bool) else "a sweep string"
+
+
+_KIND_CHECKS: dict[str, Callable[[str, Any, dict[str, Any]], str | None]] = {
+    "dir": _kind_dir,
+    "subdir": _kind_subdir,
+    "output_subdir": _kind_output_subdir,
+    "name": _kind_name,
+    "name_or_null": _kind_name_or_null,
+    "mode": _kind_mode,
+    "verbose": _kind_verbose,
+    "bool": _kind_bool,
+    "int": _kind_int,
+    "n_jobs": _kind_n_jobs,
+    "int_or_null": _kind_int_or_null,
+    "number_or_null": _kind_number_or_null,
+    "scalar": _kind_scalar,
+    "joblib_backend": _kind_joblib_backend,
+    "direction": _kind_direction,
+    "null": _kind_null,
+    "optuna_target": _kind_optuna_target,
+    "experiments": _kind_experiments,
+    "searchpath": _kind_searchpath,
+    "sweep": _kind_sweep,
+}
+
+
+def _check_kind(kind: str, key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    """None when ``value`` fits ``kind``, else the allowed values (for the message). Each kind
+    has its checker in ``_KIND_CHECKS``."""
+    check = _KIND_CHECKS.get(kind)
+    if check is None:
+        return "(nothing)"  # an unknown kind: fail closed
+    return check(key, value, hydra_node)
 
 
 def _user_searchpath(hydra_node: dict[str, Any]) -> bool:
