@@ -352,18 +352,17 @@ def check_config(args: list[str]) -> str | None:
     (:mod:`nirspi_pipe.targets`); top-level keys, ``output`` and ``tables`` must be known
     (:func:`check_plain_keys`). Returns one line, or None. A config that does not compose is
     left to Hydra (which then builds nothing), unless a config file in it is not plain YAML (a
-    ``!!python/...`` tag, a syntax error): that is one line naming the file."""
+    ``!!python/...`` tag, a syntax error): that is one line naming the file.
+
+    The steps, each a helper: refused flags; the overrides parsed and their ``_target_`` values;
+    the config composed; its targets (and the sweeper's); each sweep value's keys; the job's keys
+    and stage nodes; with ``-m``, the launcher's and sweeper's settings."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
-    from omegaconf import OmegaConf
 
-    from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.targets import check_targets
-
-    for arg in args:
-        flag = arg.partition("=")[0]
-        if flag in _REFUSED_FLAGS:
-            return f"{flag} is not allowed: {_REFUSED_FLAGS[flag]}"
+    problem = _refused_flag(args)
+    if problem:
+        return problem
     overrides = _override_args(args)
     try:
         parsed = OverridesParser.create().parse_overrides(overrides)
@@ -373,6 +372,34 @@ def check_config(args: list[str]) -> str | None:
     if problem:
         return problem
     flags = _flag_values(args)
+    cfg, problem = _compose_as_hydra(flags, _fixed_overrides(overrides, parsed, flags))
+    if cfg is None:
+        return problem
+    plain = _plain_config(cfg)
+    problem = _check_composed_targets(plain) or _check_sweep_keys(parsed, plain)
+    if problem:
+        return problem
+    job = {k: v for k, v in plain.items() if k != "hydra"}
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    return (
+        check_plain_keys(job)
+        or _check_stage_nodes(job)
+        or (_check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
+    )
+
+
+def _refused_flag(args: list[str]) -> str | None:
+    """The first flag of ``args`` that is refused (:data:`_REFUSED_FLAGS`), as one line."""
+    for arg in args:
+        flag = arg.partition("=")[0]
+        if flag in _REFUSED_FLAGS:
+            return f"{flag} is not allowed: {_REFUSED_FLAGS[flag]}"
+    return None
+
+
+def _fixed_overrides(overrides: list[str], parsed: list[Any], flags: dict[str, str]) -> list[str]:
+    """The overrides that are not sweeps, as Hydra composes them: with ``-cd`` its folder is
+    appended to ``hydra.searchpath`` (the one given, else the primary config's)."""
     fixed = [o for o, ov in zip(overrides, parsed, strict=True) if not ov.is_sweep_override()]
     extra_dir = flags.get("-cd") or flags.get("--config-dir")
     if extra_dir:
@@ -383,6 +410,13 @@ def check_config(args: list[str]) -> str | None:
         base = list(given) if isinstance(given, list) else _primary_searchpath()
         fixed = [o for o in fixed if not o.startswith("hydra.searchpath=")]
         fixed.append(f"hydra.searchpath=[{','.join([*map(str, base), Path(extra_dir).resolve().as_uri()])}]")
+    return fixed
+
+
+def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str | None]:
+    """``(config, None)``: the config composed with Hydra's node (``-cn`` honoured); or
+    ``(None, problem)`` when it does not compose: a file that is not plain YAML named in one
+    line, else None (left to Hydra)."""
     from hydra import compose, initialize_config_module
 
     from nirspi_pipe.errors import yaml_problem
@@ -393,7 +427,15 @@ def check_config(args: list[str]) -> str | None:
                 flags.get("-cn") or flags.get("--config-name") or CONFIG_NAME, fixed, return_hydra_config=True
             )
     except Exception as exc:  # noqa: BLE001 - a file that is not plain YAML is ours to name; the rest Hydra's
-        return yaml_problem(exc)
+        return None, yaml_problem(exc)
+    return cfg, None
+
+
+def _plain_config(cfg: Any) -> dict[str, Any]:
+    """The composed config as plain containers: the job's part resolved, Hydra's node resolved
+    where it can be (else unresolved)."""
+    from omegaconf import OmegaConf
+
     plain: dict[str, Any] = {}
     for part in (
         OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"]),
@@ -403,10 +445,22 @@ def check_config(args: list[str]) -> str | None:
             plain.update(OmegaConf.to_container(part, resolve=True))  # type: ignore[arg-type]
         except Exception:  # noqa: BLE001 - then check it unresolved
             plain.update(OmegaConf.to_container(part, resolve=False))  # type: ignore[arg-type]
+    return plain
+
+
+def _check_composed_targets(plain: dict[str, Any]) -> str | None:
+    """Every ``_target_`` of the composed config on the allow-list, and so every value of the
+    sweeper's ``params`` that sets a ``_target_``."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    from nirspi_pipe.errors import ConfigError
+    from nirspi_pipe.targets import check_targets
+
     try:
         check_targets(plain)
         params = (plain.get("hydra", {}).get("sweeper") or {}).get("params") or {}
-        problem = _sweep_target_values(
+        return _sweep_target_values(
             OverridesParser.create().parse_overrides(
                 [f"{k}={v}" for k, v in params.items() if str(k).endswith("_target_")]
             )
@@ -414,11 +468,16 @@ def check_config(args: list[str]) -> str | None:
     except ConfigError as exc:
         return str(exc)
     except HydraException:
-        problem = None
-    if problem:
-        return problem
+        return None
+
+
+def _check_sweep_keys(parsed: list[Any], plain: dict[str, Any]) -> str | None:
+    """The job's keys with each value of each sweep override set (the composed config did not
+    see them): :func:`check_plain_keys` on each."""
+    from omegaconf import OmegaConf
+
     sweeps = [ov for ov in parsed if ov.is_sweep_override() and not ov.key_or_group.startswith("hydra")]
-    for ov in sweeps:  # a sweep's keys: the composed config did not see them
+    for ov in sweeps:
         job = {k: v for k, v in plain.items() if k != "hydra"}
         for value in ov.sweep_iterator():
             one = OmegaConf.create(job)
@@ -429,13 +488,7 @@ def check_config(args: list[str]) -> str | None:
             problem = check_plain_keys(OmegaConf.to_container(one, resolve=False))
             if problem:
                 return problem
-    job = {k: v for k, v in plain.items() if k != "hydra"}
-    multirun = any(a in ("-m", "--multirun") for a in args)
-    return (
-        check_plain_keys(job)
-        or _check_stage_nodes(job)
-        or (_check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
-    )
+    return None
 
 
 def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
