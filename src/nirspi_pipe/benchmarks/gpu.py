@@ -45,7 +45,7 @@ import numpy as np
 SKIP_NO_GPU = "SKIPPED (no GPU): "
 
 
-def _best(fn: Any, repeat: int) -> float:
+def best_ms(fn: Any, repeat: int) -> float:
     """Best of ``repeat`` timed calls after one warm-up, ms."""
     fn()
     out = float("inf")
@@ -107,13 +107,13 @@ def part_omp(ns: argparse.Namespace) -> dict[str, Any]:
         y = acq.coefficients()
         ref, _ = omp_hadamard(y, n, acq.indices, max_atoms=atoms, backend="numpy")
         row: dict[str, Any] = {"size": n, "atoms": atoms}
-        row["numpy_ms"] = _best(lambda: omp_hadamard(y, n, acq.indices, max_atoms=atoms), ns.repeat)
+        row["numpy_ms"] = best_ms(lambda: omp_hadamard(y, n, acq.indices, max_atoms=atoms), ns.repeat)
         for label, spec in (("gpu", ns.gpu), ("cpu_device", ns.cpu)):
             if spec is None or (label == "cpu_device" and n > 64):  # PoCL: 128² takes ~15 s
                 continue
             opencl_context(spec)
             img, _ = omp_hadamard(y, n, acq.indices, max_atoms=atoms, backend="opencl", device=spec)
-            row[f"{label}_ms"] = _best(
+            row[f"{label}_ms"] = best_ms(
                 lambda: omp_hadamard(y, n, acq.indices, max_atoms=atoms, backend="opencl", device=spec),
                 ns.repeat if label == "gpu" else 1,
             )
@@ -123,7 +123,7 @@ def part_omp(ns: argparse.Namespace) -> dict[str, Any]:
                     img, _ = omp_hadamard(
                         y, n, acq.indices, max_atoms=atoms, backend="opencl", device=spec, opencl_mode=mode
                     )
-                    row[f"gpu_{mode}_ms"] = _best(
+                    row[f"gpu_{mode}_ms"] = best_ms(
                         lambda: omp_hadamard(
                             y, n, acq.indices, max_atoms=atoms, backend="opencl", device=spec, opencl_mode=mode
                         ),
@@ -143,8 +143,8 @@ def part_omp(ns: argparse.Namespace) -> dict[str, Any]:
         batch = {
             "problems": nb,
             "size": n,
-            "numpy_ms": _best(lambda: [omp_hadamard(y, n, idx, max_atoms=64) for y in ys], 1),
-            "gpu_batch_ms": _best(lambda: omp_hadamard_batch(ys, n, idx, max_atoms=64, device=ns.gpu), ns.repeat),
+            "numpy_ms": best_ms(lambda: [omp_hadamard(y, n, idx, max_atoms=64) for y in ys], 1),
+            "gpu_batch_ms": best_ms(lambda: omp_hadamard_batch(ys, n, idx, max_atoms=64, device=ns.gpu), ns.repeat),
             "max_diff": float(max(np.max(np.abs(a - b)) for a, b in zip(imgs, refs))),
         }
         print("  batch " + json.dumps(batch))
@@ -166,7 +166,7 @@ def part_sfs(ns: argparse.Namespace) -> dict[str, Any]:
             slow = scheme == "lax_friedrichs"
             ref = solve_numpy(problem, scheme, 1e-4, 8000)
             row: dict[str, Any] = {"size": n, "scheme": scheme, "sweeps": ref.sweeps}
-            row["numpy_ms"] = _best(lambda: solve_numpy(problem, scheme, 1e-4, 8000), 0 if slow else ns.repeat)
+            row["numpy_ms"] = best_ms(lambda: solve_numpy(problem, scheme, 1e-4, 8000), 0 if slow else ns.repeat)
             for label, spec in (("gpu", ns.gpu), ("cpu_device", ns.cpu)):
                 if spec is None:
                     continue
@@ -177,7 +177,7 @@ def part_sfs(ns: argparse.Namespace) -> dict[str, Any]:
                     key = label if lsz is None else f"{label}_local{lsz}"
                     try:
                         res = solve_opencl(problem, scheme, 1e-4, 8000, local_size=lsz, device=spec)
-                        row[f"{key}_ms"] = _best(
+                        row[f"{key}_ms"] = best_ms(
                             lambda: solve_opencl(problem, scheme, 1e-4, 8000, local_size=lsz, device=spec),
                             1 if slow else ns.repeat,
                         )
@@ -208,14 +208,14 @@ def part_fsrcnn(ns: argparse.Namespace) -> dict[str, Any]:
     img = np.random.default_rng(0).uniform(0, 1, (64, 64))
     w = load_weights(4)
     ref = fsrcnn_forward(img, w)
-    out: dict[str, Any] = {"numpy_ms": _best(lambda: fsrcnn_forward(img, w), ns.repeat)}
+    out: dict[str, Any] = {"numpy_ms": best_ms(lambda: fsrcnn_forward(img, w), ns.repeat)}
     try:
         import torch
     except ImportError:
         print("  torch is not installed (pip install '.[train]'): torch parts skipped")
         return out
     out["torch"] = torch.__version__
-    out["torch_cpu_ms"] = _best(lambda: fsrcnn_forward_torch(img, w, "cpu"), ns.repeat)
+    out["torch_cpu_ms"] = best_ms(lambda: fsrcnn_forward_torch(img, w, "cpu"), ns.repeat)
     out["torch_cpu_max_diff"] = float(np.max(np.abs(fsrcnn_forward_torch(img, w, "cpu") - ref)))
     if not torch.cuda.is_available():
         print("  " + SKIP_NO_GPU + "torch sees no CUDA: FSRCNN on CUDA")
@@ -223,7 +223,7 @@ def part_fsrcnn(ns: argparse.Namespace) -> dict[str, Any]:
     out["cuda_device"] = torch.cuda.get_device_name(0)
     for tf32 in (False, True):
         key = "cuda_tf32" if tf32 else "cuda"
-        out[f"{key}_ms"] = _best(lambda: fsrcnn_forward_torch(img, w, "cuda", tf32), ns.repeat)  # ends with .cpu()
+        out[f"{key}_ms"] = best_ms(lambda: fsrcnn_forward_torch(img, w, "cuda", tf32), ns.repeat)  # ends with .cpu()
         out[f"{key}_max_diff"] = float(np.max(np.abs(fsrcnn_forward_torch(img, w, "cuda", tf32) - ref)))
     return out
 

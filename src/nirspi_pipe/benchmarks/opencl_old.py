@@ -18,11 +18,12 @@ import importlib.util
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from nirspi_pipe.benchmarks.gpu import best_ms
 
 
 def _old_module(rev: str, path: str, name: str) -> Any:
@@ -36,16 +37,6 @@ def _old_module(rev: str, path: str, name: str) -> Any:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
-
-
-def _best(fn: Any, repeat: int) -> float:
-    fn()
-    out = float("inf")
-    for _ in range(max(1, repeat)):
-        t = time.perf_counter()
-        fn()
-        out = min(out, time.perf_counter() - t)
-    return out * 1e3
 
 
 def main(argv: list[str]) -> int:
@@ -69,8 +60,8 @@ def main(argv: list[str]) -> int:
             rep = 3 if scheme == "lax_friedrichs" and n > 128 else ns.repeat
             t_old, t_new = float("inf"), float("inf")
             for _ in range(rep):  # interleaved: both see the same machine load
-                t_old = min(t_old, _best(lambda: old.solve_opencl(problem, scheme, 1e-4, 8000), 1))
-                t_new = min(t_new, _best(lambda: new.solve_opencl(problem, scheme, 1e-4, 8000), 1))
+                t_old = min(t_old, best_ms(lambda: old.solve_opencl(problem, scheme, 1e-4, 8000), 1))
+                t_new = min(t_new, best_ms(lambda: new.solve_opencl(problem, scheme, 1e-4, 8000), 1))
             dz = float(
                 np.max(
                     np.abs(
@@ -110,15 +101,15 @@ def main(argv: list[str]) -> int:
             return b.T @ coeffs.reshape(n, n) @ b
 
         ref = omp_hadamard(y, n, idx, max_atoms=k_max)[0]
-        t_np = _best(lambda: omp_hadamard(y, n, idx, max_atoms=k_max), ns.repeat)
-        t_old = _best(run_old, 1)
-        t_new = _best(lambda: omp_hadamard(y, n, idx, max_atoms=k_max, backend="opencl"), 1)
+        t_np = best_ms(lambda: omp_hadamard(y, n, idx, max_atoms=k_max), ns.repeat)
+        t_old = best_ms(run_old, 1)
+        t_new = best_ms(lambda: omp_hadamard(y, n, idx, max_atoms=k_max, backend="opencl"), 1)
         auto, numpy_solver = OMPSolver(), OMPSolver(backend="numpy")
         picked = auto.effective_backend(n)
         t_auto, t_np_solver = float("inf"), float("inf")
         for _ in range(ns.repeat):  # interleaved: the same machine load for both
-            t_auto = min(t_auto, _best(lambda: auto.solve(acq), 1))
-            t_np_solver = min(t_np_solver, _best(lambda: numpy_solver.solve(acq), 1))
+            t_auto = min(t_auto, best_ms(lambda: auto.solve(acq), 1))
+            t_np_solver = min(t_np_solver, best_ms(lambda: numpy_solver.solve(acq), 1))
         diff = max(
             float(np.max(np.abs(run_old() - ref))),
             float(np.max(np.abs(omp_hadamard(y, n, idx, max_atoms=k_max, backend="opencl")[0] - ref))),
