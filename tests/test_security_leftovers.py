@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from nirspi_pipe.metrics import DEGENERATE_FLAG, ImageMetrics, degenerate_reference
+from nirspi_pipe.summary import metric_lines
 
 
 @pytest.mark.parametrize(
@@ -31,6 +32,9 @@ def test_a_degenerate_reference_leaves_the_normalised_scores_out(reference: np.n
     assert "psnr" not in out and "ssim" not in out and out[DEGENERATE_FLAG] == 1.0
     assert {"psnr_raw", "ssim_raw", "rmse"} <= set(out) and all(np.isfinite(v) for v in out.values())
     assert any("undefined" in str(w.message) for w in caught)
+    # the printout names no fitted score that is not there
+    text = "\n".join(metric_lines(out))
+    assert "SSIM/PSNR above" not in text and "no fitted SSIM/PSNR: the reference is uniform" in text
 
 
 def test_a_reference_with_contrast_is_scored_as_before() -> None:

@@ -159,10 +159,12 @@ def metric_lines(metrics: Mapping[str, float]) -> list[str]:
             raw = f"PSNR {_num(metrics['psnr_raw']):.2f} dB" + (
                 f", SSIM {_num(metrics['ssim_raw']):.3f}" if "ssim_raw" in metrics else ""
             )
-            lines.append(
-                f"{'':<18} {'':>10}  (SSIM/PSNR above: after a least-squares gain and offset to the camera's "
-                f"noise-free image; raw, as the RMSE: {raw})"
+            fitted = (
+                "SSIM/PSNR above: after a least-squares gain and offset to the camera's noise-free image"
+                if "psnr" in metrics
+                else "no fitted SSIM/PSNR: the reference is uniform (degenerate_reference)"
             )
+            lines.append(f"{'':<18} {'':>10}  ({fitted}; raw, as the RMSE: {raw})")
         if k == "improvement_offsetfree_pct":
             others = [
                 f"{words} {_num(metrics[rm]):.3g} mm ({_num(metrics[ip]):+.1f} %)"
