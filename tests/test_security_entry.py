@@ -510,7 +510,7 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
         calls.append(list(overrides))
         return real(config_name, overrides, **kw)
 
-    monkeypatch.setattr(hydra, "compose", counting)
+    monkeypatch.setattr(entry, "compose", counting)  # entry binds compose at import
     entry._baseline.cache_clear()
     plain = [
         [],

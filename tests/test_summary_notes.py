@@ -81,7 +81,7 @@ def test_collect_prints_its_own_name(tmp_path, monkeypatch, capsys) -> None:
 
     from nirspi_pipe.app import results
 
-    monkeypatch.setattr("nirspi_pipe.tables.build_table", lambda *a, **k: None)
+    monkeypatch.setattr(results, "build_table", lambda *a, **k: None)
     for prog, expected in (
         ("/usr/bin/nirspi-collect", "nirspi-collect: table t ->"),
         ("nirspi-run", "nirspi-run: table t ->"),

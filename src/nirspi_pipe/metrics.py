@@ -81,7 +81,10 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float:
 
 def psnr(truth: np.ndarray, estimate: np.ndarray, data_range: float = 1.0) -> float:
     """Peak signal-to-noise ratio in dB (scikit-image); ``inf`` for an exact reconstruction."""
-    from skimage.metrics import peak_signal_noise_ratio
+    # start-up: loads scipy, skimage, charset_normalizer (250 ms here)
+    from skimage.metrics import (
+        peak_signal_noise_ratio,
+    )
 
     if rmse(truth, estimate) == 0.0:
         return float("inf")
@@ -94,7 +97,10 @@ def ssim(truth: np.ndarray, estimate: np.ndarray, data_range: float = 1.0) -> fl
     win = min(7, side if side % 2 == 1 else side - 1)
     if win < 3:
         return float("nan")
-    from skimage.metrics import structural_similarity
+    # start-up: loads scipy, skimage, charset_normalizer (250 ms here)
+    from skimage.metrics import (
+        structural_similarity,
+    )
 
     return float(structural_similarity(truth, estimate, data_range=data_range, win_size=win))
 
@@ -161,6 +167,7 @@ class ImageMetrics:
     def warm_up(cls, params: Mapping[str, Any]) -> None:
         """Import scikit-image's metric functions (0.7 s with scipy.stats;
         :class:`nirspi_pipe.stages.WarmsUp`)."""
+        # warm-up: loads scipy, skimage, charset_normalizer (250 ms here), before jobs fork
         from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:

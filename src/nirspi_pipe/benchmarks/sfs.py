@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.benchmarks import median_time_s
+from nirspi_pipe.sfs.opencl import device_name, opencl_available, solve_opencl
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, solve_numpy
 
 I_MIN = 0.05
@@ -81,7 +82,7 @@ def main(argv: list[str]) -> int:
     skfmm: Any = None
     if not ns.no_fmm:
         try:
-            import skfmm as _skfmm
+            import skfmm as _skfmm  # optional dependency: skfmm
 
             skfmm = _skfmm
         except ImportError:
@@ -92,8 +93,6 @@ def main(argv: list[str]) -> int:
             return 2
     solvers: dict[str, Callable[..., SweepResult]] = {"numpy": solve_numpy}
     if "opencl" in ns.backends:
-        from nirspi_pipe.sfs.opencl import device_name, opencl_available, solve_opencl
-
         needed = {SOLVERS[label][0] for label in ns.schemes}
         if all(opencl_available(scheme, ns.device) for scheme in needed):
             print(f"OpenCL device: {device_name(ns.device)}")

@@ -42,6 +42,7 @@ from nirspi_pipe.device.protocol import (
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.safeio import sanitize_text, short_repr
+from nirspi_pipe.types import Camera
 
 __all__ = ["FAULTS", "Emulator", "main"]
 
@@ -218,8 +219,6 @@ class Emulator:
 
 def _check_arguments(ns: argparse.Namespace) -> str | None:
     """The first argument out of range, as one line naming it and the allowed values, or None."""
-
-    from nirspi_pipe.types import Camera
 
     if not 0 <= ns.port <= 65535:
         return f"--port={ns.port} is not allowed; allowed: a TCP port from 0 (a free one) to 65535"

@@ -109,7 +109,7 @@ def aim_spots(image: np.ndarray, camera: Camera, n_spots: int, threshold: float)
     when fine; e.g. no object found).
     """
     from scipy import ndimage  # start-up: loads scipy (144 ms here)
-    from skimage.filters import threshold_otsu
+    from skimage.filters import threshold_otsu  # start-up: loads scipy, charset_normalizer, lazy_loader (222 ms here)
 
     img = np.nan_to_num(np.asarray(image, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     img = ndimage.gaussian_filter(ndimage.median_filter(img, size=3, mode="nearest"), 1.0)  # fog noise
@@ -234,6 +234,7 @@ class ContinuousWave4:
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
         """Import scikit-image's Otsu threshold (spot aiming; :class:`nirspi_pipe.stages.WarmsUp`)."""
+        # warm-up: loads scipy, charset_normalizer, lazy_loader (222 ms here), before jobs fork
         from skimage.filters import threshold_otsu  # noqa: F401
 
     def __post_init__(self) -> None:

@@ -63,7 +63,7 @@ def prepare() -> Path | None:
     """Point numba's cache at :func:`cache_folder`'s folder (once per process, before the kernels
     are decorated). Returns the folder, or None when numba is not installed."""
     try:
-        import numba
+        import numba  # start-up: loads scipy, numba, yaml (282 ms here)
     except ImportError:  # pragma: no cover - numba ships with miepython
         return None
     user = os.environ.get("NUMBA_CACHE_DIR")

@@ -46,8 +46,10 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.instantiate import build
 from nirspi_pipe.mesh.fusion import back_project, grid_triangles
 from nirspi_pipe.metrics import ImageMetrics, rmse
+from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Camera, DepthMap, PointCloud, Scene
 
@@ -111,7 +113,7 @@ def triangle_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 def sample_skewness(values: np.ndarray) -> float:
     """Statistical (Fisher–Pearson) skewness ``E[(x − μ)³]/σ³`` of the finite values
     (scipy.stats.skew, biased); NaN with fewer than three values or zero spread."""
-    from scipy.stats import skew
+    from scipy.stats import skew  # start-up: loads scipy (445 ms here)
 
     v = np.asarray(values, dtype=np.float64).ravel()
     v = v[np.isfinite(v)]
@@ -263,7 +265,7 @@ def _interpolate_depth(points: np.ndarray, camera: Camera) -> np.ndarray:
         zi = mtri.LinearTriInterpolator(tri, z)(x[..., 0], y[..., 0])
         return np.ma.filled(zi.astype(np.float64), np.nan).reshape(n, n)
     except (RuntimeError, ValueError):  # matplotlib rejects near-degenerate triangulations
-        from scipy.interpolate import LinearNDInterpolator
+        from scipy.interpolate import LinearNDInterpolator  # start-up: loads scipy (90 ms here)
 
         return LinearNDInterpolator(uv, z)(x[..., 0], y[..., 0]).reshape(n, n)
 
@@ -316,8 +318,7 @@ def depth_truth(truth: Scene, depth: DepthMap | None, scene_model: Any) -> Scene
     32² grid). The 3D metrics, ``summary.png`` and ``mesh.png`` all use this one grid."""
     if depth is None or scene_model is None or depth.depth_m.shape[0] == truth.camera.resolution:
         return truth
-    from nirspi_pipe.scene.render import render_cached
-    from nirspi_pipe.upscale.data import RenderCamera
+    from nirspi_pipe.upscale.data import RenderCamera  # start-up: loads scipy (66 ms here)
 
     side = int(depth.depth_m.shape[0])
     return render_cached(scene_model, RenderCamera(resolution=side, fov_deg=truth.camera.fov_deg))
@@ -337,7 +338,6 @@ def run_depth_truth(products: Products, config: Any) -> Scene | None:
     node = node if isinstance(node, dict) and "_target_" in node else config.get("scene")
     if not (isinstance(node, dict) and "_target_" in node):
         return truth
-    from nirspi_pipe.instantiate import build
 
     return depth_truth(truth, products.depth, build(node, "scene"))
 
@@ -370,7 +370,7 @@ class Metrics3D:
         """All metrics that the run's products allow (3D ones need truth, depth, cloud, mesh)."""
         fine = products.upscaled is not None and self.scene is not None and products.truth is not None
         if fine:
-            from nirspi_pipe.upscale.metrics import UpscaleMetrics
+            from nirspi_pipe.upscale.metrics import UpscaleMetrics  # start-up: loads scipy (70 ms here)
 
             out = UpscaleMetrics(tuple(self.names), self.clip, scene=self.scene, source=self.source).compute(products)
         else:

@@ -9,6 +9,7 @@ x under the object (perspective: the ruler is true to scale at its own depth).
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -23,7 +24,7 @@ SCALE_BAR_MM = 20.0  # length of the ruler under each mesh (mm): assumed, 40 % o
 
 
 def _polydata(vertices_m: np.ndarray, faces: np.ndarray):
-    import pyvista as pv
+    import pyvista as pv  # start-up: loads 6ec57f84c680d3a3778b__mypyc, librt, mypy (248 ms here)
 
     f = np.asarray(faces, dtype=np.int64)
     cells = np.column_stack([np.full(len(f), 3, dtype=np.int64), f]).ravel()
@@ -39,7 +40,11 @@ def write_ply(path: Path, mesh: Mesh) -> Path:
 def truth_mesh(truth: Scene) -> Mesh:
     """The ground-truth visible surface as a triangle mesh (metres): the true depth map
     back-projected, two triangles per 2×2 block of object pixels."""
-    from nirspi_pipe.mesh.fusion import back_project, grid_triangles
+    # start-up: loads scipy, charset_normalizer (263 ms here)
+    from nirspi_pipe.mesh.fusion import (
+        back_project,
+        grid_triangles,
+    )
 
     mask = truth.mask & np.isfinite(truth.depth_m)
     verts = back_project(np.where(mask, truth.depth_m, 0.0), truth.camera).reshape(-1, 3)
@@ -50,12 +55,11 @@ def truth_mesh(truth: Scene) -> Mesh:
 
 def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, int] = (900, 450)) -> Path:
     """Off-screen render (PNG) of ``mesh`` (left) beside ``truth`` (right), same camera."""
-    import os
 
     if not os.environ.get("DISPLAY"):
         # headless: go straight to EGL instead of failing over from X with a warning (VTK >= 9.4)
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
+    import pyvista as pv  # start-up: loads 6ec57f84c680d3a3778b__mypyc, librt, mypy (248 ms here)
 
     shape = (1, 2) if truth is not None else (1, 1)
     plotter = pv.Plotter(off_screen=True, shape=shape, window_size=list(size))
@@ -124,4 +128,5 @@ def write_mesh_outputs(folder: Path, products: Products, render: bool = True, tr
 
 def warm_up() -> None:
     """Import pyvista (0.5 s), through which ``mesh.ply`` and ``mesh.png`` are written."""
+    # warm-up: loads 6ec57f84c680d3a3778b__mypyc, librt, mypy (248 ms here), before jobs fork
     import pyvista  # noqa: F401

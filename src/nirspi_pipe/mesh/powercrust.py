@@ -48,6 +48,7 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.mesh.crustfaces import crust_faces, power_centres
 from nirspi_pipe.mesh.jitcache import rebuild_on_failure
+from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
 from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
 from nirspi_pipe.types import Mesh, PointCloud
 
@@ -368,7 +369,6 @@ class PowerCrust:
         """Load the crust's and the remesher's compiled kernels (numba's disk cache, or one
         compilation of ~20 s when it is cold: once, not by every job at the same time), pymeshlab
         and the mesh writers (:class:`nirspi_pipe.stages.WarmsUp`)."""
-        from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
 
         resolve_remesher(str(params.get("remesher", cls.remesher)))
         load_meshlab()

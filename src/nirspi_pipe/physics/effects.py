@@ -73,6 +73,7 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.detector import Photodiode
+from nirspi_pipe.physics.fog import backscatter, koschmieder_radiance
 from nirspi_pipe.physics.forward import (
     STAGES,
     AmbientCharge,
@@ -95,6 +96,8 @@ from nirspi_pipe.physics.forward import (
     stage_of,
 )
 from nirspi_pipe.physics.light import Background
+from nirspi_pipe.physics.range_model import max_distance_m
+from nirspi_pipe.physics.timevarying import background_factor, fog_factor
 
 __all__ = [
     # the stages (nirspi_pipe.physics.forward)
@@ -230,7 +233,6 @@ class FogFluctuation:
             raise ConfigError("fluctuation_time_s", self.time_s, "a correlation time in s > 0")
 
     def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
-        from nirspi_pipe.physics.timevarying import fog_factor
 
         med = _fog_of(image, "fog_fluctuation")
         m = exposure.m
@@ -290,7 +292,6 @@ class Backscatter:
 
     def veil_e(self, medium: FogPath, exposure: Exposure) -> np.ndarray:
         """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
-        from nirspi_pipe.physics.fog import backscatter
 
         white_1m = float(exposure.budget.white_electrons(1.0)) / (exposure.n * exposure.n)
         veil = backscatter(self.gain, white_1m, medium.beta_per_m, medium.path_m)
@@ -370,7 +371,6 @@ class BackgroundLight:
     in_reference: ClassVar[bool] = False
 
     def apply(self, readings: Readings, exposure: Exposure) -> Readings:
-        from nirspi_pipe.physics.fog import koschmieder_radiance
 
         bg, scene, med = self.background, exposure.scene, readings.medium
         cov = scene.coverage
@@ -407,7 +407,6 @@ class BackgroundDrift:
     streams: ClassVar[tuple[int, ...]] = (1,)
 
     def apply(self, readings: Readings, exposure: Exposure) -> Readings:
-        from nirspi_pipe.physics.timevarying import background_factor
 
         amb = readings.ambient
         if amb is None:
@@ -491,7 +490,6 @@ class DetectorReadout:
 
     def _range(self, exposure: Exposure, readings: Readings) -> dict[str, float]:
         """Alg. A1 for this configuration and the object's mean reflectance."""
-        from nirspi_pipe.physics.range_model import max_distance_m
 
         scene = exposure.scene
         obj = scene.mask if scene.mask.any() else scene.coverage > 0

@@ -94,6 +94,7 @@ def mie_efficiencies(diameter_m: float, wavelength_m: float, index: complex = WA
         index: complex refractive index ``n + i k`` with ``k >= 0`` (absorbing). miepython uses
             the ``n − i k`` sign convention; the conversion is done here.
     """
+    # start-up: loads scipy, miepython, charset_normalizer (214 ms here)
     import miepython  # lazy: only fog models that need Mie pay for it
 
     m = complex(index.real, -abs(index.imag))
@@ -222,10 +223,10 @@ class MieFog:
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
-        """Import miepython and the fog's time series (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        """Import miepython (:class:`nirspi_pipe.stages.WarmsUp`); the fog's time series comes with
+        the forward model (:mod:`nirspi_pipe.physics.effects`)."""
+        # warm-up: loads scipy, miepython, charset_normalizer (214 ms here), before jobs fork
         import miepython  # noqa: F401
-
-        import nirspi_pipe.physics.timevarying  # noqa: F401
 
     def __post_init__(self) -> None:
         if self.droplet_diameter_um is None:

@@ -32,11 +32,9 @@ the lens, Eqs. 10–11) is in :mod:`nirspi_pipe.physics.budget`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
-from typing import Any
 
 import numpy as np
 
@@ -212,11 +210,6 @@ class Background:
     flicker_hz: float = 100.0
     wander_rel: float = 0.0
     wander_time_s: float = 0.1
-
-    @classmethod
-    def warm_up(cls, params: Mapping[str, Any]) -> None:
-        """Import the background's time series (:class:`nirspi_pipe.stages.WarmsUp`)."""
-        import nirspi_pipe.physics.timevarying  # noqa: F401
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.klux) or not 0.0 <= self.klux <= 100.0:

@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.safeio import UnsafeInputError
+from nirspi_pipe.scene.meshfiles import MeshFileError, read_mesh_file
 from nirspi_pipe.scene.render import check_common, compose_scene
 from nirspi_pipe.types import Camera, Scene
 
@@ -338,9 +340,6 @@ def _load_mesh_file(path: str, size: int, mtime_ns: int) -> tuple[np.ndarray, np
     file = Path(path).expanduser()
     if not file.is_file():
         raise ConfigError("path", path, "an existing mesh file (.ply, .stl, .obj)")
-    from nirspi_pipe.safeio import UnsafeInputError
-    from nirspi_pipe.scene.meshfiles import MeshFileError, read_mesh_file
-
     try:
         return read_mesh_file(file)
     except (MeshFileError, UnsafeInputError) as exc:

@@ -120,7 +120,7 @@ def prepare_image(
     warning; so are negative ones. Returns the normalised image in [0, 1], the object mask and
     the singular points; warns when a region has none (the Dirichlet problem then has no data).
     """
-    from scipy import ndimage
+    from scipy import ndimage  # start-up: loads scipy, charset_normalizer (219 ms here)
 
     img = np.array(data, dtype=np.float64)
     if img.ndim != 2:
@@ -194,7 +194,7 @@ def _run(
     device: str = "auto",
 ) -> SweepResult:
     if backend == "opencl":
-        from nirspi_pipe.sfs.opencl import solve_opencl
+        from nirspi_pipe.sfs.opencl import solve_opencl  # import circle: nirspi_pipe.sfs.opencl imports this module
 
         try:
             return solve_opencl(problem, scheme, tol, max_sweeps, slope_average=slope_average, device=device)
@@ -234,7 +234,7 @@ def singular_depths(
     shapes shade alike; a contour not at one depth breaks the assumption). Returns the depth map
     of the singular points (0 elsewhere) and bookkeeping.
     """
-    from scipy import ndimage
+    from scipy import ndimage  # start-up: loads scipy, charset_normalizer (219 ms here)
 
     depth = np.zeros(f.shape)
     info: dict[str, Any] = {"singular_regions": 0, "singular_regions_lifted": 0}
@@ -321,7 +321,7 @@ def _resolve(
     builds the kernel and OpenCL was measured faster there (:func:`nirspi_pipe.accel.choose`)."""
     if backend == "numpy":
         return "numpy"
-    from nirspi_pipe.sfs.opencl import resolve_backend
+    from nirspi_pipe.sfs.opencl import resolve_backend  # import circle: nirspi_pipe.sfs.opencl imports this module
 
     return resolve_backend(backend, model, scheme, slope_average, device, size)
 
@@ -330,7 +330,7 @@ def _device_info(backend: str, device: str) -> dict[str, Any]:
     """The record's ``device`` (and ``device_requested``) of a solve on ``backend``."""
     if backend != "opencl":
         return {"device": "cpu (numpy)", "device_requested": device}
-    from nirspi_pipe.sfs.opencl import device_name
+    from nirspi_pipe.sfs.opencl import device_name  # import circle: nirspi_pipe.sfs.opencl imports this module
 
     return {"device": device_name(device), "device_requested": device}
 
@@ -378,8 +378,10 @@ class LaxFriedrichsSFS:
         the context and the compiled program are made when the stage is built, in the job's
         own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
         if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
+            # warm-up: loads pyopencl, attrs, pytools (63 ms here), before jobs fork
             import pyopencl  # noqa: F401
 
+            # import circle: nirspi_pipe.sfs.opencl imports this module
             import nirspi_pipe.sfs.opencl  # noqa: F401
 
     def __post_init__(self) -> None:
@@ -535,8 +537,10 @@ class PerspectiveSFS:
         the context and the compiled program are made when the stage is built, in the job's
         own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
         if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
+            # warm-up: loads pyopencl, attrs, pytools (63 ms here), before jobs fork
             import pyopencl  # noqa: F401
 
+            # import circle: nirspi_pipe.sfs.opencl imports this module
             import nirspi_pipe.sfs.opencl  # noqa: F401
 
     def __post_init__(self) -> None:

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe.accel import choose, device_label, is_gpu, opencl_context
+from nirspi_pipe.sfs.second_order import F_MAX, GAUSS_Q, HALF_PI, SLOPE_AVERAGES, slope_antiderivative
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
 __all__ = ["solve_opencl", "opencl_available"]
@@ -325,14 +327,13 @@ __kernel void fsm(__global double *z, __global const double *rhs,
 def _context(device: str = "auto") -> tuple[Any, Any]:
     """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`;
     cached here too, so that its cache says whether this process made one)."""
-    from nirspi_pipe.accel import opencl_context
 
     return opencl_context(device)
 
 
 @lru_cache(maxsize=16)
 def _program(model: int, scheme: int, device: str = "auto"):
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
     ctx, _ = _context(device)
     src = _KERNEL % {"big": BIG}
@@ -343,7 +344,7 @@ def _program(model: int, scheme: int, device: str = "auto"):
 @lru_cache(maxsize=4)
 def _program2(cos2: int, device: str = "auto"):
     """``(fsm2, edges2, local size of edges2)`` (at most :data:`EDGES_LOCAL_SIZE`)."""
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
     ctx, _ = _context(device)
     prg = cl.Program(ctx, kernel2_source()).build(options=[f"-DCOS2={int(cos2)}"])
@@ -361,9 +362,7 @@ def default_local_size(kernel: Any, device: str, rows: int, cols: int) -> int:
     the kernel's largest work-group: the cells of one diagonal are independent (Detrixhe, Gibou &
     Min 2013), so each diagonal is one parallel step between two barriers of the work-group.
     """
-    import pyopencl as cl
-
-    from nirspi_pipe.accel import is_gpu
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
     ctx, _ = _context(device)
     dev = ctx.devices[0]
@@ -376,7 +375,6 @@ def default_local_size(kernel: Any, device: str, rows: int, cols: int) -> int:
 
 def kernel2_source() -> str:
     """OpenCL C source of the second-order kernels (``fsm2``, ``edges2``)."""
-    from nirspi_pipe.sfs.second_order import F_MAX, GAUSS_Q, HALF_PI
 
     consts = {"big": BIG, "half_pi": HALF_PI, "gauss_q": GAUSS_Q, "f_max": F_MAX}
     return _KERNEL2 % {k: float(v) for k, v in consts.items()}
@@ -452,7 +450,6 @@ def resolve_backend(
     if backend == "auto":
         if not ok:
             return "numpy"
-        from nirspi_pipe.accel import choose
 
         return choose("sfs", _context(device)[0].devices[0], size)[0]
     return backend
@@ -460,7 +457,6 @@ def resolve_backend(
 
 def device_name(device: str = "auto") -> str:
     """The record's name of the device ``device`` names (``platform / device (GPU|CPU)``)."""
-    from nirspi_pipe.accel import device_label
 
     return device_label(_context(device)[0].devices[0])
 
@@ -482,7 +478,7 @@ def solve_opencl(
     of one diagonal never read each other. ``slope_average`` is used by
     ``scheme="second_order"`` only; ``device`` is a spec of :mod:`nirspi_pipe.accel`.
     """
-    import pyopencl as cl
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
     if scheme == "second_order":
         return _solve_second_order(problem, tol, max_sweeps, local_size, slope_average, device)
@@ -541,9 +537,7 @@ def _solve_second_order(
     problem: SweepProblem, tol: float, max_sweeps: int, local_size: int | None, slope_average: str, device: str
 ) -> SweepResult:
     """``scheme="second_order"`` on the OpenCL device (kernel ``fsm2``)."""
-    import pyopencl as cl
-
-    from nirspi_pipe.sfs.second_order import F_MAX, SLOPE_AVERAGES, slope_antiderivative
+    import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
     if problem.model != 0:
         raise ValueError("the second-order scheme is implemented for the eikonal (model 0) only")

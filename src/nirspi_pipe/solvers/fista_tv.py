@@ -18,6 +18,7 @@ from nirspi_pipe.solvers.common import (
     relative_residual,
 )
 from nirspi_pipe.solvers.crossval import MIN_MEASUREMENTS, cv_iterations, cv_weight, weight_grid
+from nirspi_pipe.solvers.lstsq import LstsqSolver
 from nirspi_pipe.solvers.noise import estimate_noise, sure_weight
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -326,8 +327,6 @@ class FistaTVSolver:
         if start is not None:
             x0 = start(None)
         if lam == 0.0 and not hadamard:
-            from nirspi_pipe.solvers.lstsq import LstsqSolver
-
             ls = LstsqSolver().solve(acquisition)
             return Image2D(ls.data, info={**ls.info, **weight_info, "lipschitz": big_l})
         start = None if x0 is None else np.asarray(x0)[None]

@@ -41,10 +41,11 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 from scipy.linalg.blas import daxpy, dtpmv
 
-from nirspi_pipe.accel import check_device
+from nirspi_pipe.accel import check_device, choose, device_label
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import sylvester
 from nirspi_pipe.solvers.common import TIE_RTOL, checked_coefficients
+from nirspi_pipe.solvers.omp_opencl import DeviceOmp, opencl_context
 from nirspi_pipe.types import Acquisition, Image2D
 
 __all__ = ["OMPSolver", "basis_matrix", "haar_matrix", "dct_matrix", "omp_hadamard", "TIE_RTOL"]
@@ -53,7 +54,7 @@ __all__ = ["OMPSolver", "basis_matrix", "haar_matrix", "dct_matrix", "omp_hadama
 @lru_cache(maxsize=16)
 def dct_matrix(n: int) -> np.ndarray:
     """Orthonormal DCT-II matrix ``C`` (``n × n``): ``C x = scipy.fft.dct(x, norm='ortho')``."""
-    from scipy.fft import dct
+    from scipy.fft import dct  # start-up: loads scipy (55 ms here)
 
     c = dct(np.eye(n), norm="ortho", axis=0)
     c.setflags(write=False)
@@ -208,7 +209,7 @@ def _blas_controller() -> Any:
     """threadpoolctl's view of the loaded BLAS libraries, found once per process: finding them
     (``threadpool_limits`` does it on every call) cost 1.8 ms per solve, as much as an 8² OMP
     solve (cProfile of 20 Figure 9 jobs)."""
-    from threadpoolctl import ThreadpoolController
+    from threadpoolctl import ThreadpoolController  # start-up: loads threadpoolctl (4 ms here)
 
     return ThreadpoolController()
 
@@ -330,8 +331,6 @@ def omp_hadamard(
     colnorm = np.sqrt(np.maximum((m2[rows].T @ m2[cols]).ravel(), 0.0))  # ‖A[:, p]‖
 
     if backend == "opencl":
-        from nirspi_pipe.solvers.omp_opencl import DeviceOmp
-
         engine_cl = DeviceOmp(m_mat, rows, cols, colnorm, k_max, device)
         coeffs_b, atoms, stops, resids = engine_cl.solve(
             y[None, :], selection_weight(colnorm, normalize), tol, opencl_mode
@@ -370,7 +369,6 @@ def omp_hadamard_batch(
     row per problem: tiles, the images of a sweep) in one device solve, every kernel launch
     serving all of them (:class:`~nirspi_pipe.solvers.omp_opencl.DeviceOmp`). Returns the images
     ``(B, n, n)`` and one ``info`` per problem, each what :func:`omp_hadamard` gives."""
-    from nirspi_pipe.solvers.omp_opencl import DeviceOmp
 
     ys = np.atleast_2d(np.asarray(ys, np.float64))
     idx = np.asarray(indices, dtype=np.int64)
@@ -489,8 +487,6 @@ class OMPSolver:
             raise ConfigError("backend", self.backend, "auto, numpy or opencl")
         check_device(self.device)
         if self.backend == "opencl":
-            from nirspi_pipe.solvers.omp_opencl import opencl_context
-
             opencl_context(self.device)  # build the kernels now (or fail in one line), never inside a timed solve
 
     def effective_backend(self, size: int = 64) -> str:
@@ -500,8 +496,6 @@ class OMPSolver:
         slower than numpy (``nirspi-bench omp --opencl``; docs/reconstruction.md)."""
         if self.backend != "auto":
             return self.backend
-        from nirspi_pipe.accel import choose
-        from nirspi_pipe.solvers.omp_opencl import opencl_context
 
         try:
             ctx, _, _ = opencl_context(self.device)
@@ -513,8 +507,6 @@ class OMPSolver:
         """The record's name of the device a solve on ``backend`` ran on."""
         if backend != "opencl":
             return "cpu (numpy)"
-        from nirspi_pipe.accel import device_label
-        from nirspi_pipe.solvers.omp_opencl import opencl_context
 
         return device_label(opencl_context(self.device)[0].devices[0])
 

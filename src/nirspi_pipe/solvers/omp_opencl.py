@@ -36,6 +36,8 @@ from typing import Any
 
 import numpy as np
 
+from nirspi_pipe.accel import is_gpu
+from nirspi_pipe.accel import opencl_context as accel_context
 from nirspi_pipe.errors import NirspiError
 
 __all__ = ["DeviceOmp", "opencl_context", "gpu_available", "STOP_REASONS"]
@@ -416,7 +418,7 @@ _KERNELS = ("scatter_y", "mtr", "tm_init", "tm_upd", "pick", "gram", "tri", "syn
 
 def kernel_source() -> str:
     """OpenCL C source of the device OMP."""
-    from nirspi_pipe.solvers.common import TIE_RTOL
+    from nirspi_pipe.solvers.common import TIE_RTOL  # start-up: loads scipy, charset_normalizer (210 ms here)
 
     return _SOURCE % {"tie_rtol": float(TIE_RTOL)}
 
@@ -427,10 +429,9 @@ def opencl_context(device: str = "auto") -> tuple[Any, Any, dict[str, Any]]:
     (:func:`nirspi_pipe.accel.opencl_device`), built once per process. Raises
     :class:`NirspiError` (one line) when there is none or its compiler fails."""
     try:
-        import pyopencl as cl
+        import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
     except ImportError as exc:  # pragma: no cover - pyopencl is a dependency
         raise NirspiError(f"solver.backend=opencl needs pyopencl ({exc})") from None
-    from nirspi_pipe.accel import opencl_context as accel_context
 
     try:
         ctx, queue = accel_context(device)
@@ -455,8 +456,6 @@ def opencl_context(device: str = "auto") -> tuple[Any, Any, dict[str, Any]]:
 def gpu_available(device: str = "auto") -> bool:
     """True when the device :func:`opencl_context` picks for ``device`` is a GPU (cached)."""
     try:
-        from nirspi_pipe.accel import is_gpu
-
         ctx, _, _ = opencl_context(device)
     except Exception:  # noqa: BLE001 - no working device means "no"
         return False
@@ -498,7 +497,7 @@ class DeviceOmp:
         k_max: int,
         device: str = "auto",
     ) -> None:
-        import pyopencl as cl
+        import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 
         self.cl = cl
         self.ctx, self.queue, self.k = opencl_context(device)
@@ -520,7 +519,6 @@ class DeviceOmp:
                 for name in ("pick", "gram", "tri")
             ),
         )
-        from nirspi_pipe.accel import is_gpu
 
         gpu = is_gpu(self.dev)
         # power-of-two work-groups (tree reductions); a CPU device runs a work-group as a loop

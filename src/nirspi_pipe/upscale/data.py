@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nirspi_pipe.metrics import fit_gain_offset
 from nirspi_pipe.patterns.hadamard import is_power_of_two
 from nirspi_pipe.physics.forward import split_measure
 from nirspi_pipe.scene.objects import Sphere, load_gray_image
@@ -113,7 +114,7 @@ def spi_lowres(hr: np.ndarray, scale: int, noise_rel: float, rng: np.random.Gene
 
 
 def _resize_area(img: np.ndarray, side: int) -> np.ndarray:
-    from skimage.transform import resize
+    from skimage.transform import resize  # start-up: loads scipy, skimage, lazy_loader (42 ms here)
 
     return resize(img, (side, side), order=1, anti_aliasing=img.shape[0] > side, mode="reflect")
 
@@ -140,7 +141,7 @@ def texture_hr(name: str, side: int, rng: np.random.Generator | None, reflectanc
 def random_shapes_hr(side: int, rng: np.random.Generator) -> np.ndarray:
     """A synthetic scene ``side × side``: shaded background, random polygons, ellipses, thin
     bars and Lambertian discs (spheres seen from the light), anti-aliased by 4× supersampling."""
-    from skimage.draw import ellipse, polygon
+    from skimage.draw import ellipse, polygon  # start-up: loads skimage, lazy_loader (13 ms here)
 
     ss = 4
     big = side * ss
@@ -246,7 +247,6 @@ def equivalent_noise_rel(image: np.ndarray, reference: np.ndarray) -> float:
     (as the normalised metrics fit them), whose per-pixel std is ``noise_rel · n · mean / √2``
     for white noise on each of the ``2n²`` split readings. Dimensionless; how the device's noise
     level is matched by the training data (docs/upscale.md)."""
-    from nirspi_pipe.metrics import fit_gain_offset
 
     img = np.asarray(image, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)

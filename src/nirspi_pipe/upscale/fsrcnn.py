@@ -21,6 +21,7 @@ cropped back, so every output pixel is computed the way it was trained.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import warnings
 from dataclasses import dataclass
@@ -32,7 +33,8 @@ from typing import Any
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.safeio import read_npz, sanitize_text
 from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.base import as_finite_image, check_scale, finish
 
@@ -161,7 +163,7 @@ def fsrcnn_forward(image: np.ndarray, weights: FsrcnnWeights) -> np.ndarray:
     ~1e-7 between OpenBLAS kernel sets (Haswell vs Sandybridge), enough to flip a point of the fused
     cloud (issue 12; ``bash .ci/reproduce-cpus.sh``).
     """
-    from nirspi_pipe.upscale.bicubic import bicubic
+    from nirspi_pipe.upscale.bicubic import bicubic  # import circle: nirspi_pipe.upscale.bicubic imports this module
 
     s, pad = weights.scale, weights.border
     lr = np.asarray(image, dtype=np.float64)
@@ -185,12 +187,11 @@ DEVICES = ("auto", "cpu", "cuda")
 def torch_device(device: str) -> str:
     """The torch device (``cpu``/``cuda``) for ``upscale.device``; :class:`NirspiError` (one
     line) for ``cuda`` where torch has no CUDA, :class:`ConfigError` without torch."""
-    from nirspi_pipe.errors import NirspiError
 
     if device not in DEVICES:
         raise ConfigError("device", device, ", ".join(DEVICES))
     try:
-        import torch
+        import torch  # optional dependency: torch
     except ImportError:
         raise ConfigError(
             "backend", "torch", "numpy, or torch once installed (pip install 'nirspi-pipe[train]')"
@@ -229,10 +230,10 @@ def fsrcnn_forward_torch(
     ``nirspi-train-fsrcnn`` runs the network; float64 out. ``tf32``: allow TensorFloat-32 in
     cuDNN's convolutions (faster on Ampere and later, error ~1e-3 against numpy instead of ~1e-6,
     measured on an H200: docs/gpu.md); off by default, restored after the call."""
-    import torch
-    from torch.nn import functional as F
+    import torch  # optional dependency: torch
+    from torch.nn import functional as F  # optional dependency: torch
 
-    from nirspi_pipe.upscale.bicubic import bicubic
+    from nirspi_pipe.upscale.bicubic import bicubic  # import circle: nirspi_pipe.upscale.bicubic imports this module
 
     def f32(a: np.ndarray) -> Any:
         return torch.from_numpy(np.array(a, dtype=np.float32)).to(device)  # a writable float32 copy
@@ -273,7 +274,6 @@ def _read_weights(path: str | Path) -> FsrcnnWeights:
     """Read and check a weights file: bounded NPZ reading (:func:`nirspi_pipe.safeio.read_npz`,
     weights are small: 64 MB at most), then every array's shape against the architecture, so a
     hostile file fails here with one line instead of deep inside the forward pass."""
-    from nirspi_pipe.safeio import read_npz
 
     z = read_npz(path, str(path), budget=64 << 20, mmap=False)
 
@@ -363,7 +363,6 @@ def resolve_weights(scale: int, path: str | Path | None = None) -> Path:
 @lru_cache(maxsize=8)
 def weights_sha256(path: str) -> str:
     """SHA-256 of a weights file (hex), for the record."""
-    import hashlib
 
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
@@ -385,8 +384,6 @@ def load_weights(scale: int, path: str | Path | None = None) -> FsrcnnWeights:
     try:
         weights = _load_cached(str(file.resolve()))
     except Exception as exc:  # noqa: BLE001 - any unreadable file is a config problem
-        from nirspi_pipe.safeio import sanitize_text
-
         raise ConfigError(
             "weights", str(file), f"an FSRCNN .npz written by nirspi-train-fsrcnn ({sanitize_text(exc)})"
         ) from None

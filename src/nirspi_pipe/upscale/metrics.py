@@ -66,6 +66,7 @@ class UpscaleMetrics(ImageMetrics):
         """The image metrics' imports and scikit-image's ``resize`` (the scene rendered at the
         upscaled resolution; :class:`nirspi_pipe.stages.WarmsUp`)."""
         super().warm_up(params)
+        # warm-up: loads scipy, skimage, lazy_loader (39 ms here), before jobs fork
         from skimage.transform import resize  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:
