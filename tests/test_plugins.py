@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from nirspi_pipe.app import plugins
+from nirspi_pipe.errors import ConfigError
 
 
 def _pip_flags() -> list[str]:
@@ -87,12 +88,20 @@ def test_entry_points_without_an_installed_distribution_are_ignored(
         assert real and real[0].dist is not None  # importlib.metadata does find it there
         assert not targets.installed(real[0])
         assert "os.system" not in targets.plugin_targets.__wrapped__()  # uncached: read now
-        assert "cwd" not in [p.name for p in plugins.discover(refresh=True).plugins]
+        report = plugins.discover(refresh=True)
+        assert "cwd" not in [p.name for p in report.plugins]
+        # ... and not without a word: the report and the refusal say why
+        assert ("cwd", os.path.realpath(tmp_path)) in report.ignored
+        assert "IGNORED: not from an installed distribution" in plugins.format_report(report)
+        with pytest.raises(ConfigError, match="outside the installed distributions") as refused:
+            targets.check_target("os.system", "solver._target_")
+        assert len(str(refused.value).splitlines()) == 1
     made_in_code = _ep("code", f"mod_{tag}:register")
     assert made_in_code.dist is None and not targets.installed(made_in_code)
     monkeypatch.setattr(plugins.metadata, "entry_points", lambda group=None, **_: [made_in_code])
     report = plugins.discover(refresh=True)
     assert not report.plugins and not report.failures
+    assert report.ignored == (("code", "no distribution (made in code)"),)
     monkeypatch.setattr(plugins, "_REPORT", None)
 
 

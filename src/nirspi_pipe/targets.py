@@ -148,6 +148,35 @@ def installed(ep: metadata.EntryPoint) -> bool:
     return where in {os.path.realpath(p) for p in trusted_paths()}
 
 
+def origin(ep: metadata.EntryPoint) -> str:
+    """Where an entry point's distribution lies (for messages): its folder, or what it lacks."""
+    dist = getattr(ep, "dist", None)
+    if dist is None:
+        return "no distribution (made in code)"
+    try:
+        return os.path.realpath(str(dist.locate_file("")))
+    except Exception:  # noqa: BLE001 - only for a message
+        return "a distribution that cannot say where it is"
+
+
+def untrusted(group: str) -> dict[str, str]:
+    """``{name: origin}`` of the entry points of ``group`` that :func:`installed` refuses (for
+    ``nirspi_pipe.targets`` the name is the dotted target). They are never used; errors and the
+    plugin report name them, so that a plugin outside the installed distributions is not ignored
+    without a word."""
+    out: dict[str, str] = {}
+    for ep in metadata.entry_points(group=group):
+        if installed(ep):
+            continue
+        if group == TARGET_ENTRY_POINTS:
+            module, _, attr = ep.value.partition(":")
+            name = f"{module.strip()}.{attr.strip()}" if attr.strip() else module.strip()
+        else:
+            name = ep.name
+        out.setdefault(name, origin(ep))
+    return out
+
+
 @lru_cache(maxsize=1)
 def plugin_targets() -> frozenset[str]:
     """Dotted names that installed plugins register (entry-point group ``nirspi_pipe.targets``:
@@ -222,7 +251,14 @@ def check_target(target: Any, key: str) -> None:
     prefix = OPTUNA_TARGET_KEYS.get(key)
     if isinstance(target, str) and prefix and target.startswith(prefix) and target[len(prefix) :].isidentifier():
         return
-    raise ConfigError(key, target, _allowed_text(), absolute=True)
+    allowed = _allowed_text()
+    where = untrusted(TARGET_ENTRY_POINTS).get(target) if isinstance(target, str) else None
+    if where:  # registered, but not by an installed distribution (a *.dist-info in the working directory)
+        allowed += (
+            f"; {target} is registered by an entry point outside the installed distributions ({where}), "
+            "which is never used: plugins come only from installed distributions (pip install the plugin)"
+        )
+    raise ConfigError(key, target, allowed, absolute=True)
 
 
 def check_targets(node: Any, path: str = "") -> None:

@@ -51,7 +51,7 @@ from hydra.core.config_store import ConfigStore
 from hydra.core.plugins import Plugins
 from hydra.plugins.search_path_plugin import SearchPathPlugin
 
-from nirspi_pipe.targets import installed, trusted_paths
+from nirspi_pipe.targets import installed, trusted_paths, untrusted
 
 if TYPE_CHECKING:
     from importlib.resources.abc import Traversable
@@ -116,6 +116,8 @@ class PluginReport:
 
     plugins: tuple[PluginInfo, ...]
     failures: tuple[PluginFailure, ...]
+    #: ``(name, origin)`` of entry points outside the installed distributions: never loaded
+    ignored: tuple[tuple[str, str], ...] = ()
 
     @property
     def searchpath(self) -> tuple[str, ...]:
@@ -342,7 +344,15 @@ def discover(refresh: bool = False) -> PluginReport:
             failure = PluginFailure(ep.name, ep.value, _one_line(exc))
             failures.append(failure)
             log.warning("plugin %r (%s) failed to load and was skipped: %s", ep.name, ep.value, failure.error)
-    _REPORT = PluginReport(tuple(plugins), tuple(failures))
+    ignored = tuple(sorted(untrusted(ENTRY_POINT_GROUP).items()))
+    for name, where in ignored:
+        log.warning(
+            "plugin %r was ignored: its entry point is outside the installed distributions (%s); "
+            "plugins come only from installed distributions (pip install it)",
+            name,
+            where,
+        )
+    _REPORT = PluginReport(tuple(plugins), tuple(failures), ignored)
     return _REPORT
 
 
@@ -409,4 +419,6 @@ def format_report(report: PluginReport) -> str:
             lines.append("    (adds no config options)")
     for fail in report.failures:
         lines.append(f"  {fail.name}  FAILED ({fail.value}): {fail.error}")
+    for name, where in report.ignored:
+        lines.append(f"  {name}  IGNORED: not from an installed distribution ({where})")
     return "\n".join(lines)
