@@ -477,26 +477,50 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
     user = _leaves(hydra_node)
     if plain_keys is not None:
         return _check_diffs(user, [(1, key) for key in sorted(set(plain_keys)) if key in user], hydra_node)
+    changed = _changed_hydra_choices(hydra_node)
+    ref = _leaves(_reference_node(changed))
+    diffs: list[tuple[int, str]] = []
+    for key in set(user) | set(ref):
+        if any(_match(p, key) for p in allowlist.IGNORED_KEYS):
+            continue
+        if key in user and key in ref and user[key] == ref[key]:
+            continue
+        if key not in user and any(k.startswith(key + ".") for k in user):
+            continue  # a node replaced by a subtree: its leaves are compared
+        diffs.append((0 if key in user and key.endswith("_target_") else 1 if key in user else 2, key))
+    return _check_diffs(user, diffs, hydra_node)
+
+
+def _changed_hydra_choices(hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
+    """The ``hydra/…`` group choices that differ from the defaults, each checked: only the groups
+    of :data:`allowlist.HYDRA_CHOICE_GROUPS` (and their subgroups that the defaults lack) may
+    change, and not to a choice of :data:`allowlist.REFUSED_HYDRA_CHOICES`."""
     choices = {k: v for k, v in (hydra_node.get("runtime", {}).get("choices") or {}).items() if k.startswith("hydra/")}
     defaults = {k: v for k, v in _default_choices().items() if k.startswith("hydra/")}
-    changed: list[tuple[str, str | None]] = []
+    allowed_groups = allowlist.HYDRA_CHOICE_GROUPS
+    changed: list[tuple[str, str]] = []
     for group in sorted(set(choices) | set(defaults)):
         if choices.get(group) == defaults.get(group):
             continue
-        if group not in allowlist.HYDRA_CHOICE_GROUPS and not (
-            group not in defaults and group.startswith(tuple(f"{g}/" for g in allowlist.HYDRA_CHOICE_GROUPS))
-        ):
+        subgroup = group not in defaults and group.startswith(tuple(f"{g}/" for g in allowed_groups))
+        if group not in allowed_groups and not subgroup:
             raise Refused(
                 f"{group}={choices.get(group)} is not allowed: only the default may be used for {group}; "
-                f"allowed changes: {', '.join(sorted(allowlist.HYDRA_CHOICE_GROUPS))}"
+                f"allowed changes: {', '.join(sorted(allowed_groups))}"
             )
         why = allowlist.REFUSED_HYDRA_CHOICES.get((group, str(choices.get(group))))
         if why:
             raise Refused(f"{group}={choices.get(group)} is not allowed: {why}")
         if group in choices:
             changed.append((group, choices[group]))
+    return changed
+
+
+def _reference_node(changed: list[tuple[str, str]]) -> Any:
+    """Hydra's node composed with the ``hydra/…`` choices ``changed`` and nothing else of the
+    user's; a choice that is no option (e.g. a file in a ``-cd`` folder) is refused by name."""
     try:
-        base = _baseline(tuple(changed))
+        return _baseline(tuple(changed))
     except Refused:
         group, option = changed[-1] if changed else ("hydra", None)
         names = _hydra_group_options(group)
@@ -508,18 +532,6 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
             f"{group}={option} is not an option; allowed: {', '.join(names) or '(none)'} "
             "(Hydra's, nirspi-pipe's and installed plugins' configs; a config folder cannot add one)"
         ) from None
-    ref = _leaves(base)
-    ignored = allowlist.IGNORED_KEYS
-    diffs: list[tuple[int, str]] = []
-    for key in set(user) | set(ref):
-        if any(_match(p, key) for p in ignored):
-            continue
-        if key in user and key in ref and user[key] == ref[key]:
-            continue
-        if key not in user and any(k.startswith(key + ".") for k in user):
-            continue  # a node replaced by a subtree: its leaves are compared
-        diffs.append((0 if key in user and key.endswith("_target_") else 1 if key in user else 2, key))
-    return _check_diffs(user, diffs, hydra_node)
 
 
 def _check_diffs(
@@ -601,14 +613,55 @@ def _is_hydra_key(key: str) -> bool:
 
 def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
     """Check what ``nirspi-run ARGS`` (or ``nirspi_pipe.run(ARGS)`` with ``api``) would do and
-    return the :class:`Invocation` to hand to Hydra; :class:`Refused` (one line) otherwise."""
+    return the :class:`Invocation` to hand to Hydra; :class:`Refused` (one line) otherwise.
+
+    The steps, in order: the API takes overrides only; flags are matched exactly
+    (:func:`parse_args`); ``-sc`` takes one shell word, other overrides have their nulls rewritten;
+    ``-cd`` becomes a search-path entry; sweeps only with ``-m`` and never of Hydra's settings; the
+    primary config must exist; then one composition, checked whole (:func:`_compose_checked`), and
+    each sweep's values (:func:`_check_sweeps`)."""
+    if api:
+        _refuse_flags_in_api(args)
+    flags, overrides = parse_args(list(args))
+    overrides, compose_overrides = _job_overrides(flags, overrides)
+    user_paths = bool(flags.get("--config-dir")) or any(
+        ov.key_or_group == "hydra.searchpath" for ov in _parse(compose_overrides)
+    )
+    overrides, compose_overrides = _with_config_dir(flags, overrides, compose_overrides)
+    parsed = _parse(compose_overrides)
+    _check_sweep_places(parsed, flags)
+    config_name = _primary_config(flags)
+    fixed = [o for o, ov in zip(compose_overrides, parsed, strict=True) if not ov.is_sweep_override()]
+    name_options = not user_paths and "--shell-completion" not in flags  # one-line names for options and keys
+    cfg = _compose_checked(config_name, fixed, compose_overrides, name_options)
+    simple = None
+    if config_name == CONFIG_NAME and not user_paths:
+        simple = _hydra_keys_if_plain([ov for ov in parsed if not ov.is_sweep_override()])
+    _check_composed(cfg, flags, simple)
+    sweeps = [ov for ov in parsed if ov.is_sweep_override()]
+    _check_sweeps(cfg, sweeps, fixed, config_name, user_paths, flags)
+    return Invocation(
+        flags=flags,
+        overrides=tuple(overrides),
+        hydra_argv=(*_hydra_flags(flags), *overrides),
+        config_name=config_name,
+        config=cfg,
+    )
+
+
+def _refuse_flags_in_api(args: list[str]) -> None:
+    """``nirspi_pipe.run(ARGS)`` takes overrides only: no flag."""
+    for arg in args:
+        if arg.startswith("-"):
+            raise Refused(f"{arg[:60]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
+
+
+def _job_overrides(flags: dict[str, str | None], overrides: list[str]) -> tuple[list[str], list[str]]:
+    """``(overrides for Hydra, overrides to compose)``: with ``-sc`` the one shell word is
+    checked and nothing of it is composed; otherwise ``stage=null``/``off`` are rewritten
+    (:func:`nirspi_pipe.app.validate.rewrite_nulls`) and both lists are the rewritten ones."""
     from nirspi_pipe.app import validate  # start-up: loads 15 modules of ours (27 ms here)
 
-    if api:
-        for arg in args:
-            if arg.startswith("-"):
-                raise Refused(f"{arg[:60]} is not an override; allowed: key=value overrides (sweeps: nirspi-run -m)")
-    flags, overrides = parse_args(list(args))
     if "--shell-completion" in flags:
         words = [o.partition("=") for o in overrides]
         if len(words) != 1 or words[0][0] not in ("install", "uninstall", "query") or words[0][2] not in _SHELLS:
@@ -616,43 +669,64 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
                 "-sc needs exactly one of install=SHELL, uninstall=SHELL, query=SHELL; allowed shells: "
                 + ", ".join(_SHELLS)
             )
-        compose_overrides: list[str] = []
-    else:
-        rewritten, problem = validate.rewrite_nulls(overrides)
-        if problem:
-            raise Refused(problem)
-        overrides = rewritten
-        compose_overrides = overrides
+        return overrides, []
+    rewritten, problem = validate.rewrite_nulls(overrides)
+    if problem:
+        raise Refused(problem)
+    return rewritten, rewritten
+
+
+def _with_config_dir(
+    flags: dict[str, str | None], overrides: list[str], compose_overrides: list[str]
+) -> tuple[list[str], list[str]]:
+    """``-cd DIR`` (taken out of ``flags``) as what Hydra does with it: DIR appended to the
+    search path, one ``hydra.searchpath=[...]`` override in place of any given. Returns
+    ``(overrides for Hydra, overrides to compose)``."""
     config_dir = flags.pop("--config-dir", None)
+    if config_dir is None:
+        return overrides, compose_overrides
+    folder = Path(config_dir).resolve()
+    if not folder.is_dir():
+        raise Refused(f"--config-dir={config_dir!r} is not allowed; allowed: a folder that exists")
     parsed = _parse(compose_overrides)
-    user_paths = bool(config_dir) or any(ov.key_or_group == "hydra.searchpath" for ov in parsed)
-    if config_dir is not None:
-        folder = Path(config_dir).resolve()
-        if not folder.is_dir():
-            raise Refused(f"--config-dir={config_dir!r} is not allowed; allowed: a folder that exists")
-        given = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath"]
-        base = given[-1].value() if given else default_searchpath()
-        if not isinstance(base, list):
-            raise Refused("hydra.searchpath is not allowed; allowed: a list of folders")
-        entries = [*map(str, base), folder.as_uri()]
-        compose_overrides = [o for o, ov in zip(compose_overrides, parsed, strict=True) if ov not in given]
-        compose_overrides.append(f"hydra.searchpath=[{','.join(entries)}]")
-        if "--shell-completion" not in flags:
-            overrides = compose_overrides
-        parsed = _parse(compose_overrides)
+    given = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath"]
+    base = given[-1].value() if given else default_searchpath()
+    if not isinstance(base, list):
+        raise Refused("hydra.searchpath is not allowed; allowed: a list of folders")
+    entries = [*map(str, base), folder.as_uri()]
+    compose_overrides = [o for o, ov in zip(compose_overrides, parsed, strict=True) if ov not in given]
+    compose_overrides.append(f"hydra.searchpath=[{','.join(entries)}]")
+    if "--shell-completion" not in flags:
+        overrides = compose_overrides
+    return overrides, compose_overrides
+
+
+def _check_sweep_places(parsed: list[Any], flags: dict[str, str | None]) -> None:
+    """A sweep only with ``-m``, and never of Hydra's own settings."""
     for ov in parsed:
         if ov.is_sweep_override() and _is_hydra_key(ov.key_or_group):
             raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
         if ov.is_sweep_override() and "--multirun" not in flags:
             raise Refused(f"{ov.input_line} is a sweep; allowed: a sweep with -m only (nirspi-run -m ...)")
-    name_options = not user_paths and "--shell-completion" not in flags  # one-line names for options and keys
+
+
+def _primary_config(flags: dict[str, str | None]) -> str:
+    """The primary config's name (``-cn``): ours, or another config of nirspi-pipe's conf/."""
     config_name = flags.get("--config-name") or CONFIG_NAME
     if config_name != CONFIG_NAME and not _primary_exists(config_name):
         raise Refused(
             f"--config-name={config_name}: no such primary config; allowed: {CONFIG_NAME} or a config of "
             "nirspi-pipe's conf/ (files in a -cd folder are used as +experiment=NAME or group options)"
         )
-    fixed = [o for o, ov in zip(compose_overrides, parsed, strict=True) if not ov.is_sweep_override()]
+    return config_name
+
+
+def _compose_checked(config_name: str, fixed: list[str], compose_overrides: list[str], name_options: bool) -> Any:
+    """The one composition (the sweeps' first values aside), with the job's keys and types
+    checked on it; with ``name_options`` a refusal names the option or key rather than quoting
+    Hydra's first line."""
+    from nirspi_pipe.app import validate  # start-up: loads 15 modules of ours (27 ms here)
+
     try:
         cfg = _compose(config_name, fixed)
     except Refused:
@@ -664,24 +738,16 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
         problem = validate.check_overrides(compose_overrides, composed=cfg)  # keys and types on this compose
         if problem:
             raise Refused(problem)
-    simple = None
-    if config_name == CONFIG_NAME and not user_paths:
-        simple = _hydra_keys_if_plain([ov for ov in parsed if not ov.is_sweep_override()])
-    _check_composed(cfg, flags, simple)
-    sweeps = [ov for ov in parsed if ov.is_sweep_override()]
-    _check_sweeps(cfg, sweeps, fixed, config_name, user_paths, flags)
-    hydra_flags: list[str] = []
-    for canonical, value in flags.items():
-        if canonical in ("--version", "--plugins"):
-            continue
-        hydra_flags.append(canonical if value is None else f"{canonical}={value}")
-    return Invocation(
-        flags=flags,
-        overrides=tuple(overrides),
-        hydra_argv=(*hydra_flags, *overrides),
-        config_name=config_name,
-        config=cfg,
-    )
+    return cfg
+
+
+def _hydra_flags(flags: dict[str, str | None]) -> list[str]:
+    """The flags handed on to Hydra, canonical (``--version`` and ``--plugins`` are ours)."""
+    return [
+        canonical if value is None else f"{canonical}={value}"
+        for canonical, value in flags.items()
+        if canonical not in ("--version", "--plugins")
+    ]
 
 
 def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -791,21 +857,12 @@ def _check_sweeps(
     flags: dict[str, str | None],
 ) -> None:
     """Every value of every sweep (command line and ``hydra.sweeper.params``) for its key."""
-
-    from nirspi_pipe.app import validate  # start-up: loads 15 modules of ours (27 ms here)
-
     job, hydra_node = _plain(cfg)
-    params = (hydra_node.get("sweeper") or {}).get("params") or {}
     sweep_texts = [ov.input_line for ov in sweeps]
-    sweep_texts += [f"{k}={v}" for k, v in params.items()]
+    sweep_texts += [f"{k}={v}" for k, v in ((hydra_node.get("sweeper") or {}).get("params") or {}).items()]
     experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
-    if experiments and user_paths:  # each experiment of a meta-experiment, composed as the sweeper will
-        shared = [o for o in fixed if not o.lstrip("+~").startswith("experiment=")]  # as NirspiSweeper does
-        for name in experiments:
-            one = _compose(config_name, [f"+experiment={name}", *shared])
-            _check_composed(one, flags)
-            for k, v in ((_plain(one)[1].get("sweeper") or {}).get("params") or {}).items():
-                sweep_texts.append(f"{k}={v}")
+    if experiments and user_paths:
+        sweep_texts += _experiment_sweeps(experiments, fixed, config_name, flags)
     groups = all_groups()
     for ov in _parse(sweep_texts):
         key = ov.key_or_group.split("@", 1)[0].lstrip("+~")
@@ -817,26 +874,65 @@ def _check_sweeps(
         values = _candidates(ov, group_options(key) if is_group else None) if ov.is_sweep_override() else [ov.value()]
         for value in values:
             if is_group:
-                text = "null" if value is None else str(value)
-                allowed = group_options(key)
-                if text not in ("null", "None", validate.OFF_OPTION) and text not in allowed and not user_paths:
-                    raise Refused(f"{key}={text} is not an option; allowed: {', '.join(allowed)} (or null)")
-                if user_paths:  # the option may come from the user's folder: compose it
-                    prefix = "+" if ov.is_add() else ""
-                    _check_composed(_compose(config_name, [*fixed, f"{prefix}{ov.key_or_group}={text}"]), flags)
-                continue
-            try:
-                if key == "_target_" or key.endswith("._target_"):
-                    check_target(value, key)
-                else:
-                    check_targets(value, key)
-            except ConfigError as exc:
-                raise Refused(str(exc)) from None
-            one = OmegaConf.create(job)
-            try:
-                OmegaConf.update(one, key, value, merge=False, force_add=True)
-            except Exception as exc:  # noqa: BLE001 - a value that cannot be set is refused
-                raise Refused(f"{key}={_short(value)} cannot be set: {_one_line(exc)}") from None
-            problem = validate.check_plain_keys(OmegaConf.to_container(one, resolve=False))
-            if problem:
-                raise Refused(problem)
+                _check_group_value(ov, key, value, fixed, config_name, user_paths, flags)
+            else:
+                _check_key_value(job, key, value)
+
+
+def _experiment_sweeps(
+    experiments: list[str], fixed: list[str], config_name: str, flags: dict[str, str | None]
+) -> list[str]:
+    """Each experiment of a meta-experiment composed (and checked) as the sweeper will compose
+    it; returns the sweeps each one holds, as ``key=sweep`` texts."""
+    shared = [o for o in fixed if not o.lstrip("+~").startswith("experiment=")]  # as NirspiSweeper does
+    texts: list[str] = []
+    for name in experiments:
+        one = _compose(config_name, [f"+experiment={name}", *shared])
+        _check_composed(one, flags)
+        texts += [f"{k}={v}" for k, v in ((_plain(one)[1].get("sweeper") or {}).get("params") or {}).items()]
+    return texts
+
+
+def _check_group_value(
+    ov: Any,
+    key: str,
+    value: Any,
+    fixed: list[str],
+    config_name: str,
+    user_paths: bool,
+    flags: dict[str, str | None],
+) -> None:
+    """One option of a swept config group: a shipped or plugin option (or null/off); with a
+    user's config folder the option may come from there, so the job it makes is composed and
+    checked whole."""
+    from nirspi_pipe.app import validate  # start-up: loads 15 modules of ours (27 ms here)
+
+    text = "null" if value is None else str(value)
+    allowed = group_options(key)
+    if text not in ("null", "None", validate.OFF_OPTION) and text not in allowed and not user_paths:
+        raise Refused(f"{key}={text} is not an option; allowed: {', '.join(allowed)} (or null)")
+    if user_paths:
+        prefix = "+" if ov.is_add() else ""
+        _check_composed(_compose(config_name, [*fixed, f"{prefix}{ov.key_or_group}={text}"]), flags)
+
+
+def _check_key_value(job: dict[str, Any], key: str, value: Any) -> None:
+    """One value of a swept key: its targets allowed, and the job with it set passing the key
+    and type checks."""
+    from nirspi_pipe.app import validate  # start-up: loads 15 modules of ours (27 ms here)
+
+    try:
+        if key == "_target_" or key.endswith("._target_"):
+            check_target(value, key)
+        else:
+            check_targets(value, key)
+    except ConfigError as exc:
+        raise Refused(str(exc)) from None
+    one = OmegaConf.create(job)
+    try:
+        OmegaConf.update(one, key, value, merge=False, force_add=True)
+    except Exception as exc:  # noqa: BLE001 - a value that cannot be set is refused
+        raise Refused(f"{key}={_short(value)} cannot be set: {_one_line(exc)}") from None
+    problem = validate.check_plain_keys(OmegaConf.to_container(one, resolve=False))
+    if problem:
+        raise Refused(problem)
