@@ -72,6 +72,18 @@ _ON_MAX_ROUGHNESS = float(
 )
 
 
+def _warm_up_opencl(backend: str) -> None:
+    """With ``backend`` ``auto`` or ``opencl``, import pyopencl and the kernels' module only: the
+    context and the compiled program are made when the stage is built, in the job's own process
+    (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
+    if backend in ("auto", "opencl"):
+        # warm-up: loads pyopencl, attrs, pytools (63 ms here), before jobs fork
+        import pyopencl  # noqa: F401
+
+        # import circle: nirspi_pipe.sfs.opencl imports this module
+        import nirspi_pipe.sfs.opencl  # noqa: F401
+
+
 @dataclass(frozen=True)
 class Prepared:
     """Image after validation and albedo normalisation (internal)."""
@@ -374,15 +386,8 @@ class LaxFriedrichsSFS:
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
-        """With ``backend`` ``auto`` or ``opencl``, import pyopencl and the kernels' module only:
-        the context and the compiled program are made when the stage is built, in the job's
-        own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
-        if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
-            # warm-up: loads pyopencl, attrs, pytools (63 ms here), before jobs fork
-            import pyopencl  # noqa: F401
-
-            # import circle: nirspi_pipe.sfs.opencl imports this module
-            import nirspi_pipe.sfs.opencl  # noqa: F401
+        """:func:`_warm_up_opencl` (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        _warm_up_opencl(str(params.get("backend", cls.backend)))
 
     def __post_init__(self) -> None:
         _check_common(self, SCHEMES)
@@ -533,15 +538,8 @@ class PerspectiveSFS:
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
-        """With ``backend`` ``auto`` or ``opencl``, import pyopencl and the kernels' module only:
-        the context and the compiled program are made when the stage is built, in the job's
-        own process (:class:`nirspi_pipe.stages.WarmsUp`: no threads before a fork)."""
-        if str(params.get("backend", cls.backend)) in ("auto", "opencl"):
-            # warm-up: loads pyopencl, attrs, pytools (63 ms here), before jobs fork
-            import pyopencl  # noqa: F401
-
-            # import circle: nirspi_pipe.sfs.opencl imports this module
-            import nirspi_pipe.sfs.opencl  # noqa: F401
+        """:func:`_warm_up_opencl` (:class:`nirspi_pipe.stages.WarmsUp`)."""
+        _warm_up_opencl(str(params.get("backend", cls.backend)))
 
     def __post_init__(self) -> None:
         _check_common(self, ("lax_friedrichs",))
