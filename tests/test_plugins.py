@@ -66,7 +66,7 @@ def _ep(name: str, value: str) -> metadata.EntryPoint:
 
 
 def test_entry_points_without_an_installed_distribution_are_ignored(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Plugins come only from installed distributions: an entry point made in code (no
     distribution behind it) and one whose ``*.dist-info`` lies in the working directory or on a
@@ -88,8 +88,10 @@ def test_entry_points_without_an_installed_distribution_are_ignored(
         assert real and real[0].dist is not None  # importlib.metadata does find it there
         assert not targets.installed(real[0])
         assert "os.system" not in targets.plugin_targets.__wrapped__()  # uncached: read now
+        caplog.clear()
         report = plugins.discover(refresh=True)
         assert "cwd" not in [p.name for p in report.plugins]
+        assert any("plugin 'cwd' was ignored" in r.getMessage() for r in caplog.records), caplog.text
         # ... and not without a word: the report and the refusal say why
         assert ("cwd", os.path.realpath(tmp_path)) in report.ignored
         assert "IGNORED: not from an installed distribution" in plugins.format_report(report)
