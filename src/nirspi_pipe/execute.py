@@ -63,7 +63,6 @@ def execute_job(
     :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
     with the pipeline's ``RunOutput`` of a successful run (the Python API keeps the arrays).
     ``scan_indices`` resolves the scan option a recording names (see :func:`run_pipeline`)."""
-
     refuse_link(out_dir)  # nothing is written through a link (docs/hostile.md)
     config = plain_config(cfg)
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -178,7 +177,6 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
     (:class:`nirspi_pipe.stages.WarmsUp`), once per distinct ``(target, params)``. Returns
     what failed, as ``target: error`` lines (the job that needs it reports it in its record);
     a target outside the allow-list is not imported (its job refuses it)."""
-
     provenance()  # the installation's identity, read once
     allowed = allowed_targets()
     failed: list[str] = []

@@ -99,7 +99,6 @@ def _metrics(record: Mapping[str, Any]) -> dict[str, float]:
 def _title(record: Mapping[str, Any], depth_grid: int | None = None) -> str:
     """The header: the run, its 2D scores, its 3D scores (on ``depth_grid``², the grid the
     record's depth RMSEs were computed on) and the active effects, numbers as in the record."""
-
     ch = record.get("choices", {}) or {}
     res = ((record.get("config", {}) or {}).get("camera") or {}).get("resolution")
     m = _metrics(record)

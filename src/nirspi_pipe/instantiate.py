@@ -133,7 +133,6 @@ _KINDS = {float: "a number", int: "an integer", bool: "true or false", str: "a s
 def _scalar_kinds(hint: Any) -> tuple[type, ...] | None:
     """The scalar types a field annotation accepts (None also when Optional), or None when the
     annotation is not a plain scalar (tuples, mappings, models: the stage checks those)."""
-
     args = typing.get_args(hint) if typing.get_origin(hint) in (typing.Union, types.UnionType) else (hint,)
     kinds = tuple(a for a in args if a in _KINDS or a is type(None))
     return kinds if kinds and len(kinds) == len(args) else None

@@ -159,7 +159,6 @@ def _sweep_table(tmp: Path) -> tuple[str, float]:
 
 def _mesh_stage_ms(sweep: Path) -> str:
     """Table 6's 3D mesh stage (fusion + surface, ms) over the 3D jobs of a sweep: median and range."""
-
     df = load_results(sweep)
     cols = ("timings_ms.fusion", "timings_ms.surface")
     if not all(c in df for c in cols):

@@ -394,7 +394,6 @@ def _checkout_of(pkg: Path) -> Path | None:
 def _source_roots() -> dict[str, Path]:
     """The folders of the package and of its two data packages (mapped from the repository's
     ``conf/`` and ``experiments/`` in an editable install, nested in a wheel)."""
-
     roots = {"nirspi_pipe": package_root()}
     for name in ("nirspi_pipe.conf", "nirspi_pipe.experiments"):
         spec = importlib.util.find_spec(name)
@@ -433,7 +432,6 @@ def code_identity() -> dict[str, Any]:
     (git runs with ``-C <that checkout>``, never in the caller's working directory); otherwise
     None. ``source_hash`` always (:func:`source_hash`). ``code`` is the short label reports use:
     ``git:<sha12>[+dirty]`` or ``src:<source_hash>``. Cached per process."""
-
     pkg = package_root()
     sha = dirty = None
     root = _checkout_of(pkg)

@@ -134,29 +134,36 @@ def trusted_paths() -> list[str]:
     return [p for p in sys.path if p and os.path.isabs(p) and os.path.realpath(p) != cwd]
 
 
+def _location(ep: metadata.EntryPoint) -> str:
+    """The folder of ``ep``'s distribution; ``""`` when there is none or it cannot say."""
+    dist = getattr(ep, "dist", None)
+    if dist is None:
+        return ""
+    try:
+        return os.path.realpath(str(dist.locate_file("")))
+    except Exception:  # noqa: BLE001 - a distribution that cannot say where it is: not trusted
+        return ""
+
+
 def installed(ep: metadata.EntryPoint) -> bool:
     """True when ``ep`` belongs to a distribution found on a :func:`trusted_paths` entry. An
     entry point without a distribution (made in code, not installed) is refused: plugins come
     only from installed distributions (tests/test_plugins.py)."""
-    dist = getattr(ep, "dist", None)
-    if dist is None:
-        return False
-    try:
-        where = os.path.realpath(str(dist.locate_file("")))
-    except Exception:  # noqa: BLE001 - a distribution that cannot say where it is: not trusted
-        return False
-    return where in {os.path.realpath(p) for p in trusted_paths()}
+    where = _location(ep)
+    return bool(where) and where in {os.path.realpath(p) for p in trusted_paths()}
 
 
 def origin(ep: metadata.EntryPoint) -> str:
     """Where an entry point's distribution lies (for messages): its folder, or what it lacks."""
-    dist = getattr(ep, "dist", None)
-    if dist is None:
+    if getattr(ep, "dist", None) is None:
         return "no distribution (made in code)"
-    try:
-        return os.path.realpath(str(dist.locate_file("")))
-    except Exception:  # noqa: BLE001 - only for a message
-        return "a distribution that cannot say where it is"
+    return _location(ep) or "a distribution that cannot say where it is"
+
+
+def _target_name(ep: metadata.EntryPoint) -> str:
+    """The dotted name a ``nirspi_pipe.targets`` entry point registers (``module:Attr`` → ``module.Attr``)."""
+    module, _, attr = ep.value.partition(":")
+    return f"{module.strip()}.{attr.strip()}" if attr.strip() else module.strip()
 
 
 def untrusted(group: str) -> dict[str, str]:
@@ -168,12 +175,7 @@ def untrusted(group: str) -> dict[str, str]:
     for ep in metadata.entry_points(group=group):
         if installed(ep):
             continue
-        if group == TARGET_ENTRY_POINTS:
-            module, _, attr = ep.value.partition(":")
-            name = f"{module.strip()}.{attr.strip()}" if attr.strip() else module.strip()
-        else:
-            name = ep.name
-        out.setdefault(name, origin(ep))
+        out.setdefault(_target_name(ep) if group == TARGET_ENTRY_POINTS else ep.name, origin(ep))
     return out
 
 
@@ -186,8 +188,7 @@ def plugin_targets() -> frozenset[str]:
     for ep in metadata.entry_points(group=TARGET_ENTRY_POINTS):
         if not installed(ep):
             continue
-        module, _, attr = ep.value.partition(":")
-        name = f"{module.strip()}.{attr.strip()}" if attr.strip() else module.strip()
+        name = _target_name(ep)
         if all(part.isidentifier() for part in name.split(".")):
             found.add(name)
     return frozenset(found)

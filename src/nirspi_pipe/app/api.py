@@ -112,7 +112,6 @@ class RunResult:
 
     def summary(self) -> str:
         """The text ``nirspi-run`` prints: active effects, explained metrics, stage times."""
-
         return format_summary(self.record(), self.output_dir)
 
     def save_figure(self, folder: str | Path) -> Path:
@@ -238,7 +237,6 @@ def load_results(path: str | Path, *, refresh: bool = False) -> pd.DataFrame:
     folder's ``results.parquet`` is read when present; without it, or with ``refresh``, the
     table is rebuilt from the jobs' ``record.json`` files (nothing is written).
     """
-
     from nirspi_pipe.app.results import collect  # start-up: loads hydra, cloudpickle, dateutil (748 ms here)
 
     p = Path(path)

@@ -95,7 +95,6 @@ def run(argv: list[str] | None = None) -> None:
     """``nirspi-run``: the Hydra application. Arguments are Hydra's (overrides, ``-m``, …), every
     one checked first (:func:`nirspi_pipe.app.entry.check_invocation`): Hydra gets them only
     when the composed configuration passes."""
-
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         flags, _ = parse_args(args)
@@ -135,7 +134,6 @@ def _refuse(exc: Exception) -> NoReturn:
 def _activate_plugins() -> None:
     """Load installed plugins and put their config folders on Hydra's search path; a plugin
     that fails to load is named in one warning line on stderr and skipped."""
-
     logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # printed here instead
     for fail in activate().failures:
         print(
@@ -146,7 +144,6 @@ def _activate_plugins() -> None:
 
 def _list_plugins() -> None:
     """``nirspi-run --plugins``: list installed plugins, the options they add, and failures."""
-
     logging.getLogger("nirspi_pipe.plugins").setLevel(logging.ERROR)  # failures are listed below
     print(format_report(discover()))
 

@@ -212,7 +212,6 @@ def register_schemas(conf_package: str) -> list[str]:
     when their option is composed, and nothing is added to Hydra's ``ConfigStore`` (which Hydra
     deep-copies for every composition). A name another package announced is not replaced.
     Returns the names announced."""
-
     _register_source()
     announced: list[str] = []
 
@@ -253,7 +252,6 @@ def _register_source() -> None:
     this module is imported, so that a search path replaced on the command line
     (``hydra.searchpath=[…]``) keeps the schemas; the primary config lists the source too, for a
     composition whose search path was made before this module was imported."""
-
     with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory (issue 32)
         Plugins.instance().register(SchemaSource)
         Plugins.instance().register(SchemaSearchPath)
@@ -329,7 +327,6 @@ _register_source()
 @contextmanager
 def _loader() -> Iterator[Any]:
     """Hydra's public config loader, initialising Hydra on our config module when no app runs."""
-
     activate()  # plugin config folders join the search path
     gh = GlobalHydra.instance()
     if gh.is_initialized():
@@ -342,7 +339,6 @@ def _loader() -> Iterator[Any]:
 @lru_cache(maxsize=1)
 def _catalogue() -> dict[str, tuple[str, ...]]:
     """``{group: options}`` of every config group (nested ones as ``parent/child``), read once."""
-
     found: dict[str, tuple[str, ...]] = {}
     with _loader() as loader:
 
@@ -379,7 +375,6 @@ def scan_indices(order: str, ratio: float, n: int) -> np.ndarray:
     ``ratio`` for ``n × n`` patterns: what a recording that names its order was measured with.
     Raises :class:`~nirspi_pipe.device.recording.RecordingError` naming ``order`` when it is not
     an option. Handed to the recorded source by the runner."""
-
     allowed = group_options("scan")
     if order not in allowed:
         raise RecordingError("order", f"{order!r} is not a scan option; allowed: {', '.join(allowed)}")
@@ -392,7 +387,6 @@ def render_scene(scene: str, resolution: int, overrides: list[str] | None = None
     """Relative radiance ``(n, n)`` of the ``scene=<scene>`` option at ``resolution`` (for the
     device emulator's command line). Raises :class:`ConfigError` naming ``scene`` and the
     allowed options when ``scene`` is not one."""
-
     allowed = group_options("scene")
     if scene not in allowed:
         raise ConfigError("scene", scene, ", ".join(allowed))

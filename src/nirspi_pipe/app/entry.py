@@ -192,7 +192,6 @@ def _one_line(text: object, limit: int = 300) -> str:
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
     """The configuration Hydra will compose (``return_hydra_config``), or :class:`Refused`."""
-
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
             return compose(config_name, overrides, return_hydra_config=True)
@@ -213,7 +212,6 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
 def _baseline(choices: tuple[tuple[str, str | None], ...]) -> dict[str, Any]:
     """Hydra's node composed from the default config and search path, with the given
     ``hydra/…`` choices only (unresolved, as plain containers). Cached per process."""
-
     overrides = [f"{g}={'null' if o is None else o}" for g, o in choices]
     cfg = _compose(CONFIG_NAME, overrides)
     return OmegaConf.to_container(cfg.hydra, resolve=False)  # type: ignore[return-value]
@@ -225,7 +223,6 @@ def _default_choices() -> dict[str, str | None]:
 
 def _hydra_group_options(group: str) -> list[str]:
     """Options of a Hydra group (``hydra/launcher``) on the default search path."""
-
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
             return sorted(GlobalHydra.instance().config_loader().get_group_options(group, ObjectType.CONFIG))
@@ -236,7 +233,6 @@ def _hydra_group_options(group: str) -> list[str]:
 def _primary_exists(name: str) -> bool:
     """Whether ``name`` is a primary config on the default search path (a ``-cd`` folder joins
     Hydra's search path as a ``hydra.searchpath`` entry, after the primary config is chosen)."""
-
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
         return bool(GlobalHydra.instance().config_loader().get_sources()) and any(
             src.is_config(name) for src in GlobalHydra.instance().config_loader().get_sources()
@@ -577,7 +573,6 @@ def _short(value: Any, limit: int = 80) -> str:
 def _candidates(ov: Any, group_opts: list[str] | None) -> list[Any]:
     """The values a sweep override can take: every one of a choice or range; the bounds of an
     interval (Optuna's ``interval(a,b)``); the matching options of a ``glob`` over a group."""
-
     value = ov.value()
     if isinstance(value, IntervalSweep):
         return [value.start, value.end]
@@ -752,7 +747,6 @@ def _hydra_flags(flags: dict[str, str | None]) -> list[str]:
 
 def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """The job part (resolved where it resolves) and Hydra's node (unresolved)."""
-
     job_part = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
     try:
         job = OmegaConf.to_container(job_part, resolve=True)
@@ -835,7 +829,6 @@ def _resolved_hydra(cfg: Any) -> dict[str, Any]:
 def _check_output_paths(cfg: Any) -> None:
     """The job folders after resolution: ``hydra.sweep.subdir`` and ``hydra.output_subdir``
     relative and without ``..``, so nothing is written above the run or sweep folder."""
-
     for key in ("sweep.subdir", "output_subdir", "job.name"):
         try:
             value = OmegaConf.select(cfg, f"hydra.{key}", throw_on_missing=True)

@@ -95,7 +95,6 @@ class NirspiLauncherBase(Launcher):
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         """Hydra's launcher interface (any sweeper): compose each job with Hydra's config loader,
         then run it as :meth:`run_composed` does, into ``hydra.sweep.dir/hydra.sweep.subdir``."""
-
         items = []
         for idx, overrides in enumerate(job_overrides):
             cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
@@ -311,7 +310,6 @@ class _RunnerPool:
     def wait(self) -> list[tuple[int, Any, int, bool]]:
         """Block until at least one runner answers or dies, or a job passes its deadline;
         ``(index, claimed job, wait status, killed at the deadline)`` of each job that ended."""
-
         ended = []
         first = min(deadline for *_, deadline in self.running.values())
         timeout = None if first == float("inf") else max(0.0, first - time.monotonic())

@@ -132,7 +132,6 @@ def _one_line(exc: BaseException) -> str:
 
 def _store_options() -> set[tuple[str, str]]:
     """``(group, option)`` pairs currently in Hydra's ConfigStore (nested groups joined by /)."""
-
     out: set[tuple[str, str]] = set()
 
     def walk(node: dict[str, Any], prefix: str) -> None:
@@ -207,7 +206,6 @@ def _distribution(ep: metadata.EntryPoint) -> str:
 
 def _unregister(entries: set[tuple[str, str]]) -> None:
     """Remove ConfigStore entries (``(group, option)``) a refused plugin registered."""
-
     repo = ConfigStore.instance().repo
     for group, opt in entries:
         node = repo
@@ -235,7 +233,6 @@ def _probe(ep: metadata.EntryPoint) -> str | None:
     import (``os._exit``, a signal) or hangs is caught here and skipped, instead of ending
     ``nirspi-run`` silently. Returns the reason to skip it, or None. Exceptions (including
     ``SystemExit``/``KeyboardInterrupt``) are left to the real import, which reports them."""
-
     if not hasattr(os, "fork"):
         return None
     read_fd, write_fd = os.pipe()
@@ -381,7 +378,6 @@ def activate() -> PluginReport:
     includes the plugin config folders. Joblib workers receive the composed configuration and
     Hydra's singleton state (ConfigStore, plugin registry) from the parent.
     """
-
     with trusted_import_path():  # Hydra's first scan of hydra_plugins: never the working directory
         Plugins.instance()
         report = discover()
@@ -395,7 +391,6 @@ def trusted_import_path() -> Iterator[None]:
     (:func:`nirspi_pipe.targets.trusted_paths`): Hydra imports every module of the
     ``hydra_plugins`` namespace it finds on ``sys.path`` on its first use, and ``python -c`` or a
     notebook puts the working directory there. Restored afterwards."""
-
     saved = list(sys.path)
     sys.path[:] = trusted_paths()
     try:

@@ -150,7 +150,6 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
     sweep order, and a job without a record (killed, or never started) is a row with
     ``status == "missing"``. Without it, every ``record.json`` below the folder is a row.
     """
-
     sweep = Path(sweep_dir)
     if not sweep.is_dir():
         raise FileNotFoundError(f"sweep folder {sweep} does not exist")
@@ -219,7 +218,6 @@ FRONT_PNG = "front.png"
 def read_objective(sweep: Path) -> tuple[list[str], list[str]] | None:
     """``(objective names, directions)`` of a sweep from its :data:`OBJECTIVE_FILE`; None when it
     has none or it is unreadable (then no ``pareto`` column)."""
-
     try:
         info = json.loads((Path(sweep) / OBJECTIVE_FILE).read_text())
         names = objective_names(info["objective"])
@@ -238,7 +236,6 @@ def mark_pareto(frame: pd.DataFrame, names: list[str], directions: list[str]) ->
     """``frame`` with a boolean column ``pareto``: the ``ok`` rows that no other ``ok`` row beats
     in every objective (:func:`nirspi_pipe.app.objective.pareto_mask`); rows without a value of
     each objective are False."""
-
     out = frame.copy()
     out["pareto"] = False
     if not len(out) or any(n not in out.columns for n in names):
@@ -254,7 +251,6 @@ def mark_pareto(frame: pd.DataFrame, names: list[str], directions: list[str]) ->
 def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], path: Path) -> Path | None:
     """Draw the first two objectives of every ``ok`` job, the ``pareto`` rows joined as the front,
     into ``path`` (PNG); None when no job has both values. A failing plot is logged, never raised."""
-
     xi = 1 if names[1].startswith("timings_ms.") and not names[0].startswith("timings_ms.") else 0  # time on x
     x_name, y_name = names[xi], names[1 - xi]
     directions = [directions[xi], directions[1 - xi]]
@@ -310,7 +306,6 @@ def _rows_in(path: Path) -> int | None:
 def build_tables(frame: pd.DataFrame, sweep: Path, names: list[str]) -> list[str]:
     """Build each named paper table from ``frame`` into ``sweep/tables``; a table that fails is
     logged and skipped, so it never costs the sweep's other results. Returns those built."""
-
     folder = sweep / "tables"  # the tables write in place: never through a link (docs/hostile.md)
     try:
         refuse_link(folder, "tables folder")
@@ -349,7 +344,6 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
     more than one experiment. ``tables`` overrides the tables the records ask for.
 
     Each experiment's tables are built from that experiment's rows only."""
-
     sweep = Path(sweep_dir)
     frame = collect(sweep)
     objective = read_objective(sweep)
@@ -374,7 +368,6 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
 def unwritable(folder: Path) -> str | None:
     """Why ``folder`` could not be created or written (checked on its nearest existing ancestor,
     nothing is created), or None when it can."""
-
     probe = Path(folder).absolute()
     while not probe.exists():
         if probe.parent == probe:
@@ -389,7 +382,6 @@ def unwritable(folder: Path) -> str | None:
 
 def _refuse_link(folder: Path, what: str) -> None:
     """One line and exit 1 when ``folder`` is a symbolic link (docs/hostile.md)."""
-
     try:
         refuse_link(folder, what)
     except OutputError as exc:
@@ -426,7 +418,6 @@ def sweep_problem(frame: pd.DataFrame, sweep: Path) -> str | None:
 
 def _plain_job_config(config: Any) -> dict[str, Any]:
     """A job's config without the ``hydra`` node, resolved, as plain data."""
-
     plain = OmegaConf.to_container(config, resolve=False)
     assert isinstance(plain, dict)
     plain.pop("hydra", None)
@@ -437,7 +428,6 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
     """``(objective names, directions)`` of a sweep's config (``objective``,
     ``hydra.sweeper.direction``), checked: None when the sweep has no objective. Exits 2 with one
     line when the optimising sweeper has none, or the directions do not fit (before any job runs)."""
-
     sweeper = config.hydra.sweeper
     optimises = "n_trials" in sweeper  # Optuna's (and any sweeper that asks for trials)
     if optimises and "nirspi" in str(sweeper.get("_target_", "")):

@@ -500,7 +500,6 @@ class NirspiSweeperBase(Sweeper):
         Hydra's ``compose`` on jobs drawn from every shipped experiment's grid (``nirspi-bench
         compose --check-all``: on every job).
         """
-
         split = self._split(overrides)
         if split is None:
             return self._composed(overrides)
@@ -810,7 +809,6 @@ def quiet_sacct_without_accounting() -> bool:
     shim that silences its stderr (first on ``PATH`` of the sweeping process only). Job states
     then come from submitit's result files, which is all the sweep needs. True when quieted.
     The shim's temporary folder is removed when the process exits."""
-
     sacct = shutil.which("sacct")
     if sacct is None:
         return False
@@ -849,7 +847,6 @@ def _written_since(path: Path, reference: Path) -> bool:
 
 def _record_uncomposable(folder: Path, overrides: list[str], message: str, error_type: str) -> None:
     """A failed record for a job whose config does not compose (no config, the error)."""
-
     record = {
         "config": {},
         "choices": {},

@@ -128,7 +128,6 @@ def check_overrides(args: list[str], composed: Any = None) -> str | None:
     (:func:`nirspi_pipe.app.entry.check_invocation` composes it anyway); the keys and types are
     then checked on it instead of composing again, unless a config group is swept (its first
     option would be composed here)."""
-
     overrides = _override_args(args)
     extra_dirs = any(a.partition("=")[0] in ("-cd", "--config-dir") for a in args)
     if not overrides or extra_dirs or any(o.startswith("hydra.searchpath") for o in overrides):
@@ -160,7 +159,6 @@ def check_overrides(args: list[str], composed: Any = None) -> str | None:
 def _compose_or_none(overrides: list[str], config_name: str | None = None, hydra: bool = False) -> Any:
     """The composed config (with Hydra's node when ``hydra``), or None when Hydra cannot compose
     it (it reports that itself)."""
-
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
             return compose(config_name or CONFIG_NAME, overrides=overrides, return_hydra_config=hydra)
@@ -202,7 +200,6 @@ def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> 
 
 def _unknown_key(cfg: Any, keys: list[str]) -> str | None:
     """The first of ``keys`` that ``cfg`` does not have, as one line naming the allowed ones."""
-
     for key in keys:
         top = key.split(".", 1)[0]
         if top not in cfg.keys():  # keys() keeps ??? values
@@ -223,7 +220,6 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
     """The stage nodes of ``cfg`` (composed with the group choices and the single values) checked
     against their targets' annotations (:func:`nirspi_pipe.pipeline.check_types`); each value of
     a sweep list is put in turn into it. The first wrong type as one line."""
-
     runs: list[tuple[Any, tuple[str, ...]]] = [(cfg, ("camera", *STAGE_GROUPS))]
 
     for ov in values:
@@ -277,7 +273,6 @@ def _flag_values(args: list[str]) -> dict[str, str]:
 
 def _table_names() -> tuple[str, ...]:
     """The paper tables a config may list under ``tables`` (modules of nirspi_pipe.tables)."""
-
     import nirspi_pipe.tables  # start-up: loads pandas, pyarrow, cloudpickle (208 ms here)
 
     return tuple(
@@ -322,7 +317,6 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
 def _sweep_target_values(parsed: list[Any]) -> str | None:
     """Overrides (sweeps included) that set a ``_target_`` or a node holding one, checked
     against the allow-list without composing (a sweep's values are composed job by job)."""
-
     for ov in parsed:
         if ov.is_delete():
             continue
@@ -352,7 +346,6 @@ def check_config(args: list[str]) -> str | None:
     The steps, each a helper: refused flags; the overrides parsed and their ``_target_`` values;
     the config composed; its targets (and the sweeper's); each sweep value's keys; the job's keys
     and stage nodes; with ``-m``, the launcher's and sweeper's settings."""
-
     problem = _refused_flag(args)
     if problem:
         return problem
@@ -408,7 +401,6 @@ def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str
     """``(config, None)``: the config composed with Hydra's node (``-cn`` honoured); or
     ``(None, problem)`` when it does not compose: a file that is not plain YAML named in one
     line, else None (left to Hydra)."""
-
     try:
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
             cfg = compose(
@@ -422,7 +414,6 @@ def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str
 def _plain_config(cfg: Any) -> dict[str, Any]:
     """The composed config as plain containers: the job's part resolved, Hydra's node resolved
     where it can be (else unresolved)."""
-
     plain: dict[str, Any] = {}
     for part in (
         OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"]),
@@ -438,7 +429,6 @@ def _plain_config(cfg: Any) -> dict[str, Any]:
 def _check_composed_targets(plain: dict[str, Any]) -> str | None:
     """Every ``_target_`` of the composed config on the allow-list, and so every value of the
     sweeper's ``params`` that sets a ``_target_``."""
-
     try:
         check_targets(plain)
         params = (plain.get("hydra", {}).get("sweeper") or {}).get("params") or {}
@@ -456,7 +446,6 @@ def _check_composed_targets(plain: dict[str, Any]) -> str | None:
 def _check_sweep_keys(parsed: list[Any], plain: dict[str, Any]) -> str | None:
     """The job's keys with each value of each sweep override set (the composed config did not
     see them): :func:`check_plain_keys` on each."""
-
     sweeps = [ov for ov in parsed if ov.is_sweep_override() and not ov.key_or_group.startswith("hydra")]
     for ov in sweeps:
         job = {k: v for k, v in plain.items() if k != "hydra"}
@@ -476,7 +465,6 @@ def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
     """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.app.launchsettings`, the
     launcher's own check) and the sweeper's ``allow_failures``, as one line (Hydra would wrap
     them in its multi-line report)."""
-
     launcher = hydra_node.get("launcher") or {}
     if str(launcher.get("_target_", "")).endswith(".NirspiLauncher"):
         try:
@@ -494,7 +482,6 @@ def _check_stage_nodes(job: dict[str, Any]) -> str | None:
     """Every node with a ``_target_`` in the stage groups (allowed: checked above) has only keys
     its class takes, with the annotated types: ``+scene.bogus=1`` stops before any job, not in
     every job. A class taking ``**kwargs`` accepts any key."""
-
     for group in ("camera", *STAGE_GROUPS):
         node = job.get(group)
         if not isinstance(node, dict):

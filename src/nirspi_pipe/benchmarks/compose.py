@@ -63,7 +63,6 @@ def hydra_session() -> Iterator[Any]:
 def sweeper_for(loader: Any, experiment: str, arguments: Sequence[str] = ()) -> Any:
     """The nirspi sweeper of ``nirspi-run -m +experiment=EXPERIMENT ARGUMENTS``, set up for keying
     (its sweep config composed by Hydra, its ``hydra.sweeper`` settings, the config loader)."""
-
     from hydra.types import RunMode  # start-up: loads hydra and omegaconf (495 ms here)
     from omegaconf import OmegaConf  # start-up: loads omegaconf (227 ms here)
 

@@ -35,7 +35,6 @@ REFERENCE_QUIET_128_S = 1.5
 
 def reference_omp(y: np.ndarray, n: int, indices: np.ndarray, k_max: int, tol: float = 1e-6) -> np.ndarray:
     """The pre-issue-#15 OMP (DCT basis, unnormalised selection): full-grid correlation, CGS2."""
-
     idx = np.asarray(indices, dtype=np.int64)
     rows, cols = idx // n, idx % n
     b = basis_matrix("dct", n)

@@ -219,7 +219,6 @@ class Emulator:
 
 def _check_arguments(ns: argparse.Namespace) -> str | None:
     """The first argument out of range, as one line naming it and the allowed values, or None."""
-
     if not 0 <= ns.port <= 65535:
         return f"--port={ns.port} is not allowed; allowed: a TCP port from 0 (a free one) to 65535"
     try:

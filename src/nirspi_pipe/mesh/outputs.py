@@ -55,7 +55,6 @@ def truth_mesh(truth: Scene) -> Mesh:
 
 def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, int] = (900, 450)) -> Path:
     """Off-screen render (PNG) of ``mesh`` (left) beside ``truth`` (right), same camera."""
-
     if not os.environ.get("DISPLAY"):
         # headless: go straight to EGL instead of failing over from X with a warning (VTK >= 9.4)
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")

@@ -61,7 +61,6 @@ class ScreenedPoisson:
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
         """Load pymeshlab, the remesher and the mesh writers (:class:`nirspi_pipe.stages.WarmsUp`)."""
-
         load_meshlab()
         resolve_remesher(str(params.get("remesher", cls.remesher)))
         warm_up_outputs()

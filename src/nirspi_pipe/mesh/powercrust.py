@@ -369,7 +369,6 @@ class PowerCrust:
         """Load the crust's and the remesher's compiled kernels (numba's disk cache, or one
         compilation of ~20 s when it is cold: once, not by every job at the same time), pymeshlab
         and the mesh writers (:class:`nirspi_pipe.stages.WarmsUp`)."""
-
         resolve_remesher(str(params.get("remesher", cls.remesher)))
         load_meshlab()
         warm_up()

@@ -292,7 +292,6 @@ class Backscatter:
 
     def veil_e(self, medium: FogPath, exposure: Exposure) -> np.ndarray:
         """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
-
         white_1m = float(exposure.budget.white_electrons(1.0)) / (exposure.n * exposure.n)
         veil = backscatter(self.gain, white_1m, medium.beta_per_m, medium.path_m)
         return np.asarray(veil, dtype=np.float64) * np.ones(exposure.scene.radiance.shape)
@@ -490,7 +489,6 @@ class DetectorReadout:
 
     def _range(self, exposure: Exposure, readings: Readings) -> dict[str, float]:
         """Alg. A1 for this configuration and the object's mean reflectance."""
-
         scene = exposure.scene
         obj = scene.mask if scene.mask.any() else scene.coverage > 0
         if not obj.any():

@@ -68,7 +68,6 @@ SPECTRA = ("sun", "halogen", "blackbody")
 def astm_g173_global() -> tuple[np.ndarray, np.ndarray]:
     """ASTM G173-03 AM1.5 global-tilt spectral irradiance: wavelengths (m) and W m⁻² m⁻¹, over
     the rows kept in ``physics/data/astm_g173_global.csv`` (360–1800 nm)."""
-
     path = resources.files("nirspi_pipe.physics").joinpath("data").joinpath("astm_g173_global.csv")
     with path.open() as fh:
         data = np.loadtxt(fh, delimiter=",", comments="#", skiprows=5)

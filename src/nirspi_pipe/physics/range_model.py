@@ -185,7 +185,6 @@ def calibrate(detector: Photodiode | None = None, fog: Any = None) -> dict[str, 
     ``number_density_per_cm3``; conf/detector/ingaas.yaml and conf/fog/chamber.yaml hold these
     values (a test checks they agree).
     """
-
     detector = detector if detector is not None else Photodiode()
     fog = fog if fog is not None else MieFog()
     paper = paper_table2()

@@ -87,7 +87,6 @@ def _read_image_bounded(file: Path, path: str, budget: int | None = None) -> np.
     budget (:mod:`nirspi_pipe.safeio`): the header is read lazily, so a small file that declares
     a gigapixel image is refused before any pixel is decoded. Raises :class:`ConfigError` on
     ``path`` naming the file."""
-
     from PIL import Image  # start-up: loads PIL (12 ms here)
 
     try:

@@ -327,7 +327,6 @@ __kernel void fsm(__global double *z, __global const double *rhs,
 def _context(device: str = "auto") -> tuple[Any, Any]:
     """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`;
     cached here too, so that its cache says whether this process made one)."""
-
     return opencl_context(device)
 
 
@@ -375,7 +374,6 @@ def default_local_size(kernel: Any, device: str, rows: int, cols: int) -> int:
 
 def kernel2_source() -> str:
     """OpenCL C source of the second-order kernels (``fsm2``, ``edges2``)."""
-
     consts = {"big": BIG, "half_pi": HALF_PI, "gauss_q": GAUSS_Q, "f_max": F_MAX}
     return _KERNEL2 % {k: float(v) for k, v in consts.items()}
 
@@ -457,7 +455,6 @@ def resolve_backend(
 
 def device_name(device: str = "auto") -> str:
     """The record's name of the device ``device`` names (``platform / device (GPU|CPU)``)."""
-
     return device_label(_context(device)[0].devices[0])
 
 

@@ -369,7 +369,6 @@ def omp_hadamard_batch(
     row per problem: tiles, the images of a sweep) in one device solve, every kernel launch
     serving all of them (:class:`~nirspi_pipe.solvers.omp_opencl.DeviceOmp`). Returns the images
     ``(B, n, n)`` and one ``info`` per problem, each what :func:`omp_hadamard` gives."""
-
     ys = np.atleast_2d(np.asarray(ys, np.float64))
     idx = np.asarray(indices, dtype=np.int64)
     rows, cols = idx // n, idx % n

@@ -247,7 +247,6 @@ def equivalent_noise_rel(image: np.ndarray, reference: np.ndarray) -> float:
     (as the normalised metrics fit them), whose per-pixel std is ``noise_rel · n · mean / √2``
     for white noise on each of the ``2n²`` split readings. Dimensionless; how the device's noise
     level is matched by the training data (docs/upscale.md)."""
-
     img = np.asarray(image, dtype=np.float64)
     ref = np.asarray(reference, dtype=np.float64)
     if img.ndim != 2 or img.shape != ref.shape or img.shape[0] != img.shape[1]:

@@ -187,7 +187,6 @@ DEVICES = ("auto", "cpu", "cuda")
 def torch_device(device: str) -> str:
     """The torch device (``cpu``/``cuda``) for ``upscale.device``; :class:`NirspiError` (one
     line) for ``cuda`` where torch has no CUDA, :class:`ConfigError` without torch."""
-
     if device not in DEVICES:
         raise ConfigError("device", device, ", ".join(DEVICES))
     try:
@@ -274,7 +273,6 @@ def _read_weights(path: str | Path) -> FsrcnnWeights:
     """Read and check a weights file: bounded NPZ reading (:func:`nirspi_pipe.safeio.read_npz`,
     weights are small: 64 MB at most), then every array's shape against the architecture, so a
     hostile file fails here with one line instead of deep inside the forward pass."""
-
     z = read_npz(path, str(path), budget=64 << 20, mmap=False)
 
     def get(key: str, ndim: int) -> np.ndarray:
@@ -363,7 +361,6 @@ def resolve_weights(scale: int, path: str | Path | None = None) -> Path:
 @lru_cache(maxsize=8)
 def weights_sha256(path: str) -> str:
     """SHA-256 of a weights file (hex), for the record."""
-
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
