@@ -465,6 +465,14 @@ def test_shell_completion_takes_one_shell_word(args: list[str]) -> None:
     _refused(args, "-sc needs exactly one of")
 
 
+def test_a_completion_query_without_the_shell_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``-sc query=bash`` typed by hand (no COMP_LINE): Hydra's completer would raise KeyError."""
+    monkeypatch.delenv("COMP_LINE", raising=False)
+    _refused(["-sc", "query=bash"], "COMP_LINE", "-sc install=SHELL")
+    monkeypatch.setenv("COMP_LINE", "nirspi-run sol")
+    check_invocation(["-sc", "query=bash"])  # what the shell calls goes on
+
+
 @pytest.mark.slow
 def test_shell_completion_runs_nothing(tmp_path: Path) -> None:
     """``-sc query=bash`` composes what ``COMP_LINE`` holds to complete it: Hydra's handlers,

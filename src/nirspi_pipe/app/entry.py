@@ -26,6 +26,7 @@ Refusals raise :class:`Refused` (one line; ``nirspi-run`` prints it with exit 2,
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -663,6 +664,11 @@ def _job_overrides(flags: dict[str, str | None], overrides: list[str]) -> tuple[
             raise Refused(
                 "-sc needs exactly one of install=SHELL, uninstall=SHELL, query=SHELL; allowed shells: "
                 + ", ".join(_SHELLS)
+            )
+        if words[0][0] == "query" and "COMP_LINE" not in os.environ:  # Hydra would raise KeyError
+            raise Refused(
+                "-sc query=SHELL is what an installed completion calls, with COMP_LINE set by the shell; "
+                "allowed here: -sc install=SHELL (then press TAB) or -sc uninstall=SHELL"
             )
         return overrides, []
     rewritten, problem = validate.rewrite_nulls(overrides)
