@@ -313,7 +313,6 @@ _OMP_FIXTURES = ("dct-zigzag30", "haar-zigzag30", "dct-zigzag20-normalized")
 
 
 def _omp_fixture(name: str) -> OmpCase:
-
     basis, order, *rest = name.split("-")
     n = 16
     img = _omp_scene(n)
@@ -360,7 +359,6 @@ def _omp_device(mode: str) -> Callable[[OmpCase], Any]:
 
 
 def _omp_opencl_unavailable() -> str | None:
-
     try:
         opencl_context()
     except NirspiError as exc:
@@ -591,7 +589,6 @@ def _remesh_fixture(name: str) -> RemeshCase:
 
 
 def _remesh_pymeshlab(case: RemeshCase) -> Any:
-
     return clean_and_remesh(case.vertices, case.faces, case.spacing, case.iterations)
 
 

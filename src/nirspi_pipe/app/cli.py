@@ -43,7 +43,6 @@ _EXIT_CONFIG = 2
 
 
 def _hydra_task(cfg: Any) -> None:
-
     hc = HydraConfig.get()
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}

@@ -387,7 +387,6 @@ def _kind_optuna_target(key: str, value: Any, hydra_node: dict[str, Any]) -> str
 
 
 def _kind_experiments(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
-
     names = group_options("experiment")
     if _user_searchpath(hydra_node):  # a user's folder may hold them: each is composed and checked (_check_sweeps)
         ok = isinstance(value, list) and all(
@@ -564,7 +563,6 @@ def _allowed_keys_text() -> str:
 
 
 def _short(value: Any, limit: int = 80) -> str:
-
     return short_repr(value, limit)
 
 
@@ -588,7 +586,6 @@ def _candidates(ov: Any, group_opts: list[str] | None) -> list[Any]:
 
 
 def _parse(overrides: list[str]) -> list[Any]:
-
     parser = OverridesParser.create()
     out = []
     for text in overrides:
@@ -822,7 +819,6 @@ def _check_composed(
 
 
 def _resolved_hydra(cfg: Any) -> dict[str, Any]:
-
     out: dict[str, Any] = {}
     for key in ("launcher", "sweeper"):
         try:

@@ -359,7 +359,6 @@ def _record_crash(
     attempt: int,
     deadline_s: float | None = None,
 ) -> dict[str, Any]:
-
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":
         return rec  # the child recorded its own failure, then exited non-zero: keep its words

@@ -221,7 +221,6 @@ def _returns(items: list[tuple[Path, int, ComposedJob]], records: list[dict[str,
 
 
 def _return_value(job: ComposedJob, rec: dict[str, Any] | None) -> Any:
-
     if job.config.get("objective") is None:
         return rec
     return objective_values({**(rec or {}), "config": job.config})
@@ -277,7 +276,6 @@ class _RunnerPool:
         return bool(self.idle)
 
     def _spawn(self) -> _Runner:
-
         parent_end, child_end = multiprocessing.Pipe()
         sys.stdout.flush()
         sys.stderr.flush()

@@ -228,7 +228,6 @@ def read_objective(sweep: Path) -> tuple[list[str], list[str]] | None:
 
 
 def write_objective(sweep: Path, names: list[str], directions: list[str]) -> None:
-
     atomic_write(Path(sweep) / OBJECTIVE_FILE, json.dumps({"objective": names, "direction": directions}))
 
 
@@ -469,7 +468,6 @@ def _sweeper_name(sweeper: Any) -> str:
 
 
 def _plain_value(value: Any) -> Any:
-
     if isinstance(value, (ListConfig, DictConfig)):
         return OmegaConf.to_container(value, resolve=True)
     return value
@@ -498,7 +496,6 @@ class CollectResults(Callback):
             raise SystemExit(1)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
-
         register_hydra_plugins()
         from nirspi_pipe.app.jobs import unwritten_jobs  # start-up: loads hydra, hydra_plugins (59 ms here)
 

@@ -144,7 +144,6 @@ def _resolve_references(root: dict[str, Any]) -> dict[str, Any]:
 
 
 def _resolve_plain(plain: dict[str, Any]) -> dict[str, Any]:
-
     try:
         return _resolve_references(plain)
     except _NotSimple:
@@ -410,7 +409,6 @@ class NirspiSweeperBase(Sweeper):
         self._groups: dict[str, set[str]] = {}
 
     def setup(self, *, hydra_context: Any, task_function: Any, config: Any) -> None:
-
         self.hydra_context = hydra_context
         self.config = config
         if "slurm" in str(config.hydra.launcher.get("_target_", "")).lower():

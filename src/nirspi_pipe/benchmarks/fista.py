@@ -66,7 +66,6 @@ def main(argv: list[str]) -> int:
 
 
 def _auto(sizes: list[int], ratio: float, repeat: int) -> int:
-
     cases = {
         "free": forward_model(detector=IdealDetector()),
         "device": forward_model(illumination=Background(klux=15.0), detector=Photodiode()),

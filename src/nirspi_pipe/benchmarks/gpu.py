@@ -258,7 +258,6 @@ def part_fsrcnn(ns: argparse.Namespace) -> dict[str, Any]:
 
 
 def part_mesh3d(ns: argparse.Namespace) -> dict[str, Any]:
-
     out: dict[str, Any] = {}
     backends = ["numpy"] + (["opencl"] if ns.gpu is not None or ns.cpu is not None else [])
     for backend in backends:

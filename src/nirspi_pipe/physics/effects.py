@@ -233,7 +233,6 @@ class FogFluctuation:
             raise ConfigError("fluctuation_time_s", self.time_s, "a correlation time in s > 0")
 
     def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
-
         med = _fog_of(image, "fog_fluctuation")
         m = exposure.m
         f_all = fog_factor(np.concatenate([exposure.t_pos, exposure.t_neg]), exposure.rng(0), self.rel, self.time_s)
@@ -370,7 +369,6 @@ class BackgroundLight:
     in_reference: ClassVar[bool] = False
 
     def apply(self, readings: Readings, exposure: Exposure) -> Readings:
-
         bg, scene, med = self.background, exposure.scene, readings.medium
         cov = scene.coverage
         if med is not None:
@@ -406,7 +404,6 @@ class BackgroundDrift:
     streams: ClassVar[tuple[int, ...]] = (1,)
 
     def apply(self, readings: Readings, exposure: Exposure) -> Readings:
-
         amb = readings.ambient
         if amb is None:
             raise ValueError("background_drift must follow the background effect in the chain")
