@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -289,3 +290,53 @@ def test_fista_tv_starts_where_it_is_told():
     coef[idx] = acq.y_pos
     np.testing.assert_allclose(out.data.ravel(), fwht(coef) / n**2, atol=1e-9)
     assert not np.allclose(out.data, FistaTVSolver(lam=0.0, max_iter=1).solve(acq).data, atol=1e-3)
+
+
+def _oracle_module(monkeypatch):
+    """experiments/heldout/oracle_bound.py (it imports its sibling heldout_cs)."""
+    import importlib.util
+
+    folder = ROOT / "experiments" / "heldout"
+    monkeypatch.syspath_prepend(str(folder))
+    spec = importlib.util.spec_from_file_location("oracle_bound", folder / "oracle_bound.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_oracle_spectrum_prior_is_the_power_law_when_given_its_spectrum(monkeypatch):
+    """The oracle script's SpectrumPrior, handed the power law's own torus spectrum, gives the
+    completion that PowerLawPrior gives (same maps up to float32), noise-free and with noise."""
+    ob = _oracle_module(monkeypatch)
+    n = 16
+    spec = PRIOR.spectrum(n)
+    same = ob.SpectrumPrior(name="test-power-law", spectrum=spec / spec.mean(), mean=PRIOR.mean)
+    img = smooth_image(n, 3)
+    idx = O.Zigzag(0.3).select(n)
+    y = fwht2(img).ravel()[idx]
+    for sigma in (0.0, 0.5):
+        a = C.complete(n, idx, y, sigma, PRIOR)[0]
+        b = C.complete(n, idx, y, sigma, same)[0]
+        np.testing.assert_allclose(b, a, atol=1e-5)
+
+
+def test_oracle_own_prior_is_positive_definite_and_exact_on_its_image(monkeypatch):
+    """The image's own spectrum: its ``n × n`` covariance is positive definite (the floor), its
+    ring average is constant on rings, and with every coefficient measured the completion under
+    either returns the image (noise-free)."""
+    ob = _oracle_module(monkeypatch)
+    n = 8
+    img = smooth_image(n, 5)
+    own = ob.own_prior("test-own", img)
+    radial = ob.radial_prior(own)
+    for prior in (own, radial):
+        cov = prior.covariance_apply(np.eye(n * n).reshape(-1, n, n)).reshape(n * n, n * n)
+        assert np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() > 0
+        idx = np.arange(n * n)
+        np.testing.assert_allclose(C.complete(n, idx, fwht2(img).ravel(), 0.0, prior)[0], img, atol=1e-6)
+    f = np.fft.fftfreq(2 * n) * n
+    ring = np.rint(np.hypot(f[:, None], f[None, :]))
+    for r in np.unique(ring):
+        assert np.ptp(radial.spectrum[ring == r]) < 1e-12 * radial.spectrum.max()
