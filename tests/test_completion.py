@@ -136,8 +136,8 @@ def test_maps_are_cached_and_the_cache_is_bounded(monkeypatch):
     C.clear_cache()
     first = C.completion_maps(n, idx, PRIOR)
     assert C.completion_maps(n, idx, PRIOR) is first
-    assert first.g.shape == (n * n, idx.size) and first.g.dtype == np.float32
-    assert first.nbytes == pytest.approx((n * n + 2 * idx.size) * idx.size * 4, rel=0.05)
+    assert first.vt.shape == first.v2.shape == (idx.size, idx.size) and first.vt.dtype == np.float32
+    assert first.nbytes == pytest.approx(2 * idx.size * idx.size * 4, rel=0.05)
     monkeypatch.setattr(C._CACHE, "budget", first.nbytes + 1)
     other = C.completion_maps(n, O.CakeCutting(0.5).select(n), PRIOR)
     assert C.completion_maps(n, O.CakeCutting(0.5).select(n), PRIOR) is other
@@ -217,7 +217,9 @@ def test_leave_one_out_ratio_matches_brute_force():
     z = (maps.vt @ r.astype(np.float32)).astype(np.float64)
     fit = C._Fit(maps, z, s, sigma**2, 0.0)
     live = np.arange(idx.size) != 0
-    got = C._loo_ratio(fit, s * maps.lam + sigma**2, live, r)
+    denom = s * maps.lam + sigma**2
+    k_r = (maps.vt.T @ (z / denom).astype(np.float32)).astype(np.float64)
+    got = C._loo_ratio(fit, denom, live, r, k_r)
     a = fwht(np.eye(n * n))[idx]
     k = s * a @ dense_covariance(PRIOR, n) @ a.T + sigma**2 * np.eye(idx.size)
     loo = []
@@ -340,3 +342,25 @@ def test_oracle_own_prior_is_positive_definite_and_exact_on_its_image(monkeypatc
     ring = np.rint(np.hypot(f[:, None], f[None, :]))
     for r in np.unique(ring):
         assert np.ptp(radial.spectrum[ring == r]) < 1e-12 * radial.spectrum.max()
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.3])
+def test_image_is_the_mmse_map_applied_to_the_data(sigma):
+    """The image is ``μ + G·(s z / (sλ + σ²))`` with the explicit ``N × m`` map ``G = C Aᵀ V`` (what
+    the solver cached until it applied ``C Aᵀ`` by transforms instead): equal to float32 rounding."""
+    n = 16
+    idx = O.CakeCutting(0.3).select(n)
+    img = smooth_image(n, 7)
+    y = fwht2(img).ravel()[idx] + sigma * np.random.default_rng(8).standard_normal(idx.size)
+    got, info = C.complete(n, idx, y, sigma, PRIOR)
+    maps = C.completion_maps(n, idx, PRIOR)
+    mu = y[0] / (n * n)
+    r = y.copy()
+    r[0] -= mu * n * n
+    z = maps.vt.astype(np.float64) @ r
+    s = info["prior_scale"]
+    noise2 = max(sigma**2, C.EXACT_FLOOR * s * float(maps.lam[-1]))
+    a = fwht(np.eye(n * n))[idx]
+    g = dense_covariance(PRIOR, n) @ a.T @ maps.vt.T.astype(np.float64)
+    want = mu + g @ (s * z / (s * maps.lam + noise2))
+    np.testing.assert_allclose(got.ravel(), want, atol=1e-4 * np.abs(want).max())

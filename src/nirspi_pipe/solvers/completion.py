@@ -44,13 +44,16 @@ Gaussian model, is compared with that of the white prior (every coefficient inde
 (Wiener-shrunk by ``sN/(sN + σ²)`` with noise).
 
 Cost. Per (resolution, measured index set, prior) the solver caches the eigendecomposition
-``Σ_MM = V Λ Vᵀ``, ``V ∘ V`` (the guard) and ``G = C Aᵀ V`` (``N × m``), as float32:
-``(N + 2m)·m·4`` bytes, 7.7 MiB at 64² and 10 %, 24 MiB at 25 %, 64 MiB at 50 %, 192 MiB at 100 %
-(three times that with ``alpha: auto``); in process memory, least recently used first out beyond
-``CACHE_BYTES`` (1 GiB; no files).
+``Σ_MM = V Λ Vᵀ`` and ``V ∘ V`` (the guard), as float32: ``2m²·4`` bytes, 1.3 MiB at 64² and
+10 %, 8 MiB at 25 %, 32 MiB at 50 %, 128 MiB at 100 % (three times that with ``alpha: auto``); in
+process memory, least recently used first out beyond ``CACHE_BYTES`` (1 GiB; no files).
 Building it costs ``m`` FFT convolutions and one eigendecomposition of ``Σ_MM`` (``O(m³)``).
-Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``,
-then ``x̂ = μ + G · (s z / (s λ + σ²))`` for the chosen one: matrix-vector products, no iteration.
+Once cached a solve is, per prior, ``z = Vᵀ (y − Aμ)`` and the 1-D likelihood search for ``s``;
+then, for the chosen one, ``k = V (z / (s λ + σ²))`` (``= K⁻¹(y − Aμ)``, also the guard's) and
+``x̂ = μ + s · C Aᵀ k``: one inverse fast Hadamard transform and one FFT convolution. Two or
+four ``m × m`` matrix-vector products, no iteration. (Until issue 36's last session the map
+``G = C Aᵀ V``, ``N × m``, was cached and applied instead: the same image to float32 rounding, twice
+the memory at 50 % and a slower build.)
 """
 
 from __future__ import annotations
@@ -92,7 +95,7 @@ REFINE = ("none", "tv")
 #: The shipped prior (package data), written by ``experiments/prior/build_prior.py``.
 PRIOR_FILE = "completion_prior.json"
 #: In-memory cache budget of the completion maps, bytes (assumed: the three maps of ``alpha: auto``
-#: for a full 64² acquisition, 3 × 192 MiB, must fit, or every solve would rebuild two of them).
+#: for a full 64² acquisition, 3 × 128 MiB, must fit, or every solve would rebuild two of them).
 CACHE_BYTES = 1024 * 2**20
 #: With ``σ = 0`` the noise variance is floored at this fraction of ``s·λ_max`` (the largest
 #: eigenvalue of ``s Σ_MM``): float64 eigenvalues below it are rounding, not signal.
@@ -178,18 +181,16 @@ def default_alphas() -> tuple[float, ...]:
 
 @dataclass(frozen=True)
 class _Maps:
-    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ``,
-    ``v2`` ``(m, m)`` = ``V ∘ V`` (the guard's diagonal of ``K⁻¹``) and ``g`` ``(N, m)`` = ``C Aᵀ V``
-    (float32)."""
+    """``lam`` ``(m,)`` eigenvalues of ``Σ_MM`` (ascending, float64), ``vt`` ``(m, m)`` = ``Vᵀ`` and
+    ``v2`` ``(m, m)`` = ``V ∘ V`` (the guard's diagonal of ``K⁻¹``), float32."""
 
     lam: np.ndarray
     vt: np.ndarray
     v2: np.ndarray
-    g: np.ndarray
 
     @property
     def nbytes(self) -> int:
-        return int(self.lam.nbytes + self.vt.nbytes + self.v2.nbytes + self.g.nbytes)
+        return int(self.lam.nbytes + self.vt.nbytes + self.v2.nbytes)
 
 
 class _ByteLRU:
@@ -245,9 +246,8 @@ def completion_maps(n: int, indices: np.ndarray, prior: PowerLawPrior) -> _Maps:
     sigma_mm = 0.5 * (sigma_mm + sigma_mm.T)
     lam, v = np.linalg.eigh(sigma_mm)
     lam = np.maximum(lam, 0.0)
-    g = (cp.T @ v).astype(np.float32)
     v32 = v.astype(np.float32)
-    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v32.T), v2=v32 * v32, g=g)
+    maps = _Maps(lam=lam, vt=np.ascontiguousarray(v32.T), v2=v32 * v32)
     _CACHE.put(key, maps)
     return maps
 
@@ -321,11 +321,13 @@ def complete(
     f = fits[best]
     denom = f.scale * f.maps.lam + f.noise2
     safe = np.where(denom > 0, denom, 1.0)
+    q = np.where(denom > 0, f.z / safe, 0.0)
+    k_r = (f.maps.vt.T @ q.astype(np.float32)).astype(np.float64)  # K⁻¹ (y − Aμ)
     info: dict[str, float] = {}
     if guard:
         live = np.ones(r.size, dtype=bool)
         live[dc] = False
-        info["loo_ratio"] = ratio = _loo_ratio(f, safe, live, r)
+        info["loo_ratio"] = ratio = _loo_ratio(f, safe, live, r, k_r)
         if ratio > 1.0:  # the white prior predicts the measurements better: zero-filled, shrunk
             s0 = max(float(np.mean(r[live] ** 2)) - sigma**2, 0.0) / size if live.any() else 0.0
             gain = s0 * size / (s0 * size + sigma**2) if s0 * size + sigma**2 > 0 else 1.0
@@ -335,8 +337,9 @@ def complete(
             image = mu + fwht(full) / size
             info.update(alpha=0.0, prior_scale=s0, noise_sigma=float(sigma), prior_mean=mu, neg_log_evidence=np.nan)
             return image.reshape(n, n), info
-    w = np.where(denom > 0, f.scale * f.z / safe, 0.0)
-    image = mu + (f.maps.g @ w.astype(np.float32)).astype(np.float64)
+    back = np.zeros(size)
+    back[np.asarray(indices, dtype=np.int64)] = f.scale * k_r
+    image = mu + priors[best].covariance_apply(fwht(back).reshape(1, n, n))[0]  # μ + s C Aᵀ K⁻¹(y − Aμ)
     info |= {
         "alpha": float(getattr(priors[best], "alpha", np.nan)),
         "prior_scale": f.scale,
@@ -347,18 +350,17 @@ def complete(
     return image.reshape(n, n), info
 
 
-def _loo_ratio(f: _Fit, denom: np.ndarray, live: np.ndarray, r: np.ndarray) -> float:
+def _loo_ratio(f: _Fit, denom: np.ndarray, live: np.ndarray, r: np.ndarray, k_r: np.ndarray) -> float:
     """Leave-one-out prediction error of the measured coefficients under the fitted prior, over
     that of the white prior (which predicts every left-out coefficient as 0), DC excluded.
 
     For a Gaussian model ``r ~ N(0, K)`` the residual of predicting ``rᵢ`` from the others is
     ``(K⁻¹r)ᵢ / (K⁻¹)ᵢᵢ`` (Sundararajan & Keerthi, Neural Comput. 13, 2001; Rasmussen & Williams
-    2006, Eq. 5.12), here with ``K⁻¹ = V diag(1/(sλ + σ²)) Vᵀ``: two ``m × m`` products."""
+    2006, Eq. 5.12), here with ``K⁻¹ = V diag(1/(sλ + σ²)) Vᵀ``: ``k_r = K⁻¹r`` (computed once for
+    the image too) and the diagonal, one more ``m × m`` product."""
     if not live.any():
         return 0.0
-    v = f.maps.vt.T
     inv = (1.0 / denom).astype(np.float32)
-    k_r = (v @ (f.z / denom).astype(np.float32)).astype(np.float64)
     k_ii = (f.maps.v2 @ inv).astype(np.float64)
     loo = k_r[live] / k_ii[live]
     white = float(np.sum(r[live] ** 2))
