@@ -135,42 +135,58 @@ def parse_args(args: list[str]) -> tuple[dict[str, str | None], list[str]]:
             overrides.append(arg)
             continue
         spelled, eq, inline = arg.partition("=")
-        if spelled in REFUSED_FLAGS:
-            raise Refused(f"{spelled} is not allowed: {REFUSED_FLAGS[spelled]}")
-        if spelled not in FLAGS:
-            raise Refused(
-                f"{arg[:60]!r} is not a flag nirspi-run accepts (flags are matched exactly, no abbreviations); "
-                f"allowed: {', '.join(sorted(FLAGS))}"
-            )
-        canonical, kind = FLAGS[spelled]
+        canonical, kind = _known_flag(spelled, arg)
         if canonical in flags:
             raise Refused(f"{spelled} is given twice; allowed: once")
-        value: str | None = None
-        if kind is None:
-            if eq:
-                raise Refused(f"{spelled} takes no value; allowed: {spelled} alone")
-        elif isinstance(kind, tuple) and kind and kind[0] == "?":
-            choices = kind[1]
-            if eq:
-                value = inline
-            elif i < len(args) and args[i] in choices:
-                value = args[i]
-                i += 1
-            else:
-                value = choices[0]
-            if value not in choices:
-                raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(choices)}")
+        flags[canonical], i = _flag_value(spelled, kind, inline if eq else None, args, i)
+    _check_flag_combination(flags)
+    return flags, overrides
+
+
+def _known_flag(spelled: str, arg: str) -> tuple[str, Any]:
+    """``(canonical name, value kind)`` of a flag spelled exactly as in :data:`FLAGS`, or
+    :class:`Refused`."""
+    if spelled in REFUSED_FLAGS:
+        raise Refused(f"{spelled} is not allowed: {REFUSED_FLAGS[spelled]}")
+    if spelled not in FLAGS:
+        raise Refused(
+            f"{arg[:60]!r} is not a flag nirspi-run accepts (flags are matched exactly, no abbreviations); "
+            f"allowed: {', '.join(sorted(FLAGS))}"
+        )
+    return FLAGS[spelled]
+
+
+def _flag_value(spelled: str, kind: Any, inline: str | None, args: list[str], i: int) -> tuple[str | None, int]:
+    """The value of flag ``spelled`` (``inline``: after ``=``; else ``args[i]`` when the kind takes
+    it) and the position after it; :class:`Refused` for a value it does not allow."""
+    if kind is None:  # a switch
+        if inline is not None:
+            raise Refused(f"{spelled} takes no value; allowed: {spelled} alone")
+        return None, i
+    if isinstance(kind, tuple) and kind and kind[0] == "?":  # an optional value among choices
+        choices = kind[1]
+        if inline is not None:
+            value = inline
+        elif i < len(args) and args[i] in choices:
+            value, i = args[i], i + 1
         else:
-            if eq:
-                value = inline
-            elif i < len(args) and not args[i].startswith("-"):
-                value = args[i]
-                i += 1
-            else:
-                raise Refused(f"{spelled} needs a value; allowed: {spelled} VALUE")
-            if isinstance(kind, tuple) and value not in kind:
-                raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(kind)}")
-        flags[canonical] = value
+            value = choices[0]
+        if value not in choices:
+            raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(choices)}")
+        return value, i
+    if inline is not None:  # a required value (free, or among the choices of ``kind``)
+        value = inline
+    elif i < len(args) and not args[i].startswith("-"):
+        value, i = args[i], i + 1
+    else:
+        raise Refused(f"{spelled} needs a value; allowed: {spelled} VALUE")
+    if isinstance(kind, tuple) and value not in kind:
+        raise Refused(f"{spelled}={value!r} is not allowed; allowed: {', '.join(kind)}")
+    return value, i
+
+
+def _check_flag_combination(flags: dict[str, str | None]) -> None:
+    """:class:`Refused` for flags that cannot go together or a malformed package or config name."""
     commands = [c for c in _COMMANDS if c in flags]
     if len(commands) > 1:
         raise Refused(f"{' and '.join(commands)} cannot be combined; allowed: one of {', '.join(_COMMANDS)}")
@@ -181,7 +197,6 @@ def parse_args(args: list[str]) -> tuple[dict[str, str | None], list[str]]:
     name = flags.get("--config-name")
     if name is not None and (not _CONFIG_NAME.match(name) or ".." in name.split("/")):
         raise Refused(f"--config-name={name!r} is not allowed; allowed: a config name (letters, digits, _ . -)")
-    return flags, overrides
 
 
 def _one_line(text: object, limit: int = 300) -> str:
