@@ -55,10 +55,10 @@ from heldout_cs import COMPLETION_GRID, IMAGES, ORDERS, N, simulator
 from scipy.ndimage import gaussian_filter
 
 from nirspi_pipe.metrics import psnr
-from nirspi_pipe.patterns.hadamard import fwht
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.common import checked_coefficients
-from nirspi_pipe.solvers.completion import PowerLawPrior, complete, default_prior
+from nirspi_pipe.solvers.completion import PowerLawPrior, complete, default_prior, torus_convolve
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.solvers.noise import estimate_noise
 from nirspi_pipe.types import Camera
 
@@ -88,10 +88,7 @@ class SpectrumPrior:
         return ("spectrum", self.name)
 
     def covariance_apply(self, images: np.ndarray) -> np.ndarray:
-        n = images.shape[-1]
-        half = self.spectrum[:, : n + 1]
-        f = np.fft.rfft2(images, s=(2 * n, 2 * n))
-        return np.fft.irfft2(f * half, s=(2 * n, 2 * n))[:, :n, :n]
+        return torus_convolve(images, self.spectrum[:, : images.shape[-1] + 1])
 
 
 def own_prior(name: str, truth: np.ndarray) -> SpectrumPrior:
@@ -115,9 +112,7 @@ def radial_prior(own: SpectrumPrior) -> SpectrumPrior:
 
 def estimated_prior(name: str, n: int, idx: np.ndarray, y: np.ndarray) -> SpectrumPrior:
     """The spectrum the measurements show (module doc), from the data alone."""
-    full = np.zeros(n * n)
-    full[idx] = y
-    zero = (fwht(full) / full.size).reshape(n, n)
+    zero = zero_filled_inverse(n, idx, y)
     x = zero - zero.mean()
     p = gaussian_filter(np.abs(np.fft.fft2(x, s=(2 * n, 2 * n))) ** 2 / x.size, BLUR, mode="wrap")
     law = default_prior().spectrum(n)

@@ -46,6 +46,7 @@ from nirspi_pipe.solvers.common import checked_coefficients
 from nirspi_pipe.solvers.completion import CompletionSolver, complete
 from nirspi_pipe.solvers.crossval import holdout
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.types import Acquisition, Camera
 
 RESULTS = Path(__file__).parent / "results"
@@ -61,9 +62,7 @@ def stack(acq: Acquisition, truth: np.ndarray) -> dict[str, float]:
     train, held = holdout(y)
     sigma = float(comp.info["noise_sigma"])
     if float(comp.info.get("loo_ratio", 0.0)) > 1.0:  # guard fired: zero-filled
-        full = np.zeros(n * n)
-        full[idx[train]] = y[train]
-        xc_t = fwht(full).reshape(n, n) / (n * n)
+        xc_t = zero_filled_inverse(n, idx[train], y[train])
     else:
         chosen = [p for p in solver.priors() if p.alpha == comp.info["alpha"]]
         xc_t = complete(n, idx[train], y[train], sigma, chosen)[0]

@@ -25,6 +25,7 @@ from nirspi_pipe.patterns.hadamard import fwht
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.common import checked_coefficients
 from nirspi_pipe.solvers.completion import CompletionSolver, complete
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.types import Camera
 
 
@@ -47,9 +48,7 @@ def main() -> int:
             x_head = complete(N, idx[head], y[head], 0.0, priors)[0]
             err = float(np.sum((fwht(x_head.ravel())[idx[tail]] - y[tail]) ** 2))
             white = float(np.sum(y[tail] ** 2))
-            full = np.zeros(N * N)
-            full[idx] = y
-            zero = (fwht(full) / N**2).reshape(N, N)
+            zero = zero_filled_inverse(N, idx, y)
             print(
                 f"{o} {name}: completion {psnr(truth, done.data):.2f} dB, fwht {psnr(truth, zero):.2f} dB, "
                 f"loo {done.info['loo_ratio']:.2f}, tail {err / white:.2f}",

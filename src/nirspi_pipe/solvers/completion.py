@@ -74,6 +74,7 @@ from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
 from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
 from nirspi_pipe.solvers.crossval import holdout
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.solvers.noise import estimate_noise
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -84,6 +85,7 @@ __all__ = [
     "default_alphas",
     "completion_maps",
     "complete",
+    "torus_convolve",
     "CACHE_BYTES",
     "EXACT_FLOOR",
     "PRIOR_FILE",
@@ -143,14 +145,19 @@ class PowerLawPrior:
     def covariance_apply(self, images: np.ndarray) -> np.ndarray:
         """``C x`` for a batch ``(B, n, n)``: zero-padded circular convolution on the ``2n`` torus
         (``O(B n² log n)``; the ``N × N`` matrix is never formed)."""
-        n = images.shape[-1]
-        spec = _spectrum_cached(self.alpha, self.f0, n)
-        out = np.empty(images.shape, dtype=np.float64)
-        for start in range(0, images.shape[0], _BATCH):
-            part = images[start : start + _BATCH]
-            f = np.fft.rfft2(part, s=(2 * n, 2 * n))
-            out[start : start + _BATCH] = np.fft.irfft2(f * spec, s=(2 * n, 2 * n))[:, :n, :n]
-        return out
+        return torus_convolve(images, _spectrum_cached(self.alpha, self.f0, images.shape[-1]))
+
+
+def torus_convolve(images: np.ndarray, half_spectrum: np.ndarray) -> np.ndarray:
+    """``C x`` for a batch ``(B, n, n)`` and a stationary covariance given by its spectrum on the
+    ``2n × 2n`` torus (``half_spectrum``: the ``(2n, n + 1)`` half that ``rfft2`` uses): zero-padded
+    circular convolution, in batches of ``_BATCH``."""
+    n = images.shape[-1]
+    out = np.empty(images.shape, dtype=np.float64)
+    for start in range(0, images.shape[0], _BATCH):
+        f = np.fft.rfft2(images[start : start + _BATCH], s=(2 * n, 2 * n))
+        out[start : start + _BATCH] = np.fft.irfft2(f * half_spectrum, s=(2 * n, 2 * n))[:, :n, :n]
+    return out
 
 
 @lru_cache(maxsize=8)
@@ -331,12 +338,10 @@ def complete(
         if ratio > 1.0:  # the white prior predicts the measurements better: zero-filled, shrunk
             s0 = max(float(np.mean(r[live] ** 2)) - sigma**2, 0.0) / size if live.any() else 0.0
             gain = s0 * size / (s0 * size + sigma**2) if s0 * size + sigma**2 > 0 else 1.0
-            full = np.zeros(size)
-            full[np.asarray(indices, dtype=np.int64)] = r * gain
-            full[np.asarray(indices, dtype=np.int64)[dc]] = r[dc]
-            image = mu + fwht(full) / size
+            shrunk = r * gain
+            shrunk[dc] = r[dc]
             info.update(alpha=0.0, prior_scale=s0, noise_sigma=float(sigma), prior_mean=mu, neg_log_evidence=np.nan)
-            return image.reshape(n, n), info
+            return mu + zero_filled_inverse(n, indices, shrunk), info
     back = np.zeros(size)
     back[np.asarray(indices, dtype=np.int64)] = f.scale * k_r
     image = mu + priors[best].covariance_apply(fwht(back).reshape(1, n, n))[0]  # μ + s C Aᵀ K⁻¹(y − Aμ)
@@ -445,9 +450,7 @@ class CompletionSolver:
         def complete_on(data: np.ndarray, rows: np.ndarray) -> np.ndarray:
             """The completion of ``data[rows]`` alone (zero-filled when the guard fired)."""
             if not chosen:  # zero-filled on the training rows: fista_tv's own start
-                full = np.zeros(n * n)
-                full[idx[rows]] = data[rows]
-                return fwht(full).reshape(n, n) / (n * n)
+                return zero_filled_inverse(n, idx[rows], data[rows])
             return complete(n, idx[rows], data[rows], sigma, chosen)[0]
 
         def start(rows: np.ndarray | None) -> np.ndarray:
