@@ -11,7 +11,10 @@ Two scores per image metric (docs/paper.md, "Metrics"):
   when a source gives none), scaled so that its peak is 1; the reconstruction is mapped onto it
   by the least-squares gain and offset (:func:`fit_gain_offset`), then scored with data range 1.
   A noise-free reconstruction scores at least 100 dB in every condition (fog included); PSNR is
-  capped at :data:`PSNR_CAP_DB` so that records stay finite.
+  capped at :data:`PSNR_CAP_DB` so that records stay finite. They are given only where the data
+  say they mean something (:func:`content_test`: the fitted gain is distinguishable from zero at
+  5σ); otherwise they are left out and flagged (``degenerate_reference`` or ``degenerate_image``,
+  with the reason in a warning), at every resolution (docs/paper.md, "Metrics").
 * ``psnr_raw``, ``ssim_raw`` — **radiometric**: the raw reconstruction against the clear-air
   radiance, data range 1 (the gain of clear air at the nominal distance is kept, so fog and
   fall-off count as errors).
@@ -30,7 +33,13 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.stages import Products
 
 __all__ = [
+    "CONTENT_LEVEL",
+    "CONTENT_T",
     "DEGENERATE_FLAG",
+    "NO_CONTENT_FLAG",
+    "Content",
+    "content_test",
+    "measured_values",
     "PSNR_CAP_DB",
     "ImageMetrics",
     "degenerate_reference",
@@ -47,30 +56,105 @@ _IMAGE_METRICS = ("ssim", "psnr", "rmse")
 #: and an infinite value would not survive the records' no-NaN/no-inf rule.
 PSNR_CAP_DB = 200.0
 
-#: A reference (the noise-free image the normalised scores fit to) is **degenerate** when its
-#: contrast ``(max − min) / max`` is below this: the gain-and-offset fit then maps any image onto
-#: a near-constant, and PSNR/SSIM say "perfect" for an image with no object in it (issue 32).
-#: Assumed: one part per million, 15 times below one step of a 16-bit ADC (1/65536).
-DEGENERATE_CONTRAST = 1e-6
-#: ... or when its peak is below this, in relative radiance (white target at the nominal distance
-#: = 1). Assumed: 1e-12 of a white target is far below one photon per pattern for the photon
-#: budgets the simulator models (Table 1), so nothing of the object reaches the detector.
-DEGENERATE_PEAK = 1e-12
+#: One-sided level of the content test (:func:`content_test`): 5σ of a normal, p = 2.87e-7, the
+#: particle physicists' "discovery" convention (Particle Data Group, Review of Particle Physics,
+#: "Statistics", §40.3.2: Z = 5 for discovery). Chosen so strict because the test also guards the
+#: claim that an image without content never gets a score: a pure-noise image independent of the
+#: reference passes with probability 2.87e-7 (tests/test_scores_degenerate.py measures it).
+CONTENT_LEVEL = 2.866515719235352e-7
 #: The flag a degenerate reference leaves in the metrics (1.0) instead of ``psnr``/``ssim``.
 DEGENERATE_FLAG = "degenerate_reference"
+#: The flag an image without detectable content leaves (1.0) instead of ``psnr``/``ssim``.
+NO_CONTENT_FLAG = "degenerate_image"
+#: Beside :data:`NO_CONTENT_FLAG` when the test ran: its t statistic of the fitted gain.
+CONTENT_T = "content_t"
 
 
 def degenerate_reference(reference: np.ndarray) -> str | None:
-    """Why the normalised scores are undefined for ``reference`` (one phrase), or None."""
+    """Why no gain-and-offset fit to ``reference`` can be scored, whatever the image (one phrase),
+    or None: empty or not finite, no positive peak to scale to 1, or the same value everywhere (in
+    float64: nothing for a gain to map onto)."""
     ref = np.asarray(reference, dtype=np.float64)
     if ref.size == 0 or not np.all(np.isfinite(ref)):
         return "the reference image is empty or not finite"
     peak, low = float(ref.max()), float(ref.min())
-    if not peak > DEGENERATE_PEAK:
+    if not peak > 0:
         return f"the reference image is dark (peak {peak:.3g} of a white target; nothing of the object arrives)"
-    if (peak - low) / peak < DEGENERATE_CONTRAST:
-        return f"the reference image is uniform (contrast {(peak - low) / peak:.2g}; no object is visible)"
+    if not peak > low:
+        return "the reference image is uniform (the same value in every pixel; no object is visible)"
     return None
+
+
+@dataclass(frozen=True)
+class Content:
+    """Outcome of :func:`content_test`. ``reason`` is None when the normalised scores mean
+    something; ``flag`` is the metrics key that marks why not; ``t``/``dof`` the test's statistic
+    and degrees of freedom (NaN when it did not run)."""
+
+    reason: str | None
+    flag: str | None = None
+    t: float = float("nan")
+    dof: int = 0
+
+
+def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int | None = None) -> Content:
+    """Whether ``estimate`` shows ``reference`` well enough for the gain-and-offset-fitted scores.
+
+    The fit regresses the reference on the image, ``reference = a·estimate + b + e``. The scores
+    mean something only where the gain ``a`` is distinguishable from zero: the one-sided t-test of
+    the regression slope (H0: ``a ≤ 0``; ``t = r·√ν / √(1 − r²)`` with ``r`` the sample correlation
+    and ``ν = n − 2`` degrees of freedom, Student's t; e.g. Draper & Smith, *Applied Regression
+    Analysis*, 3rd ed., §1.4, or any regression text) at level :data:`CONTENT_LEVEL`. Otherwise
+    the fit only returns ``mean(reference)`` plus a chance fraction of its contrast, and PSNR/SSIM
+    would measure how flat the reference is, not the image (issue 40). One-sided: an image that
+    is the reference's negative is not a picture of it.
+
+    ``independent`` is how many independent values the image carries (default: its pixels): an
+    image interpolated from, or reconstructed out of, fewer values has ``n`` = that many (the
+    upscaled image: the camera's pixels; a compressed acquisition: its measurements).
+
+    Not scored, with the reason: a reference without a fit (:func:`degenerate_reference`;
+    ``degenerate_reference``), an image that is not finite or is the same value everywhere (a
+    constant has no content; ``degenerate_image``), fewer than 3 independent values, or a gain
+    that the test does not tell from zero (``degenerate_image``, its ``t`` kept).
+    """
+    why = degenerate_reference(reference)
+    if why is not None:
+        return Content(why, DEGENERATE_FLAG)
+    y = np.asarray(reference, dtype=np.float64).ravel()
+    x = np.asarray(estimate, dtype=np.float64).ravel()
+    if not np.all(np.isfinite(x)):
+        return Content("the image is not finite", NO_CONTENT_FLAG)
+    if not float(x.max()) > float(x.min()):
+        return Content("the image is the same value everywhere: it has no content to score", NO_CONTENT_FLAG)
+    n = x.size if independent is None else min(int(independent), x.size)
+    dof = n - 2
+    if dof < 1:
+        return Content(
+            f"the image carries {n} independent value(s); a gain needs at least 3 to be tested", NO_CONTENT_FLAG
+        )
+    # the correlation from scaled, centred copies: no overflow for images near the float64 limits
+    xc = x - x.mean()
+    yc = y - y.mean()
+    xc = xc / float(np.max(np.abs(xc)))
+    yc = yc / float(np.max(np.abs(yc))) if float(np.max(np.abs(yc))) > 0 else yc
+    sxx, syy = float(xc @ xc), float(yc @ yc)
+    if not (sxx > 0 and syy > 0):
+        return Content("the reference image is uniform (no contrast for a gain to fit)", DEGENERATE_FLAG)
+    r = float(np.clip((xc @ yc) / np.sqrt(sxx * syy), -1.0, 1.0))
+    t = float("inf") if r >= 1.0 else r * np.sqrt(dof) / np.sqrt(1.0 - r * r)
+    from scipy.special import stdtr  # start-up: loads scipy.special (already loaded by skimage.metrics)
+
+    p = float(stdtr(dof, -t)) if np.isfinite(t) else 0.0
+    if not p < CONTENT_LEVEL:
+        return Content(
+            f"the image shows no detectable trace of the reference (fitted gain's t = {t:.2f} on {dof} degrees of "
+            f"freedom, one-sided p = {p:.2g} ≥ {CONTENT_LEVEL:.2g}, 5σ)",
+            NO_CONTENT_FLAG,
+            t,
+            dof,
+        )
+    return Content(None, None, t, dof)
 
 
 def rmse(a: np.ndarray, b: np.ndarray) -> float:
@@ -176,14 +260,24 @@ class ImageMetrics:
             warnings.warn("metrics: no ground truth in this acquisition; nothing to score", stacklevel=2)
             return {}
         est = np.asarray(products.image.data, dtype=np.float64)
-        reference = products.acquisition.reference
-        return self.score(truth.radiance, est, reference)
+        acq = products.acquisition
+        return self.score(truth.radiance, est, acq.reference, independent=measured_values(acq, est.size))
 
     def score(
-        self, truth: np.ndarray, estimate: np.ndarray, reference: np.ndarray | None = None, prefix: str = ""
+        self,
+        truth: np.ndarray,
+        estimate: np.ndarray,
+        reference: np.ndarray | None = None,
+        prefix: str = "",
+        independent: int | None = None,
+        upstream: str | None = None,
     ) -> dict[str, float]:
         """The scores of ``estimate`` against ``truth`` (raw) and ``reference`` (normalised; the
-        truth when None), keys prefixed by ``prefix``."""
+        truth when None), keys prefixed by ``prefix``. The normalised ones only where
+        :func:`content_test` (given ``independent``) says they mean something; otherwise its flag
+        (1.0, and ``content_t`` when the test ran) and a warning with the reason. ``upstream``: why
+        the image this one was computed from (the camera's, for an upscaled image) has no content;
+        then this one has none either (post-processing adds no information about the scene)."""
         est = np.asarray(estimate, dtype=np.float64)
         ref = np.asarray(truth, dtype=np.float64)
         if est.shape != ref.shape:
@@ -191,16 +285,22 @@ class ImageMetrics:
         norm_ref = ref if reference is None else np.asarray(reference, dtype=np.float64)
         if norm_ref.shape != est.shape:
             raise ValueError(f"reconstruction {est.shape} and reference {norm_ref.shape} differ in shape")
-        why = degenerate_reference(norm_ref)
+        if not {"psnr", "ssim"} & set(self.names):
+            content = Content(None)
+        elif upstream is not None and degenerate_reference(norm_ref) is None:
+            content = Content(f"the camera image it comes from has no content to score ({upstream})", NO_CONTENT_FLAG)
+        else:
+            content = content_test(norm_ref, est, independent)
+        why = content.reason
         if why is not None:
             warnings.warn(
                 f"metrics: {why}, so the normalised {prefix}psnr/{prefix}ssim are undefined and left out "
-                f"({prefix}{DEGENERATE_FLAG}=1); the raw scores ({prefix}psnr_raw, {prefix}ssim_raw, {prefix}rmse) are kept",
+                f"({prefix}{content.flag}=1); the raw scores ({prefix}psnr_raw, {prefix}ssim_raw, {prefix}rmse) are kept",
                 stacklevel=2,
             )
-        nref, nest = normalised_pair(norm_ref, est)
         raw_est = np.clip(est, 0.0, 1.0) if self.clip else est
         out: dict[str, float] = {}
+        nref, nest = normalised_pair(norm_ref, est) if why is None else (norm_ref, est)
         for name in self.names:
             if name == "rmse":
                 out[f"{prefix}rmse"] = rmse(ref, raw_est)
@@ -212,6 +312,19 @@ class ImageMetrics:
                 if why is None:
                     out[f"{prefix}ssim"] = ssim(nref, nest)
                 out[f"{prefix}ssim_raw"] = ssim(ref, raw_est)
-        if why is not None:
-            out[f"{prefix}{DEGENERATE_FLAG}"] = 1.0
+        if content.flag is not None:
+            out[f"{prefix}{content.flag}"] = 1.0
+            if np.isfinite(content.t):
+                out[f"{prefix}{CONTENT_T}"] = content.t
         return out
+
+
+def measured_values(acquisition: Any, pixels: int) -> int:
+    """How many independent values an image reconstructed from ``acquisition`` carries: its
+    pixels, or fewer distinct measured patterns (a compressed acquisition spans no more)."""
+    indices = getattr(acquisition, "indices", None)
+    if indices is None or getattr(acquisition, "patterns", None) is not None:
+        m = len(getattr(acquisition, "y_pos", ())) or pixels
+    else:
+        m = int(np.unique(np.asarray(indices)).size)
+    return int(min(pixels, m)) if m > 0 else pixels

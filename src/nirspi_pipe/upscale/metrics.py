@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.metrics import ImageMetrics
+from nirspi_pipe.metrics import ImageMetrics, content_test, measured_values
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Image2D
@@ -87,17 +87,29 @@ class UpscaleMetrics(ImageMetrics):
         fine = render_cached(self.scene, RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
         reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
-        out.update(self.score(ref, est, reference, prefix="upscale_"))
+        # the upscaled image is a function of the camera's image: no more independent values than it
+        carried = measured_values(products.acquisition, n * n)
+        # ... and no content where the camera's image has none (content_test at the camera's
+        # resolution): an upscaler's output from it would be its prior, not the scene
         clean = products.acquisition.reference
+        camera = content_test(
+            truth.radiance if clean is None else clean, np.asarray(products.image.data, dtype=np.float64), carried
+        )
+        kw: dict[str, Any] = {"independent": carried, "upstream": camera.reason}
+        out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
         if self.upscaler is not None and clean is not None:
             clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
             if clean_up.shape == est.shape:
                 out.update(
-                    {k: v for k, v in self.score(clean_up, est, clean_up, prefix="noise_").items() if "_raw" not in k}
+                    {
+                        k: v
+                        for k, v in self.score(clean_up, est, clean_up, prefix="noise_", **kw).items()
+                        if "_raw" not in k
+                    }
                 )
         if scale > 1:
             bic = finish(bicubic(np.asarray(products.image.data, dtype=np.float64), scale), True)
-            out.update(self.score(ref, bic, reference, prefix="bicubic_"))
-            if "upscale_psnr" in out and "bicubic_psnr" in out:  # not with a degenerate reference
+            out.update(self.score(ref, bic, reference, prefix="bicubic_", **kw))
+            if "upscale_psnr" in out and "bicubic_psnr" in out:  # neither left out (content_test)
                 out["upscale_gain_db"] = out["upscale_psnr"] - out["bicubic_psnr"]
         return out
