@@ -22,6 +22,7 @@ Two scores per image metric (docs/paper.md, "Metrics"):
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -142,10 +143,10 @@ def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int |
     if not (sxx > 0 and syy > 0):
         return Content("the reference image is uniform (no contrast for a gain to fit)", DEGENERATE_FLAG)
     r = float(np.clip((xc @ yc) / np.sqrt(sxx * syy), -1.0, 1.0))
-    t = float("inf") if r >= 1.0 else r * np.sqrt(dof) / np.sqrt(1.0 - r * r)
+    t = math.copysign(math.inf, r) if abs(r) >= 1.0 else r * math.sqrt(dof) / math.sqrt(1.0 - r * r)
     from scipy.special import stdtr  # start-up: loads scipy.special (already loaded by skimage.metrics)
 
-    p = float(stdtr(dof, -t)) if np.isfinite(t) else 0.0
+    p = float(stdtr(dof, -t))  # one-sided: P(T >= t) under H0; 1 for t = -inf, 0 for +inf
     if not p < CONTENT_LEVEL:
         return Content(
             f"the image shows no detectable trace of the reference (fitted gain's t = {t:.2f} on {dof} degrees of "
@@ -288,7 +289,9 @@ class ImageMetrics:
         if not {"psnr", "ssim"} & set(self.names):
             content = Content(None)
         elif upstream is not None and degenerate_reference(norm_ref) is None:
-            content = Content(f"the camera image it comes from has no content to score ({upstream})", NO_CONTENT_FLAG)
+            content = Content(
+                f"it is computed from the camera's image, which has no content to score ({upstream})", NO_CONTENT_FLAG
+            )
         else:
             content = content_test(norm_ref, est, independent)
         why = content.reason

@@ -8,11 +8,12 @@ the same text comes from the command line, the Python API and an old record read
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["METRIC_HELP", "effects_lines", "format_summary", "metric_lines"]
+__all__ = ["METRIC_HELP", "degenerate_reasons", "effects_lines", "format_summary", "metric_lines"]
 
 #: Metric name -> (format of the value, one-line explanation). The order is the display order.
 METRIC_HELP: dict[str, tuple[str, str]] = {
@@ -144,12 +145,56 @@ _OTHER_BASELINES = (
 )
 
 
-def metric_lines(metrics: Mapping[str, float]) -> list[str]:
+#: Normalised scores that :func:`nirspi_pipe.metrics.content_test` may leave out: metric-key
+#: prefix -> the label of its line.
+_SCORED = {"": "SSIM, PSNR", "upscale_": "upscaled PSNR"}
+_LEFT_OUT = re.compile(
+    r"metrics: (?P<why>.*), so the normalised (?P<prefix>\w*?)psnr/\w*ssim are undefined and left out"
+)
+
+
+def degenerate_reasons(warnings: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """Metric-key prefix -> why its normalised PSNR/SSIM were left out, read from the record's
+    warnings (the metrics stage writes one per prefix)."""
+    out: dict[str, str] = {}
+    for w in warnings:
+        m = _LEFT_OUT.search(str(w))
+        if m:
+            out.setdefault(m.group("prefix"), m.group("why"))
+    return out
+
+
+def _degenerate_line(metrics: Mapping[str, float], prefix: str, reasons: Mapping[str, str]) -> str | None:
+    """One line saying that the normalised scores of ``prefix`` are degenerate, and why; None
+    where they are not (or the run has no such scores)."""
+    flags = [f for f in ("degenerate_reference", "degenerate_image") if f"{prefix}{f}" in metrics]
+    if not flags:
+        return None
+    why = reasons.get(prefix)
+    if why is None:  # an old record, or one read without its warnings: what the flags say
+        t = _num(metrics.get(f"{prefix}content_t"))
+        why = (
+            "the reference is uniform, dark or not finite"
+            if flags[0] == "degenerate_reference"
+            else f"no detectable trace of the reference (fitted gain's t = {t:.2f}, below 5σ)"
+            if math.isfinite(t)
+            else "the image is constant, or computed from a camera image without content"
+        )
+    return f"{_SCORED[prefix]:<18} {'degenerate':>10}  left out ({prefix}{flags[0]}=1): {why}"
+
+
+def metric_lines(metrics: Mapping[str, float], warnings: list[str] | tuple[str, ...] = ()) -> list[str]:
     """The explained metrics, one per line (``label  value  explanation``), notes where two lines
     use different conventions (fitted PSNR/SSIM against the raw RMSE; the other SFS baselines
-    of Eq. 17), then a count of the others (in ``record.json``)."""
+    of Eq. 17), then a count of the others (in ``record.json``). A normalised score left out as
+    degenerate (:func:`nirspi_pipe.metrics.content_test`) is one line ``degenerate`` with its
+    reason (from ``warnings``, the record's, when given)."""
+    reasons = degenerate_reasons(warnings)
     shown = [k for k in METRIC_HELP if k in metrics]
     lines = []
+    degenerate = {p: _degenerate_line(metrics, p, reasons) for p in _SCORED}
+    if degenerate[""]:
+        lines.append(degenerate[""])
     for k in shown:
         fmt, text = METRIC_HELP[k]
         v = _num(metrics[k])
@@ -162,7 +207,9 @@ def metric_lines(metrics: Mapping[str, float]) -> list[str]:
             fitted = (
                 "SSIM/PSNR above: after a least-squares gain and offset to the camera's noise-free image"
                 if "psnr" in metrics
-                else "no fitted SSIM/PSNR: the reference is uniform (degenerate_reference)"
+                else "no fitted SSIM/PSNR: the reference is uniform, dark or not finite (degenerate_reference)"
+                if "degenerate_reference" in metrics
+                else "no fitted SSIM/PSNR: degenerate, see above"
             )
             lines.append(f"{'':<18} {'':>10}  ({fitted}; raw, as the RMSE: {raw})")
         if k == "improvement_offsetfree_pct":
@@ -173,6 +220,9 @@ def metric_lines(metrics: Mapping[str, float]) -> list[str]:
             ]
             if others:
                 lines.append(f"{'':<18} {'':>10}  (other SFS baselines: {'; '.join(others)}; docs/paper.md, Table 3)")
+    if degenerate["upscale_"]:
+        at = next((i for i, s in enumerate(lines) if s.startswith(_LABELS["upscale_gain_db"])), len(lines))
+        lines.insert(at, degenerate["upscale_"])
     rest = len(metrics) - len(shown)
     if rest > 0:
         lines.append(f"(+{rest} more metrics in record.json)")
@@ -195,13 +245,15 @@ def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> st
     if meta.get("status", "ok") != "ok":
         lines.append(f"  FAILED: {meta.get('error')}")
     lines += ["  " + s for s in effects_lines(record)]
-    lines += ["  " + s for s in metric_lines(record.get("metrics", {}) or {})]
+    warned = [str(w) for w in meta.get("warnings", []) or []]
+    lines += ["  " + s for s in metric_lines(record.get("metrics", {}) or {}, warned)]
     t = record.get("timings_ms", {}) or {}
     if t:
         stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
         lines.append(f"  ms: {stages} | total {t.get('total', 0.0):.1f}")
-    for w in meta.get("warnings", []) or []:
-        lines.append(f"  warning: {w}")
+    for w in warned:
+        if not _LEFT_OUT.search(w):  # shown on the metric's own line
+            lines.append(f"  warning: {w}")
     if out_dir is not None:
         pic = "  (summary.png: truth, reconstruction, error)" if (Path(out_dir) / "summary.png").exists() else ""
         lines.append(f"  -> {out_dir}{pic}")

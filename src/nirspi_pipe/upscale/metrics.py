@@ -95,7 +95,8 @@ class UpscaleMetrics(ImageMetrics):
         camera = content_test(
             truth.radiance if clean is None else clean, np.asarray(products.image.data, dtype=np.float64), carried
         )
-        kw: dict[str, Any] = {"independent": carried, "upstream": camera.reason}
+        upstream = None if camera.reason is None else f"{camera.flag}"
+        kw: dict[str, Any] = {"independent": carried, "upstream": upstream}
         out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
         if self.upscaler is not None and clean is not None:
             clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
