@@ -9,6 +9,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+import pandas as pd
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -158,3 +159,61 @@ def test_issue_40_cases_leave_every_normalised_score_out(overrides: list[str]) -
 def test_a_record_without_its_warnings_still_says_why() -> None:
     lines = metric_lines({"rmse": 0.5, "psnr_raw": 6.0, NO_CONTENT_FLAG: 1.0, CONTENT_T: 0.4})
     assert lines[0].split()[:3] == ["SSIM,", "PSNR", "degenerate"] and "t = 0.40" in lines[0]
+
+
+def _frame(degenerate_rows: int) -> pd.DataFrame:
+    """A results frame of 4 scans × 2 kLux × 2 objects × 4 seeds with the normalised scores of
+    the first ``degenerate_rows`` sphere jobs at 50 kLux left out as degenerate."""
+    rows = []
+    for scan in ("basic", "hilbert", "zigzag", "spiral"):
+        for klux in (5.0, 50.0):
+            for scene in ("sphere", "torus"):
+                for seed in range(4):
+                    rows.append(
+                        {
+                            "status": "ok",
+                            "scan": scan,
+                            "illumination.klux": klux,
+                            "scene": scene,
+                            "seed": seed,
+                            "mechanism": "none",
+                            "scan.ratio": 1.0,
+                            "solver": "fwht",
+                            "timings_ms.solver": 1.0,
+                            **{
+                                f"metrics.{p}{k}": v + 0.1 * seed
+                                for p in ("", "upscale_", "noise_", "bicubic_")
+                                for k, v in (("psnr", 25.0), ("ssim", 0.9))
+                            },
+                            "metrics.upscale_gain_db": 1.0,
+                        }
+                    )
+    frame = pd.DataFrame(rows)
+    bad = frame.index[(frame["scene"] == "sphere") & (frame["illumination.klux"] == 50.0)][:degenerate_rows]
+    for p in ("", "upscale_", "noise_", "bicubic_"):
+        frame.loc[bad, [f"metrics.{p}psnr", f"metrics.{p}ssim"]] = np.nan
+        frame[f"metrics.{p}degenerate_image"] = np.nan
+        frame.loc[bad, f"metrics.{p}degenerate_image"] = 1.0
+    frame.loc[bad, "metrics.upscale_gain_db"] = np.nan
+    return frame
+
+
+def test_tables_show_degenerate_cells_and_say_what_their_means_left_out(tmp_path) -> None:
+    """5 jobs degenerate: the 4 Basic sphere jobs at 50 kLux (a whole per-object cell) and one
+    Hilbert one; without any, the tables carry no mark."""
+    from nirspi_pipe.tables import figure9, pareto, scan_order
+
+    f9 = figure9.build(_frame(5), tmp_path)
+    md = (tmp_path / "figure9.md").read_text()
+    cell = f9[(f9["scan"] == "basic") & (f9["klux"] == 50.0)].iloc[0]
+    assert cell["psnr_db_degenerate"] == 4 and cell["psnr_db_mean"] == pytest.approx(25.15)  # the torus jobs
+    assert "Degenerate scores, left out of every mean" in md and "5 of 64 jobs" in md
+    assert "| degenerate / degenerate / degenerate (n=4) |" in md  # the sphere's Basic cell, no number
+    assert "‡4" in md and "‡1" in md and "nan" not in md
+    for k in (0, 5):
+        so = scan_order.build(_frame(k), tmp_path)
+        assert int(so["psnr8_db_degenerate"].sum()) == k
+        assert ("‡" in (tmp_path / "scan_order.md").read_text()) == (k > 0)
+        pt = pareto.build(_frame(k), tmp_path)
+        assert int(pt["degenerate"].sum()) == k
+        assert ("Degenerate scores" in (tmp_path / "pareto.md").read_text()) == (k > 0)

@@ -15,6 +15,7 @@ where it holds after Holm's correction on both halves of the seeds (:func:`ranki
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -23,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from nirspi_pipe import stats as st
+from nirspi_pipe.metrics import DEGENERATE_FLAG, NO_CONTENT_FLAG
 
 __all__ = [
     "SCANS",
@@ -41,6 +43,11 @@ __all__ = [
     "ranking_note",
     "with_families",
     "fmt_se",
+    "score_flag_columns",
+    "degenerate_mask",
+    "degenerate_count",
+    "fmt_scored",
+    "degenerate_note",
 ]
 
 #: The paper's four scan methods, in its row order.
@@ -56,6 +63,10 @@ def ok_rows(frame: pd.DataFrame, need: list[str], experiment: str) -> pd.DataFra
     Raises ``ValueError`` naming the experiment to run when a needed column is missing (the frame
     did not come from that sweep) or when no row is usable.
     """
+    # a normalised score that every job left out as degenerate has no column, only its flags
+    absent = [c for c in need if c not in frame.columns and any(f in frame.columns for f in score_flag_columns(c))]
+    if absent:
+        frame = frame.assign(**{c: np.nan for c in absent})
     missing = [c for c in ["scan", *need] if c not in frame.columns]
     if missing:
         raise ValueError(f"needs columns {missing}: run `nirspi-run -m +experiment={experiment}`")
@@ -64,6 +75,76 @@ def ok_rows(frame: pd.DataFrame, need: list[str], experiment: str) -> pd.DataFra
     if df.empty:
         raise ValueError(f"no successful job of the four scan methods: run `nirspi-run -m +experiment={experiment}`")
     return df
+
+
+#: A normalised score's column (``metrics.<prefix>psnr`` / ``ssim``).
+_SCORE = re.compile(r"^metrics\.(?P<prefix>\w*?)(?:psnr|ssim)$")
+
+
+def score_flag_columns(col: str) -> list[str]:
+    """The flag columns that mark ``col`` left out as degenerate (:func:`nirspi_pipe.metrics.content_test`):
+    ``metrics.<prefix>degenerate_reference`` and ``…degenerate_image`` of a normalised PSNR/SSIM,
+    both prefixes' for the gain over bicubic; none for other columns."""
+    if col == "metrics.upscale_gain_db":
+        prefixes = ["upscale_", "bicubic_"]
+    else:
+        m = _SCORE.match(col)
+        if m is None:
+            return []
+        prefixes = [m.group("prefix")]
+    return [f"metrics.{p}{f}" for p in prefixes for f in (DEGENERATE_FLAG, NO_CONTENT_FLAG)]
+
+
+def degenerate_mask(frame: pd.DataFrame, col: str) -> pd.Series:
+    """Rows of ``frame`` whose ``col`` was left out as degenerate (a flag set, no value)."""
+    flags = [c for c in score_flag_columns(col) if c in frame.columns]
+    if not flags:
+        return pd.Series(False, index=frame.index)
+    flagged = frame[flags].apply(pd.to_numeric, errors="coerce").fillna(0.0).gt(0.0).any(axis=1)
+    empty = pd.to_numeric(frame[col], errors="coerce").isna() if col in frame.columns else True
+    return flagged & empty
+
+
+def degenerate_count(group: pd.DataFrame, col: str, key: str) -> dict[str, int]:
+    """``{key}_degenerate``: how many of ``group``'s rows left ``col`` out as degenerate (its
+    :func:`stats` are over the others)."""
+    return {f"{key}_degenerate": int(degenerate_mask(group, col).sum())}
+
+
+def fmt_scored(mean: float, spread: float, degenerate: float, n: float, digits: int = 2) -> str:
+    """A cell of a normalised score: ``degenerate`` when all ``n`` rows were, else :func:`fmt`
+    with ``‡k`` when ``k`` of them were left out of the mean (:func:`degenerate_note`)."""
+    k = int(degenerate) if np.isfinite(degenerate) else 0
+    if k and k >= n:
+        return "degenerate"
+    return fmt(mean, spread, digits) + (f" ‡{k}" if k else "")
+
+
+def degenerate_note(df: pd.DataFrame, cols: dict[str, str]) -> str:
+    """One sentence on the rows whose normalised scores were left out as degenerate (label ->
+    column), with their flags; empty when there are none."""
+    parts = []
+    for label, col in cols.items():
+        mask = degenerate_mask(df, col)
+        if not mask.any():
+            continue
+        why = []
+        for flag in (DEGENERATE_FLAG, NO_CONTENT_FLAG):
+            cs = [c for c in score_flag_columns(col) if c.endswith(flag) and c in df.columns]
+            k = (
+                int((mask & df[cs].apply(pd.to_numeric, errors="coerce").fillna(0.0).gt(0.0).any(axis=1)).sum())
+                if cs
+                else 0
+            )
+            if k:
+                why.append(f"{k}× {flag}")
+        parts.append(f"{label} ({col}): {int(mask.sum())} of {len(df)} jobs ({', '.join(why)})")
+    if not parts:
+        return ""
+    return (
+        "Degenerate scores, left out of every mean, standard error and paired difference (docs/paper.md, "
+        '"Metrics"; ‡k in a cell: k of its jobs left out; "degenerate": all of them): ' + "; ".join(parts) + "."
+    )
 
 
 def stats(values: pd.Series | np.ndarray, prefix: str) -> dict[str, float]:

@@ -35,14 +35,17 @@ from nirspi_pipe.tables._common import (
     SCANS,
     conditions_note,
     count_range,
+    degenerate_count,
+    degenerate_note,
     failures_note,
-    fmt,
+    fmt_scored,
     ok_rows,
     paired_vs_basic,
     paper_reference,
     ranking,
     ranking_note,
     scan_by_level_rows,
+    score_flag_columns,
     stats,
     with_families,
 )
@@ -67,7 +70,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build Figure 9 (PNG, CSV, Markdown) from a results frame into ``out_dir``: the normalised
     scores (:mod:`nirspi_pipe.metrics`), on the upscaled grid when the runs were upscaled."""
     out_dir = Path(out_dir)
-    metrics = UPSCALED if all(c in frame.columns for c in UPSCALED.values()) else METRICS
+    metrics = _pooled(frame)
     df = ok_rows(frame, [*metrics.values(), "illumination.klux"], "figure9")
     paper = paper_reference("figure9").set_index(["scan", "klux"])
     rows = []
@@ -80,6 +83,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             row: dict = {"scan": scan, "klux": float(klux), "n": int(len(g))}
             for key, col in metrics.items():
                 row.update(stats(g[col], key))
+                row.update(degenerate_count(g, col, key))
                 d, se, _ = paired_vs_basic(dk, col, scan)
                 row.update({f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})
                 idx = (scan, float(klux))
@@ -101,6 +105,13 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     )
     _plot(table, paper, out_dir / "figure9.png")
     return table
+
+
+def _pooled(frame: pd.DataFrame) -> dict[str, str]:
+    """The pooled figure's columns: the upscaled scores when the runs were upscaled (a score that
+    every job left out as degenerate has only its flag columns), else the camera's."""
+    have = [c in frame.columns or any(f in frame.columns for f in score_flag_columns(c)) for c in UPSCALED.values()]
+    return UPSCALED if all(have) else METRICS
 
 
 def _order(names: list[str]) -> list[str]:
@@ -126,6 +137,7 @@ def _per_object(df: pd.DataFrame, scores: dict[str, str]) -> tuple[pd.DataFrame,
                 for key, col in scores.items():
                     row[f"{key}_mean"] = float(g[col].mean())
                     row.update(cell_se(g, col, key))
+                    row.update(degenerate_count(g, col, key))
                 rows.append(row)
             for key, col in scores.items():
                 fams.append(ranking(dk, col, True, where={"scene": scene, "klux": float(klux), "score": key}))
@@ -168,7 +180,11 @@ def _markdown(
                         continue
                     r0 = r.iloc[0]
                     cells.append(
-                        " / ".join(fmt(r0[f"{key}_mean"], r0[f"{key}_se"]) for key in scores) + f" (n={int(r0['n'])})"
+                        " / ".join(
+                            fmt_scored(r0[f"{key}_mean"], r0[f"{key}_se"], r0[f"{key}_degenerate"], r0["n"])
+                            for key in scores
+                        )
+                        + f" (n={int(r0['n'])})"
                     )
                 lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
             c = claims[claims["scene"] == scene]
@@ -193,7 +209,11 @@ def _markdown(
     lines += scan_by_level_rows(
         table,
         levels,
-        lambda r: f"{r['ssim_mean']:.3f} ± {r['ssim_std']:.3f} / {r['psnr_db_mean']:.2f} ± {r['psnr_db_std']:.2f}",
+        lambda r: (
+            fmt_scored(r["ssim_mean"], r["ssim_std"], r["ssim_degenerate"], r["n"], 3)
+            + " / "
+            + fmt_scored(r["psnr_db_mean"], r["psnr_db_std"], r["psnr_db_degenerate"], r["n"])
+        ),
     )
     for (scan, klux), p in paper.iterrows():
         vals = ", ".join(f"{k} = {p[k]:g}" for k in ("ssim", "psnr_db") if np.isfinite(p.get(k, np.nan)))
@@ -209,13 +229,23 @@ def _markdown(
                 lines.append(
                     f"Ours, sphere, {SCAN_LABELS.get(scan, scan)}, {klux:g} kLux: "
                     + ", ".join(
-                        f"{SCORE_LABELS[k]} {r0[f'{k}_mean']:.2f} ± {r0[f'{k}_se']:.2f} dB "
-                        f"({r0[f'{k}_mean'] - p['psnr_db']:+.2f} dB from the paper's {p['psnr_db']:g})"
+                        f"{SCORE_LABELS[k]} "
+                        + fmt_scored(r0[f"{k}_mean"], r0[f"{k}_se"], r0[f"{k}_degenerate"], r0["n"])
+                        + (
+                            f" dB ({r0[f'{k}_mean'] - p['psnr_db']:+.2f} dB from the paper's {p['psnr_db']:g})"
+                            if np.isfinite(r0[f"{k}_mean"])
+                            else ""
+                        )
                         for k in scores
                     )
                     + "."
                 )
     lines += ["", f"Rows: {conditions_note(df)}; {failures_note(frame, df)}"]
+    note = degenerate_note(
+        df, {**{SCORE_LABELS[k]: c for k, c in SCORES.items()}, **{f"pooled {k}": c for k, c in _pooled(df).items()}}
+    )
+    if note:
+        lines += ["", note]
     return "\n".join(lines) + "\n"
 
 

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from nirspi_pipe.tables._common import degenerate_mask
+
 __all__ = ["build", "summarise", "pareto_front", "front_steps"]
 
 RES_KEYS = ("camera.resolution",)
@@ -37,7 +39,8 @@ def _column(frame: pd.DataFrame, keys: tuple[str, ...], default: float | None = 
 
 
 def summarise(frame: pd.DataFrame) -> pd.DataFrame:
-    """One row per (solver, scan, ratio, resolution): scenes, mean PSNR/SSIM, median time (ms)."""
+    """One row per (solver, scan, ratio, resolution): scenes, mean PSNR/SSIM over the jobs that
+    were not left out as degenerate, how many were (``degenerate``), median time (ms)."""
     ok = frame[frame["status"] == "ok"] if "status" in frame.columns else frame
     data = pd.DataFrame(
         {
@@ -46,8 +49,9 @@ def summarise(frame: pd.DataFrame) -> pd.DataFrame:
             "ratio": pd.to_numeric(_column(ok, RATIO_KEYS, 1.0)),
             "resolution": pd.to_numeric(_column(ok, RES_KEYS, 64)).astype(int),
             "scene": ok["scene"] if "scene" in ok.columns else "?",
-            "psnr_db": pd.to_numeric(ok["metrics.psnr"]).replace([np.inf], 100.0),
-            "ssim": pd.to_numeric(ok["metrics.ssim"]),
+            "psnr_db": pd.to_numeric(_score(ok, "metrics.psnr")).replace([np.inf], 100.0),
+            "ssim": pd.to_numeric(_score(ok, "metrics.ssim")),
+            "degenerate": degenerate_mask(ok, "metrics.psnr").astype(int),
             "time_ms": pd.to_numeric(ok["timings_ms.solver"]),
         }
     )
@@ -59,11 +63,17 @@ def summarise(frame: pd.DataFrame) -> pd.DataFrame:
             psnr_db=("psnr_db", "mean"),
             psnr_min_db=("psnr_db", "min"),
             ssim=("ssim", "mean"),
+            degenerate=("degenerate", "sum"),
             time_ms=("time_ms", "median"),
         )
         .reset_index()
     )
     return out
+
+
+def _score(frame: pd.DataFrame, col: str) -> pd.Series:
+    """A normalised score's column; all NaN when every job left it out as degenerate."""
+    return frame[col] if col in frame.columns else pd.Series(np.nan, index=frame.index)
 
 
 def pareto_front(time_ms: np.ndarray, score: np.ndarray) -> np.ndarray:
@@ -174,6 +184,14 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
         _markdown(steps) if len(steps) else "(no successful runs)",
         "",
     ]
+    bad = table[table["degenerate"] > 0] if len(table) else table
+    if len(bad):
+        text += [
+            f"Degenerate scores: {int(bad['degenerate'].sum())} jobs in {len(bad)} configurations left their "
+            'normalised PSNR/SSIM out (docs/paper.md, "Metrics"; column `degenerate`): their means are over '
+            "the other scenes, NaN (not on any front) where none is left.",
+            "",
+        ]
     (out_dir / "pareto.md").write_text("\n".join(text))
     if len(table):
         _plot(table, out_dir / "pareto.png")

@@ -15,7 +15,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nirspi_pipe.tables._common import SCAN_LABELS, SCANS, failures_note, ok_rows, paired_vs_basic, signif, stats
+from nirspi_pipe.tables._common import (
+    SCAN_LABELS,
+    SCANS,
+    degenerate_count,
+    degenerate_note,
+    failures_note,
+    ok_rows,
+    paired_vs_basic,
+    signif,
+    stats,
+)
 
 __all__ = ["build", "MECHANISMS"]
 
@@ -40,6 +50,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
                 row: dict = {"mechanism": mech, "ratio": float(ratio), "scan": scan, "n": int(len(g))}
                 for key, col in METRICS.items():
                     row.update(stats(g[col], key))
+                    row.update(degenerate_count(g, col, key))
                     d, se, pairs = paired_vs_basic(sub, col, scan)
                     row.update({f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se, f"{key}_pairs": pairs})
                 rows.append(row)
@@ -50,10 +61,16 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
 
 
 def _cell(r: pd.Series, scan: str, key: str) -> str:
+    k = int(r[f"{key}_degenerate"])
+    if k >= r["n"]:
+        return "degenerate"
+    mark = f" ‡{k}" if k else ""  # k jobs left out as degenerate (the note under the table)
     if scan == "basic":
-        return f"{r[f'{key}_mean']:.2f}"
+        return f"{r[f'{key}_mean']:.2f}{mark}"
     d, se = r[f"{key}_d_vs_basic"], r[f"{key}_se_vs_basic"]
-    return f"{d:+.2f} ± {se:.2f}{signif(d, se)}" if np.isfinite(se) else f"{d:+.2f}"
+    if not np.isfinite(d):
+        return f"n/a{mark}"
+    return (f"{d:+.2f} ± {se:.2f}{signif(d, se)}" if np.isfinite(se) else f"{d:+.2f}") + mark
 
 
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str:
@@ -75,7 +92,7 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         g = g.set_index("scan")
         cells8 = [_cell(g.loc[s], s, "psnr8_db") if s in g.index else "" for s in SCANS]
         cells32 = [_cell(g.loc[s], s, "psnr32_db") if s in g.index else "" for s in SCANS]
-        best = g["psnr8_db_mean"].idxmax()
+        best = g["psnr8_db_mean"].idxmax() if g["psnr8_db_mean"].notna().any() else "none (degenerate)"
         sig = any(
             abs(g.loc[s, "psnr8_db_d_vs_basic"]) > 2 * g.loc[s, "psnr8_db_se_vs_basic"]
             for s in g.index
@@ -89,4 +106,7 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
             + f" | {SCAN_LABELS.get(best, best)}{'' if sig else ' (n.s.)'} |"
         )
     lines += ["", failures_note(frame, df), ""]
+    note = degenerate_note(df, {"8²": METRICS["psnr8_db"], "32²": METRICS["psnr32_db"]})
+    if note:
+        lines += [note, ""]
     return "\n".join(lines)
