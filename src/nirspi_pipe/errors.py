@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["NirspiError", "ConfigError", "plain_value", "yaml_problem"]
+__all__ = ["NirspiError", "ConfigError", "NumericalError", "plain_value", "yaml_problem"]
 
 
 class NirspiError(Exception):
@@ -32,6 +32,16 @@ class ConfigError(NirspiError, ValueError):
         if not prefix or self.absolute or self.key.startswith(prefix + "."):
             return self
         return ConfigError(f"{prefix}.{self.key}", self.value, self.allowed, self.unknown_key)
+
+
+class NumericalError(NirspiError):
+    """A stage's arithmetic left float64's range (overflow, an invalid operation, a division by
+    zero) or produced a NaN/Inf result: the job fails with one line naming the stage
+    (``stage`` attribute) and what happened, never with status ok (docs/hostile.md)."""
+
+    def __init__(self, stage: str, what: str) -> None:
+        self.stage, self.what = stage, what
+        super().__init__(f"{stage}: {what}")
 
 
 def plain_value(value: Any) -> Any:

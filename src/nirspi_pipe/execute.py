@@ -90,7 +90,8 @@ def execute_job(
             info=output.info,
         )
         record["meta"].update(status="ok", warnings=output.warnings)
-        record["meta"]["warnings"] += drop_nonfinite(record)  # no NaN/Inf in an ok record (finite.py)
+        # no NaN/Inf in an ok record, each value left out with its reason (finite.py)
+        record["meta"]["warnings"] += drop_nonfinite(record, _image_sides(output))
     record["meta"]["wall_s"] = time.perf_counter() - t0
     if output is not None:
         try:
@@ -148,6 +149,17 @@ def _write_summary_png(out_dir: Path, output: RunOutput, record: dict[str, Any])
         write_summary_figure(out_dir, output.products, record, mesh_png=out_dir / "mesh.png")
     except Exception as exc:  # noqa: BLE001 - a picture must not fail the run
         record["meta"]["warnings"].append(f"summary.png not written: {one_line(exc)}")
+
+
+def _image_sides(output: RunOutput) -> dict[str, int]:
+    """The sides (pixels) of the images the metrics score, by metric prefix (finite.reason_for):
+    ``""`` the camera image; ``upscale``/``bicubic``/``noise`` the upscaled one."""
+    p = output.products
+    sides = {"": int(min(p.image.data.shape))}
+    if p.upscaled is not None:
+        up = int(min(p.upscaled.data.shape))
+        sides.update(upscale=up, bicubic=up, noise=up)
+    return sides
 
 
 def _seed_or_none(cfg: Mapping[str, Any]) -> int | None:

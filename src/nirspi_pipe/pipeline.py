@@ -7,6 +7,7 @@ switching a stage on does not change another stage's noise).
 
 from __future__ import annotations
 
+import re
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
@@ -16,12 +17,12 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.errors import ConfigError, NumericalError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
 from nirspi_pipe.records import config_hash
 from nirspi_pipe.scene.render import forget_renders
 from nirspi_pipe.stages import Aimable, Itof, Products, ReadsScanOptions, ScanIndices, check_stage
-from nirspi_pipe.types import Camera
+from nirspi_pipe.types import Acquisition, Camera, Image2D, Mesh, PointCloud
 
 __all__ = [
     "EFFECT_GROUPS",
@@ -89,9 +90,53 @@ def build_stages(cfg: Mapping[str, Any]) -> dict[str, Any]:
     return stages
 
 
+#: numpy's floating-point error warnings ("overflow encountered in multiply", "invalid value
+#: encountered in subtract", "divide by zero encountered in log10"). Code that means to make an
+#: Inf or NaN says so with ``np.errstate`` (or a warnings filter), which emits none of these.
+_FP_WARNING = re.compile(r"(overflow|invalid value|divide by zero) encountered in ")
+
+#: What each product must hold only finite numbers in, by type (its array fields). Left out on
+#: purpose: Scene (depth is Inf off the object), DepthMap (NaN outside its mask), ItofSample
+#: (sigma is Inf for a spot without a return).
+_FINITE_FIELDS: tuple[tuple[type, tuple[str, ...]], ...] = (
+    (Acquisition, ("y_pos", "y_neg")),
+    (Image2D, ("data",)),
+    (PointCloud, ("points_m",)),
+    (Mesh, ("vertices_m",)),
+)
+
+
+def _where(w: warnings.WarningMessage) -> str:
+    parts = str(w.filename).replace("\\", "/").split("/")
+    return f"{'/'.join(parts[-2:])}:{w.lineno}"
+
+
+def _fp_errors(caught: list[warnings.WarningMessage]) -> list[warnings.WarningMessage]:
+    return [w for w in caught if issubclass(w.category, RuntimeWarning) and _FP_WARNING.match(str(w.message))]
+
+
+def _nonfinite_output(out: Any) -> str | None:
+    """``field (k of n values NaN or Inf)`` for the first product field of ``out`` that holds a
+    non-finite number, else None."""
+    for kind, names in _FINITE_FIELDS:
+        if isinstance(out, kind):
+            for name in names:
+                a = getattr(out, name, None)
+                if isinstance(a, np.ndarray) and a.dtype.kind in "fc":
+                    bad = int(np.count_nonzero(~np.isfinite(a)))
+                    if bad:
+                        return f"{type(out).__name__}.{name} ({bad} of {a.size} values NaN or Inf)"
+    return None
+
+
 class _Clock:
-    def __init__(self) -> None:
+    """Times each stage; with the run's recorded warnings (``caught``) it is also the safety net
+    for numbers: a stage whose arithmetic left float64's range, or whose product holds a NaN or
+    an Inf, fails the job with a :class:`NumericalError` naming the stage, never status ok."""
+
+    def __init__(self, caught: list[warnings.WarningMessage] | None = None) -> None:
         self.ms: dict[str, float] = {}
+        self.caught = caught if caught is not None else []
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
@@ -102,12 +147,31 @@ class _Clock:
             self.ms[name] = (time.perf_counter() - t0) * 1e3
 
     def call(self, name: str, fn: Callable[..., T], *args: Any) -> T:
-        """Time ``fn(*args)`` as stage ``name``; its ConfigErrors get the group prefix."""
+        """Time ``fn(*args)`` as stage ``name``; its ConfigErrors get the group prefix; a numpy
+        floating-point error it raised (as a RuntimeWarning), an ``OverflowError`` or a product
+        holding NaN/Inf becomes a :class:`NumericalError` naming the stage."""
+        seen = len(self.caught)
         with self.stage(name):
             try:
-                return fn(*args)
+                out = fn(*args)
             except ConfigError as exc:
                 raise exc.under(name) from None
+            except (OverflowError, FloatingPointError) as exc:
+                raise NumericalError(
+                    name, f"the stage's arithmetic left float64's range ({type(exc).__name__}: {exc})"
+                ) from exc
+        errors = _fp_errors(self.caught[seen:])
+        if errors:
+            more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+            raise NumericalError(
+                name,
+                f"the stage's arithmetic left float64's range: {errors[0].message} at {_where(errors[0])}{more}; "
+                "its result is not a finite number",
+            )
+        bad = _nonfinite_output(out)
+        if bad is not None:
+            raise NumericalError(name, f"the stage's result {bad}")
+        return out
 
 
 def _measure_itof(stage: Itof, image: Any, grid: Camera, truth: Any, acq: Any, rng: np.random.Generator) -> Any:
@@ -173,8 +237,8 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
     for group, nothing in MODEL_OF_NOTHING.items():
         if group in cfg and cfg[group] is None:
             raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
-    clock = _Clock()
     with _recorded_warnings() as caught:
+        clock = _Clock(caught)
         with clock.stage("build"):
             camera: Camera = build(cfg["camera"], "camera")
             stages = build_stages(cfg)

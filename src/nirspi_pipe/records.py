@@ -13,6 +13,14 @@ Record format (one JSON object)::
                    "source_hash", "code", "platform", "opencl_devices",
                    "status": "ok" | "failed", "error", "error_type", "exit_code", "signal",
                    "attempt", "warnings", "overrides", "job_num", "started", "wall_s"}}
+
+Every file is strict JSON (RFC 8259: no ``NaN``/``Infinity`` tokens; :func:`dumps_strict`). The
+result sections never hold a non-finite number (:mod:`nirspi_pipe.finite` leaves them out, each
+with its reason); a non-finite number elsewhere, such as the user's ``fog.extent_mm=inf`` in
+``config``, is written as the YAML spelling the command line and config files accept: the
+strings ``".inf"``, ``"-.inf"`` and ``".nan"`` (:data:`NONFINITE_SPELLINGS`);
+:func:`decode_nonfinite` turns them back into floats. :func:`config_hash` hashes the same
+encoding, so the hash of a record's ``config`` read back equals the job's.
 """
 
 from __future__ import annotations
@@ -51,6 +59,8 @@ __all__ = [
     "atomic_write",
     "code_identity",
     "config_hash",
+    "decode_nonfinite",
+    "dumps_strict",
     "input_files",
     "job_key_of",
     "new_record",
@@ -78,8 +88,41 @@ _VERSIONED = (
 )
 
 
+#: How a non-finite float is written in a record (YAML 1.1's spellings, which OmegaConf's loader
+#: and ``nirspi-run key=.inf`` read back as floats).
+NONFINITE_SPELLINGS = {math.inf: ".inf", -math.inf: "-.inf"}
+_NAN_SPELLING = ".nan"
+_DECODED = {".inf": math.inf, "-.inf": -math.inf, ".nan": math.nan}
+
+
+def _float_leaf(x: float) -> float | str:
+    if math.isfinite(x):
+        return x
+    return _NAN_SPELLING if math.isnan(x) else NONFINITE_SPELLINGS[x]
+
+
+def decode_nonfinite(value: Any) -> Any:
+    """``value`` (read from a record) with the spellings ``".inf"``, ``"-.inf"``, ``".nan"``
+    turned back into floats, at any depth; anything else unchanged."""
+    if isinstance(value, dict):
+        return {k: decode_nonfinite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [decode_nonfinite(v) for v in value]
+    if isinstance(value, str) and value in _DECODED:
+        return _DECODED[value]
+    return value
+
+
+def dumps_strict(value: Any, **kwargs: Any) -> str:
+    """``json.dumps`` of ``value`` as strict JSON: numpy values made plain and every non-finite
+    float written as its spelling (``".inf"``, module docstring), ``allow_nan=False``; the
+    writer for every JSON file the project writes (``kwargs``: ``indent``, ``sort_keys``, ...)."""
+    return json.dumps(_jsonable(value), allow_nan=False, **kwargs)
+
+
 def _jsonable(value: Any) -> Any:
-    """Convert numpy scalars/arrays and other leaves into JSON-friendly Python values."""
+    """Convert numpy scalars/arrays and other leaves into JSON-friendly Python values (a
+    non-finite float as its spelling, :data:`NONFINITE_SPELLINGS`)."""
     if isinstance(value, Mapping):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
@@ -91,7 +134,7 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, np.integer):
         return int(value)
     if isinstance(value, (np.floating, float)):
-        return float(value)
+        return _float_leaf(float(value))
     if value is None or isinstance(value, (str, int)):
         return value
     return str(value)
@@ -552,7 +595,7 @@ def write_record(folder: Path, record: Mapping[str, Any]) -> Path:
     """Write ``record.json`` atomically (:func:`atomic_write`: a unique temporary file, then a
     rename), so a killed job or a full disk never leaves a half-written record, and two writers
     never tear each other's. Raises :class:`OutputError` when it cannot be written."""
-    text = json.dumps(_jsonable(record), indent=2, allow_nan=True)
+    text = dumps_strict(record, indent=2)
     return atomic_write(Path(folder) / RECORD_NAME, text)
 
 

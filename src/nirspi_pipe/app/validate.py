@@ -6,6 +6,7 @@ from __future__ import annotations
 import difflib
 import inspect
 import pkgutil
+import re
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,7 @@ __all__ = [
     "check_plain_keys",
     "check_overrides",
     "rewrite_nulls",
+    "hydra_floats",
     "group_options",
     "config_groups",
     "REQUIRED_GROUPS",
@@ -70,10 +72,30 @@ def _group_of(arg: str) -> str | None:
     return key if key and not key.startswith("hydra") and _group_exists(key) else None
 
 
+#: YAML's spellings of the non-finite floats (what config files, records and error messages use:
+#: ``fog.extent_mm=.inf``) → Hydra's override grammar, which reads only ``inf``/``-inf``/``nan``.
+YAML_FLOATS = {".inf": "inf", "+.inf": "inf", "-.inf": "-inf", ".nan": "nan"}
+_VALUE_TOKENS = re.compile(r"([,\[\]\s])")
+
+
+def hydra_floats(arg: str) -> str:
+    """``key=.inf`` (also ``-.inf``, ``.nan``, any case, in a sweep or a list: ``key=350,.inf``)
+    as Hydra reads it: ``key=inf``; quoted values, sweep functions and anything else unchanged."""
+    if "=" not in arg or arg.startswith("-"):
+        return arg
+    head, value = arg.split("=", 1)
+    if any(c in value for c in "()'\"{}") or "." not in value:
+        return arg
+    tokens = _VALUE_TOKENS.split(value)
+    return head + "=" + "".join(YAML_FLOATS.get(t.lower(), t) for t in tokens)
+
+
 def rewrite_nulls(args: list[str]) -> tuple[list[str], str | None]:
     """``group=null`` (also in a sweep list, ``upscale=null,bicubic``) becomes the group's
     ``off`` option, which sets the stage to null; ``solver=null`` (a required group) is a
-    one-line problem. Returns the new arguments and the problem, if any."""
+    one-line problem. YAML's ``.inf``/``-.inf``/``.nan`` (the spelling config files and the
+    error messages use) become Hydra's ``inf``/``-inf``/``nan`` (:func:`hydra_floats`). Returns
+    the new arguments and the problem, if any."""
     out: list[str] = []
     skip = False
     for arg in args:
@@ -81,6 +103,7 @@ def rewrite_nulls(args: list[str]) -> tuple[list[str], str | None]:
             skip = (not skip) and arg in _FLAGS_WITH_VALUE
             out.append(arg)
             continue
+        arg = hydra_floats(arg)
         group = _group_of(arg)
         if group is None:
             out.append(arg)

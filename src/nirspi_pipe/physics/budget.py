@@ -37,6 +37,29 @@ from nirspi_pipe.physics.light import C_LIGHT, H_PLANCK
 __all__ = ["PhotonBudget"]
 
 
+#: Keys of the photon budget with closed ranges ``[lo, hi]``. The upper bounds are the earlier
+#: ones (assumed: far beyond any LED array or photodiode). The lower bounds keep the image
+#: finite: each key scales the white target's signal ``N_white`` (Eq. 10), and the image is the
+#: readings divided by it, so a vanishing budget makes the image read noise times 1/N_white,
+#: which overflowed float64 in the scores (measured at 8²: led_power_mw, t_int_us, a_pix_um2,
+#: fill_factor, quantum_efficiency, lens_transmittance each at 1e-300 overflowed; led_power_mw
+#: 1e-50 finished, 1e-100 overflowed). Each lower bound is assumed, far below any device and
+#: leaving a white target a tiny fraction of one photoelectron, yet 30 decades above overflow:
+#: 1 fW per LED; 1 ps of integration (faster than any InGaAs photodiode's response);
+#: 1e-6 µm² (a square of 1 nm). ``fov_half_deg`` below 1e-3° (3.6″) made ``tan(α)²`` underflow
+#: to 0 at 1e-300 (a division by zero); 1e-3° is narrower than any LED's beam.
+CLOSED_RANGES = {
+    "led_power_mw": (1e-12, 1e6),
+    "t_int_us": (1e-6, 1e9),
+    "a_pix_um2": (1e-6, 1e12),
+    "fov_half_deg": (1e-3, 85.0),
+}
+#: Efficiency fractions: ``[FRACTION_MIN, 1]``. Assumed: one part per million (a lens passing
+#: 1e-6, a photodiode with QE 1e-6) is no working camera, and keeps the image finite as above.
+FRACTIONS = ("lens_transmittance", "quantum_efficiency", "fill_factor")
+FRACTION_MIN = 1e-6
+
+
 @dataclass(frozen=True)
 class PhotonBudget:
     """Photon budget of the NIR-SPI camera (Eqs. 10–11); Table 1 values are the defaults.
@@ -70,21 +93,18 @@ class PhotonBudget:
         if int(self.led_count) != self.led_count or not 1 <= self.led_count <= 1_000_000:
             raise ConfigError("led_count", self.led_count, "an integer number of LEDs >= 1")
         positive = {
-            "led_power_mw": (0.0, 1e6),
             "wavelength_nm": (200.0, 20000.0),
-            "fov_half_deg": (0.0, 85.0),
-            "t_int_us": (0.0, 1e9),
-            "a_pix_um2": (0.0, 1e12),
             "f_number": (0.3, 100.0),
         }
         for key, (lo, hi) in positive.items():
             v = getattr(self, key)
             if not np.isfinite(v) or not lo < v <= hi:
                 raise ConfigError(key, v, f"a value in ({lo:g}, {hi:g}]")
-        for key in ("lens_transmittance", "quantum_efficiency", "fill_factor"):
+        for key, (lo, hi) in {**CLOSED_RANGES, **{k: (FRACTION_MIN, 1.0) for k in FRACTIONS}}.items():
             v = getattr(self, key)
-            if not np.isfinite(v) or not 0.0 < v <= 1.0:
-                raise ConfigError(key, v, "a fraction in (0, 1]")
+            if not np.isfinite(v) or not lo <= v <= hi:
+                what = "a fraction" if key in FRACTIONS else "a value"
+                raise ConfigError(key, v, f"{what} in [{lo:g}, {hi:g}]")
 
     @property
     def led_power_w(self) -> float:

@@ -131,11 +131,11 @@ class Photodiode:
         if not np.isfinite(self.read_noise_e) or not 0 <= self.read_noise_e <= 1e9:
             raise ConfigError("read_noise_e", self.read_noise_e, "a noise in e⁻ rms in [0, 1e9]")
         if not np.isfinite(self.c_eq_ff) or not 0 < self.c_eq_ff <= 1e9:
-            raise ConfigError("c_eq_ff", self.c_eq_ff, "a capacitance in fF > 0")
+            raise ConfigError("c_eq_ff", self.c_eq_ff, "a capacitance in fF in (0, 1e9]")
         if self.full_scale_v is not None and (not np.isfinite(self.full_scale_v) or not 0 < self.full_scale_v <= 1e3):
             raise ConfigError("full_scale_v", self.full_scale_v, "a voltage in V in (0, 1000], or null")
         if not np.isfinite(self.offset_e) or not 0 <= self.offset_e <= 1e12:
-            raise ConfigError("offset_e", self.offset_e, "a pedestal in e⁻ >= 0")
+            raise ConfigError("offset_e", self.offset_e, "a pedestal in e⁻ in [0, 1e12]")
         if self.adc_bits is not None and (int(self.adc_bits) != self.adc_bits or not 1 <= self.adc_bits <= 32):
             raise ConfigError("adc_bits", self.adc_bits, "an integer from 1 to 32, or null")
 

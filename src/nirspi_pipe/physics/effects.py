@@ -134,6 +134,13 @@ __all__ = [
 ]
 
 
+#: Largest ``noise_rel`` (std of the added noise over the mean noise-free half-pattern reading).
+#: Assumed: at 1e6 every reading is 10⁶ times noisier than the signal (SNR -120 dB), pure noise
+#: already; far above it the image's squares overflow float64 in the scores (measured at 8²:
+#: 1e50 finished, 1e100 and 1e300 overflowed in SSIM), so the bound keeps 40 decades of margin.
+NOISE_REL_MAX = 1e6
+
+
 def _check_rel(key: str, value: float, lo: float, hi: float, what: str) -> None:
     if not np.isfinite(value) or not lo <= value <= hi:
         raise ConfigError(key, value, what)
@@ -506,7 +513,7 @@ class GaussianNoise:
     domain: ClassVar[Literal["output"]] = "output"
 
     def __post_init__(self) -> None:
-        _check_rel("noise_rel", self.noise_rel, 0.0, np.inf, "a relative noise level >= 0")
+        _check_rel("noise_rel", self.noise_rel, 0.0, NOISE_REL_MAX, f"a relative noise level in [0, {NOISE_REL_MAX:g}]")
 
     def apply(self, output: Output, exposure: Exposure) -> Output:
         rng = exposure.rng_main if exposure.rng_main is not None else np.random.default_rng(0)
@@ -641,7 +648,7 @@ def forward_model(
     """
     if detector is not None and not hasattr(detector, "physical"):
         raise ConfigError("detector", detector, "a detector from conf/detector (ideal, ingaas)")
-    _check_rel("noise_rel", noise_rel, 0.0, np.inf, "a relative noise level >= 0")
+    _check_rel("noise_rel", noise_rel, 0.0, NOISE_REL_MAX, f"a relative noise level in [0, {NOISE_REL_MAX:g}]")
     placed: dict[str, list[Any]] = {stage: [] for stage in STAGES}
     for i, effect in enumerate(extra):
         placed[stage_of(effect, f"extra.{i}")].append(effect)

@@ -69,6 +69,14 @@ class MieEfficiencies(NamedTuple):
     g: float
 
 
+#: Piezo frequencies Lang's relation is used for, Hz. Assumed: Lang (1962, J. Acoust. Soc. Am. 34, 6)
+#: measured it at 10–800 kHz and ultrasonic nebulisers run up to a few MHz (the paper's 1.7 MHz);
+#: [1 kHz, 1 GHz] spans that with three decades to spare and keeps the diameter between 0.4 mm
+#: and 40 nm. Outside, float64 failed (measured: 1e-300 Hz a division by zero, 1e300 Hz an
+#: overflow of f²).
+PIEZO_RANGE_HZ = (1e3, 1e9)
+
+
 def droplet_diameter_m(
     piezo_frequency_hz: float,
     surface_tension_n_m: float = WATER_SURFACE_TENSION_N_M,
@@ -80,8 +88,9 @@ def droplet_diameter_m(
 
     With water (σ = 0.072 N/m, ρ = 1000 kg/m³) at 1.7 MHz this is 2.9 µm.
     """
-    if not np.isfinite(piezo_frequency_hz) or piezo_frequency_hz <= 0:
-        raise ConfigError("piezo_frequency_hz", piezo_frequency_hz, "a frequency in Hz > 0")
+    lo, hi = PIEZO_RANGE_HZ
+    if not np.isfinite(piezo_frequency_hz) or not lo <= piezo_frequency_hz <= hi:
+        raise ConfigError("piezo_frequency_hz", piezo_frequency_hz, f"a frequency in Hz in [{lo:g}, {hi:g}]")
     return float(0.34 * (8.0 * np.pi * surface_tension_n_m / (density_kg_m3 * piezo_frequency_hz**2)) ** (1.0 / 3.0))
 
 

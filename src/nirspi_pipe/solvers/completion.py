@@ -340,7 +340,8 @@ def complete(
             gain = s0 * size / (s0 * size + sigma**2) if s0 * size + sigma**2 > 0 else 1.0
             shrunk = r * gain
             shrunk[dc] = r[dc]
-            info.update(alpha=0.0, prior_scale=s0, noise_sigma=float(sigma), prior_mean=mu, neg_log_evidence=np.nan)
+            # no neg_log_evidence: no prior was fitted (a NaN would be left out of the record anyway)
+            info.update(alpha=0.0, prior_scale=s0, noise_sigma=float(sigma), prior_mean=mu)
             return mu + zero_filled_inverse(n, indices, shrunk), info
     back = np.zeros(size)
     back[np.asarray(indices, dtype=np.int64)] = f.scale * k_r
@@ -370,6 +371,14 @@ def _loo_ratio(f: _Fit, denom: np.ndarray, live: np.ndarray, r: np.ndarray, k_r:
     loo = k_r[live] / k_ii[live]
     white = float(np.sum(r[live] ** 2))
     return float(np.sum(loo**2)) / white if white > 0 else 0.0
+
+
+#: Largest ``noise`` (σ per measurement, in the coefficients' units). Assumed: the solver keeps
+#: ``1/(sλ + σ²)`` in float32 for its maps, which underflows to 0 once σ² nears 1e38 (measured:
+#: σ = 1e100 gave 0/0 in the leave-one-out guard, 1e300 overflowed σ² itself); 1e12 is 1e5 times
+#: the largest coefficient a relative image gives (|y| <= n² <= 4096² = 1.7e7) and measured to
+#: finish, so every σ a user can mean is below it.
+NOISE_MAX = 1e12
 
 
 @dataclass(frozen=True)
@@ -407,11 +416,12 @@ class CompletionSolver:
     refine: str = "none"
 
     def __post_init__(self) -> None:
+        allowed = f"auto, or a noise sigma per measurement in [0, {NOISE_MAX:g}]"
         if isinstance(self.noise, str):
             if self.noise != "auto":
-                raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
-        elif not (np.isfinite(self.noise) and self.noise >= 0):
-            raise ConfigError("noise", self.noise, "auto, or a noise sigma >= 0 per measurement")
+                raise ConfigError("noise", self.noise, allowed)
+        elif not (np.isfinite(self.noise) and 0 <= self.noise <= NOISE_MAX):
+            raise ConfigError("noise", self.noise, allowed)
         if isinstance(self.alpha, str) and self.alpha != "auto":
             raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
         self.priors()  # validates alpha and f0

@@ -12,7 +12,7 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.solvers.common import checked_coefficients, measurement_operator
 from nirspi_pipe.types import Acquisition, Image2D
 
-__all__ = ["LstsqSolver", "LSQR_STOP"]
+__all__ = ["DAMP_MAX", "LstsqSolver", "LSQR_STOP"]
 
 #: scipy's LSQR ``istop`` codes, as stop reasons for the record.
 LSQR_STOP = {
@@ -26,6 +26,12 @@ LSQR_STOP = {
     7: "max_iter",
 }
 
+
+#: Largest ``damp``. scipy's LSQR squares it (``dampsq = damp**2``, scipy/sparse/linalg/_isolve/
+#: lsqr.py), a Python float that overflows past 1.34e154 (measured: ``damp=1e300`` ended in
+#: OverflowError); at 1e150 the damped image is already 1e-296 of the undamped one (measured to
+#: finish, all numbers finite), so nothing a user can mean lies above it. Assumed bound.
+DAMP_MAX = 1e150
 
 #: ``iter_lim: null`` stops LSQR after this many times ``max(m, N)`` iterations at most.
 SAFETY_FACTOR = 50
@@ -64,8 +70,8 @@ class LstsqSolver:
                 raise ConfigError(key, v, "a tolerance in [0, 1)")
         if self.iter_lim is not None and (not isinstance(self.iter_lim, (int, np.integer)) or self.iter_lim < 1):
             raise ConfigError("iter_lim", self.iter_lim, "an integer >= 1, or null")
-        if not (np.isfinite(self.damp) and self.damp >= 0):
-            raise ConfigError("damp", self.damp, "a damping >= 0")
+        if not (np.isfinite(self.damp) and 0 <= self.damp <= DAMP_MAX):
+            raise ConfigError("damp", self.damp, f"a damping in [0, {DAMP_MAX:g}]")
 
     def solve(self, acquisition: Acquisition) -> Image2D:
         y = checked_coefficients(acquisition, "lstsq")
