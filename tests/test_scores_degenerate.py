@@ -217,3 +217,33 @@ def test_tables_show_degenerate_cells_and_say_what_their_means_left_out(tmp_path
         pt = pareto.build(_frame(k), tmp_path)
         assert int(pt["degenerate"].sum()) == k
         assert ("Degenerate scores" in (tmp_path / "pareto.md").read_text()) == (k > 0)
+
+
+def test_a_compressed_acquisition_is_tested_on_what_its_patterns_see() -> None:
+    """25 % of the 8² patterns: the zero-filled image lives in their 16-dimensional span, so the
+    test has 14 degrees of freedom and correlates with the reference projected onto that span
+    (measured_view). Noise in that span exceeds t_0.95 in 5 % of 2000 draws (binomial 5σ band)
+    and never reaches the level; the real reconstruction of the sphere is scored."""
+    from nirspi_pipe.metrics import measured_values, measured_view
+    from nirspi_pipe.solvers.fwht import zero_filled_inverse
+
+    n, idx = 8, np.arange(16)
+    sim = Simulator(forward_model(detector=Photodiode()))
+    truth = Sphere().render(Camera(n))
+    acq = sim.acquire(truth, idx, n, np.random.default_rng(0))
+    reference = sim.reference_image(truth)
+    seen = measured_view(acq, reference)
+    assert measured_values(acq, n * n) == 16 and seen is not None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        image = FWHTSolver().solve(acq).data
+    out = _score(reference, image, independent=16, seen=seen)
+    assert "psnr" in out and out["psnr"] > _blank_baseline(reference)
+    rng = np.random.default_rng(11)
+    ts = np.array(
+        [content_test(reference, zero_filled_inverse(n, idx, rng.standard_normal(16)), 16, seen).t for _ in range(2000)]
+    )
+    assert ts.size == 2000 and np.all(np.isfinite(ts))
+    share = float(np.mean(ts > stdtrit(14, 0.95)))
+    assert abs(share - 0.05) < 5 * np.sqrt(0.05 * 0.95 / 2000), share
+    assert not np.any(ts > stdtrit(14, 1 - CONTENT_LEVEL))

@@ -41,6 +41,7 @@ __all__ = [
     "Content",
     "content_test",
     "measured_values",
+    "measured_view",
     "PSNR_CAP_DB",
     "ImageMetrics",
     "degenerate_reference",
@@ -98,7 +99,13 @@ class Content:
     dof: int = 0
 
 
-def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int | None = None) -> Content:
+def content_test(
+    reference: np.ndarray,
+    estimate: np.ndarray,
+    independent: int | None = None,
+    seen: np.ndarray | None = None,
+    gain_test: bool = True,
+) -> Content:
     """Whether ``estimate`` shows ``reference`` well enough for the gain-and-offset-fitted scores.
 
     The fit regresses the reference on the image, ``reference = a·estimate + b + e``. The scores
@@ -112,7 +119,14 @@ def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int |
 
     ``independent`` is how many independent values the image carries (default: its pixels): an
     image interpolated from, or reconstructed out of, fewer values has ``n`` = that many (the
-    upscaled image: the camera's pixels; a compressed acquisition: its measurements).
+    upscaled image: the camera's pixels; a compressed acquisition: its measurements). ``seen``,
+    when given, is the part of the reference those values can show (:func:`measured_view`: the
+    reference projected onto the measured patterns); the correlation is then taken with it, so
+    that a compressed reconstruction is tested on what its measurements could see (under H0 the
+    image is independent of the reference, so the test is exact for any fixed ``seen``).
+    ``gain_test=False`` skips the t-test (the other checks stay): for an image computed from one
+    that passed it (an upscaled image from the camera's: under H0 both are independent of the
+    scene, so the camera's test is the test of both).
 
     Not scored, with the reason: a reference without a fit (:func:`degenerate_reference`;
     ``degenerate_reference``), an image that is not finite or is the same value everywhere (a
@@ -122,12 +136,14 @@ def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int |
     why = degenerate_reference(reference)
     if why is not None:
         return Content(why, DEGENERATE_FLAG)
-    y = np.asarray(reference, dtype=np.float64).ravel()
+    y = np.asarray(reference if seen is None else seen, dtype=np.float64).ravel()
     x = np.asarray(estimate, dtype=np.float64).ravel()
     if not np.all(np.isfinite(x)):
         return Content("the image is not finite", NO_CONTENT_FLAG)
     if not float(x.max()) > float(x.min()):
         return Content("the image is the same value everywhere: it has no content to score", NO_CONTENT_FLAG)
+    if not gain_test:
+        return Content(None)
     n = x.size if independent is None else min(int(independent), x.size)
     dof = n - 2
     if dof < 1:
@@ -135,13 +151,16 @@ def content_test(reference: np.ndarray, estimate: np.ndarray, independent: int |
             f"the image carries {n} independent value(s); a gain needs at least 3 to be tested", NO_CONTENT_FLAG
         )
     # the correlation from scaled, centred copies: no overflow for images near the float64 limits
-    xc = x - x.mean()
-    yc = y - y.mean()
-    xc = xc / float(np.max(np.abs(xc)))
-    yc = yc / float(np.max(np.abs(yc))) if float(np.max(np.abs(yc))) > 0 else yc
+    xc = x / float(np.max(np.abs(x)))
+    xc = xc - xc.mean()
+    ymax = float(np.max(np.abs(y))) if np.all(np.isfinite(y)) else 0.0
+    yc = y / ymax if ymax > 0 else np.zeros_like(y)
+    yc = yc - yc.mean()
     sxx, syy = float(xc @ xc), float(yc @ yc)
-    if not (sxx > 0 and syy > 0):
-        return Content("the reference image is uniform (no contrast for a gain to fit)", DEGENERATE_FLAG)
+    if not sxx > 0:
+        return Content("the image is the same value everywhere: it has no content to score", NO_CONTENT_FLAG)
+    if not syy > 0:
+        return Content("its measurements see none of the reference's contrast (only the mean)", NO_CONTENT_FLAG)
     r = float(np.clip((xc @ yc) / np.sqrt(sxx * syy), -1.0, 1.0))
     t = math.copysign(math.inf, r) if abs(r) >= 1.0 else r * math.sqrt(dof) / math.sqrt(1.0 - r * r)
     from scipy.special import stdtr  # start-up: loads scipy.special (already loaded by skimage.metrics)
@@ -262,7 +281,14 @@ class ImageMetrics:
             return {}
         est = np.asarray(products.image.data, dtype=np.float64)
         acq = products.acquisition
-        return self.score(truth.radiance, est, acq.reference, independent=measured_values(acq, est.size))
+        ref = truth.radiance if acq.reference is None else acq.reference
+        return self.score(
+            truth.radiance,
+            est,
+            acq.reference,
+            independent=measured_values(acq, est.size),
+            seen=measured_view(acq, ref),
+        )
 
     def score(
         self,
@@ -272,13 +298,16 @@ class ImageMetrics:
         prefix: str = "",
         independent: int | None = None,
         upstream: str | None = None,
+        seen: np.ndarray | None = None,
     ) -> dict[str, float]:
         """The scores of ``estimate`` against ``truth`` (raw) and ``reference`` (normalised; the
         truth when None), keys prefixed by ``prefix``. The normalised ones only where
-        :func:`content_test` (given ``independent``) says they mean something; otherwise its flag
-        (1.0, and ``content_t`` when the test ran) and a warning with the reason. ``upstream``: why
-        the image this one was computed from (the camera's, for an upscaled image) has no content;
-        then this one has none either (post-processing adds no information about the scene)."""
+        :func:`content_test` (given ``independent`` and ``seen``) says they mean something; otherwise its flag
+        (1.0, and ``content_t`` when the test ran) and a warning with the reason. ``upstream``: for an image
+        computed from another (the camera's, for an upscaled image), that one's flag when it has no
+        content (then this one has none either: post-processing adds no information about the
+        scene), or ``""`` when it passed (then only this image's own constant/finite checks run,
+        not a second t-test)."""
         est = np.asarray(estimate, dtype=np.float64)
         ref = np.asarray(truth, dtype=np.float64)
         if est.shape != ref.shape:
@@ -288,12 +317,12 @@ class ImageMetrics:
             raise ValueError(f"reconstruction {est.shape} and reference {norm_ref.shape} differ in shape")
         if not {"psnr", "ssim"} & set(self.names):
             content = Content(None)
-        elif upstream is not None and degenerate_reference(norm_ref) is None:
+        elif upstream and degenerate_reference(norm_ref) is None:
             content = Content(
                 f"it is computed from the camera's image, which has no content to score ({upstream})", NO_CONTENT_FLAG
             )
         else:
-            content = content_test(norm_ref, est, independent)
+            content = content_test(norm_ref, est, independent, seen, gain_test=upstream is None)
         why = content.reason
         if why is not None:
             warnings.warn(
@@ -320,6 +349,27 @@ class ImageMetrics:
             if np.isfinite(content.t):
                 out[f"{prefix}{CONTENT_T}"] = content.t
         return out
+
+
+def measured_view(acquisition: Any, reference: np.ndarray) -> np.ndarray | None:
+    """The part of ``reference`` that the acquisition's Hadamard patterns see: its projection
+    onto the measured patterns (the zero-filled inverse of its measured coefficients,
+    :func:`nirspi_pipe.solvers.fwht.zero_filled_inverse`). None when every pattern was measured
+    (then it is the reference), for explicit pattern matrices, or when the shapes differ."""
+    from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two
+    from nirspi_pipe.solvers.fwht import zero_filled_inverse
+
+    ref = np.asarray(reference, dtype=np.float64)
+    n = int(getattr(acquisition, "n", 0) or 0)
+    indices = getattr(acquisition, "indices", None)
+    if indices is None or getattr(acquisition, "patterns", None) is not None or not is_power_of_two(n):
+        return None
+    if ref.shape != (n, n) or not np.all(np.isfinite(ref)):
+        return None
+    measured = np.unique(np.asarray(indices, dtype=np.int64))
+    if measured.size >= n * n or measured.size == 0 or measured.min() < 0 or measured.max() >= n * n:
+        return None
+    return zero_filled_inverse(n, measured, fwht(ref.ravel())[measured])
 
 
 def measured_values(acquisition: Any, pixels: int) -> int:

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.metrics import ImageMetrics, content_test, measured_values
+from nirspi_pipe.metrics import ImageMetrics, content_test, measured_values, measured_view
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products
 from nirspi_pipe.types import Image2D
@@ -87,16 +87,15 @@ class UpscaleMetrics(ImageMetrics):
         fine = render_cached(self.scene, RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
         reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
-        # the upscaled image is a function of the camera's image: no more independent values than it
+        # the upscaled images are functions of the camera's image: the content test is the camera's
+        # (under H0, an image independent of the scene, they are independent of it too); where the
+        # camera's image has no content, an upscaler's output would be its prior, not the scene
         carried = measured_values(products.acquisition, n * n)
-        # ... and no content where the camera's image has none (content_test at the camera's
-        # resolution): an upscaler's output from it would be its prior, not the scene
         clean = products.acquisition.reference
-        camera = content_test(
-            truth.radiance if clean is None else clean, np.asarray(products.image.data, dtype=np.float64), carried
-        )
-        upstream = None if camera.reason is None else f"{camera.flag}"
-        kw: dict[str, Any] = {"independent": carried, "upstream": upstream}
+        camera_ref = np.asarray(truth.radiance if clean is None else clean, dtype=np.float64)
+        view = measured_view(products.acquisition, camera_ref)
+        camera = content_test(camera_ref, np.asarray(products.image.data, dtype=np.float64), carried, view)
+        kw: dict[str, Any] = {"upstream": "" if camera.reason is None else f"{camera.flag}"}
         out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
         if self.upscaler is not None and clean is not None:
             clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
