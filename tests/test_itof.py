@@ -139,6 +139,7 @@ def test_needs_scene():
         ("quantum_efficiency", 1.5),
         ("demod_contrast", 0.0),
         ("ned_cm_per_sqrt_hz", float("nan")),
+        ("laser_power_mw", 1.1e15),
     ],
 )
 def test_bad_config(key, value):
@@ -154,3 +155,31 @@ def test_extreme_fog_is_flagged_not_nan(sphere):
         )
     assert not np.any(np.isnan(s.points_m)) and not np.any(np.isnan(s.sigma_m))
     assert np.all(np.isinf(s.sigma_m)) and caught
+
+
+@settings(max_examples=25, deadline=None)
+@given(log_power_mw=st.floats(8.0, 15.0), seed=st.integers(0, 2**16))
+def test_huge_signal_has_a_gaussian_shot_noise(sphere, log_power_mw, seed):
+    """Laser powers up to 1e15 mW, the largest allowed (counts far beyond numpy's Poisson limit, ~9e18, which raised
+    `ValueError: lam value too large`; e.g. itof.laser_power_mw=1e12, or a sphere almost touching
+    the lens): the shot noise falls back to a Gaussian of the same mean and variance, as the
+    photodiode's does, and every spot is finite, valid and within 5 sigma of the truth."""
+    it = ContinuousWave4(laser_power_mw=10.0**log_power_mw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow warning either
+        s = it.measure(sphere, _acq(), np.random.default_rng(seed))
+    dirs = laser_directions(it.spot_angle_deg, it.azimuth_deg)
+    c, rad = np.array([0, 0, 0.2]), 0.025
+    b = dirs @ c
+    true_r = b - np.sqrt(b * b - (c @ c - rad * rad))
+    assert np.all(np.isfinite(s.points_m)) and np.all(np.isfinite(s.sigma_m)) and s.info["valid_spots"] == 4
+    assert np.all(np.abs(np.linalg.norm(s.points_m, axis=1) - true_r) < 5 * s.sigma_m + 1e-4)
+
+
+def test_shot_noise_switch_keeps_the_variance():
+    """Above 1e7 electrons the counts are Gaussian with the Poisson variance (mean = variance)."""
+    from nirspi_pipe.physics.detector import sample_electrons
+
+    mean = np.full(20000, 1e20)
+    x = sample_electrons(mean, np.random.default_rng(0), shot=True, read_noise_e=0.0)
+    assert np.var(x) / 1e20 == pytest.approx(1.0, rel=0.05) and abs(np.mean(x) / 1e20 - 1) < 1e-9

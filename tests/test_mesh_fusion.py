@@ -11,7 +11,7 @@ from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.itof.cw4 import ContinuousWave4
 from nirspi_pipe.mesh.fusion import (
     ItofFusion,
-    fit_metric_depth,
+    fit_anchors,
     heat_diffusion,
     region_weights,
     semi_even_points,
@@ -149,14 +149,18 @@ def test_collinear_anchors_need_scale_prior():
     z = np.array([0.18, 0.181, 0.179, 0.18])
     sig = np.full(4, 0.01)
     with pytest.raises(NirspiError, match="scale"):
-        fit_metric_depth(zr, z, sig, np.arange(4), 4, 1e-3, None, 0.0)
-    s, t, delta = fit_metric_depth(zr, z, sig, np.arange(4), 4, 1e-3, 0.2, 0.005)
-    assert s == pytest.approx(1e-3) and np.isfinite(t) and np.all(np.isfinite(delta))
+        fit_anchors(zr, z, sig, 10.0, 180.0, None)
+    fit = fit_anchors(zr, z, sig, 10.0, 180.0, 0.2)
+    assert fit.scale == pytest.approx(fit.placement_m / 180.0) and fit.placement_m == pytest.approx(0.18)
 
 
 def test_no_anchor_is_clear_error():
     with pytest.raises(NirspiError, match="no valid iToF anchor"):
-        fit_metric_depth(np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, int), 4, 1e-3, 0.2, 0.005)
+        fit_anchors(np.zeros(0), np.zeros(0), np.zeros(0), 0.0, 180.0, 0.2)
+    # with a placement prior, no anchor places the depth at the prior, at the geometric scale
+    fit = fit_anchors(np.zeros(0), np.zeros(0), np.zeros(0), 0.0, 180.0, None, 0.2, 0.05)
+    assert fit.placement_m == pytest.approx(0.2) and fit.scale == pytest.approx(0.2 / 180.0)
+    assert fit.placement_sigma_m == pytest.approx(0.05, rel=1e-6)
 
 
 def test_empty_mask_and_missing_itof(scene):

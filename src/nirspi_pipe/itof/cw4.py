@@ -16,8 +16,10 @@ demodulation)::
 
 which is unambiguous up to ``c / (2 f_mod)`` (31.2 m at 4.8 MHz); farther targets wrap.
 
-Noise. The ``A_k`` are Poisson counts (shot noise of signal and background light) accumulated
-over ``frames = round(averaging_s / T_int)`` integration windows of ``T_int``. The shot-noise
+Noise. The ``A_k`` are Poisson counts (shot noise of signal and background light; a Gaussian of
+the same mean and variance above 10⁷ electrons, the photodiode's rule,
+:func:`nirspi_pipe.physics.detector.sample_electrons`) accumulated over
+``frames = round(averaging_s / T_int)`` integration windows of ``T_int``. The shot-noise
 range deviation (Lange & Seitz 2001) is ``σ_shot = c/(4π f) · sqrt(ΣA_k / 2) / (2 a)`` with
 ``a = ½·|(A0 − A2, A3 − A1)|``, estimated from the measured counts as a device would. On top sits
 the electronics floor given by Table 1's noise-equivalent distance: ``σ_floor = NED ·
@@ -45,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.physics.detector import sample_electrons
 from nirspi_pipe.types import Acquisition, Camera, Image2D, ItofSample, Scene
 
 __all__ = ["ContinuousWave4", "aim_spots", "ambiguity_range_m", "demodulate_4phase", "laser_directions"]
@@ -53,6 +56,9 @@ SPOT_MODES = ("auto", "fixed")
 
 C_M_S = 299_792_458.0  # speed of light, m/s
 H_J_S = 6.626_070_15e-34  # Planck constant, J·s
+#: Largest laser power, mW (assumed: 1 TW, far beyond any laser; it keeps the photo-electron
+#: counts, ~3e26 for the default sphere, within float64 with room for a target at the lens).
+_MAX_POWER_MW = 1e15
 
 
 def ambiguity_range_m(f_mod_hz: float) -> float:
@@ -189,7 +195,7 @@ class ContinuousWave4:
         averaging_s: time over which frames are averaged, s; sets the electronics floor
             ``NED·sqrt(1/(2·averaging_s))`` and the accumulated photon counts.
         ned_cm_per_sqrt_hz: noise-equivalent distance, cm/√Hz (Table 1: 1).
-        laser_power_mw: optical power of each laser, mW (§3: 5 mW, IEC 62471).
+        laser_power_mw: optical power of each laser, mW (§3: 5 mW, IEC 62471); at most 1e15.
         wavelength_nm: laser wavelength, nm (1550).
         spots: ``auto`` (default): steerable spots aimed at the object with the 2D image
             (:func:`aim_spots`; the runner calls :meth:`aimed` before :meth:`measure`), like a
@@ -251,6 +257,8 @@ class ContinuousWave4:
             v = getattr(self, key)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(key, v, allowed)
+        if self.laser_power_mw > _MAX_POWER_MW:
+            raise ConfigError("laser_power_mw", self.laser_power_mw, f"a power in mW in (0, {_MAX_POWER_MW:g}]")
         if not (np.isfinite(self.ned_cm_per_sqrt_hz) and self.ned_cm_per_sqrt_hz >= 0):
             raise ConfigError("ned_cm_per_sqrt_hz", self.ned_cm_per_sqrt_hz, "a NED in cm/√Hz >= 0")
         if self.averaging_s < self.t_int_us * 1e-6:
@@ -389,7 +397,9 @@ class ContinuousWave4:
             n_s, n_b = self.expected_counts(r, refl, cos_inc, beta, e_bg)
             phi = np.mod(4.0 * np.pi * f * r / C_M_S, 2.0 * np.pi) if hit else 0.0
             mean = n_b / 4.0 + n_s / 4.0 * (1.0 + self.demod_contrast * np.cos(phi + k_phase))
-            counts = rng.poisson(mean).astype(np.float64)  # shot noise of signal + background
+            # shot noise of signal + background: Poisson, a Gaussian of the same mean and variance
+            # above the detector's switch (numpy's Poisson refuses means above ~9e18)
+            counts = sample_electrons(mean, rng, shot=True, read_noise_e=0.0)
             dist_0d, amp, offset = demodulate_4phase(counts, f)  # one pixel: 0-d arrays
             dist = float(dist_0d)
             s_phi: float

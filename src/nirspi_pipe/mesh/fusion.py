@@ -43,10 +43,12 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
+from scipy.optimize import least_squares
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
@@ -55,7 +57,10 @@ from nirspi_pipe.types import Camera, DepthMap, ItofSample, PointCloud
 
 __all__ = [
     "ItofFusion",
-    "fit_metric_depth",
+    "AnchorFit",
+    "fit_anchors",
+    "consistent_anchors",
+    "worse_than_prior",
     "region_weights",
     "grid_triangles",
     "semi_even_points",
@@ -157,69 +162,241 @@ def region_weights(angles_deg: np.ndarray, anchor_angles_deg: np.ndarray, blend_
     return np.where(s > 0, w / np.where(s > 0, s, 1.0), hard)
 
 
-def fit_metric_depth(
+#: Bounds of the fitted log scale ratio ``u = ln(s / s_ref)``: the scale stays within a factor
+#: 1e6 of the geometric one (assumed: far beyond any SFS scale error; keeps the solver finite
+#: when anchors without a scale prior pull the scale towards 0 or a sign flip).
+_LOG_RATIO_BOUND = float(np.log(1e6))
+
+
+@dataclass(frozen=True)
+class AnchorFit:
+    """The anchors' fit of Alg. A3 (:func:`fit_anchors`).
+
+    Attributes:
+        scale: ``s`` (metres per SFS unit), > 0 by construction (``s = e^u · s_ref``).
+        offset_m: ``t`` (metres), so that ``z = s·zr + t``.
+        placement_m: ``c``, the metric depth of the SFS map's median (metres, > 0).
+        placement_sigma_m: the fit's standard deviation of ``c`` (metres; from the Jacobian).
+        scale_ref: ``s_ref``, the geometric scale at the placement (``c / focal_px``; 1 for
+            metric SFS depth).
+        chi2: the fit's χ², anchors and priors (dimensionless).
+        dof: its degrees of freedom, anchors + priors − 2.
+        anchor_chi2: the anchors' part of ``chi2``.
+        cov: ``(2, 2)`` covariance of ``(u, ln c)``.
+    """
+
+    scale: float
+    offset_m: float
+    placement_m: float
+    placement_sigma_m: float
+    scale_ref: float
+    chi2: float
+    dof: int
+    anchor_chi2: float
+    cov: np.ndarray
+
+    def predict(self, zr: np.ndarray, median_zr: float, focal_px: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Metric depth at relative depths ``zr`` and its variance from the fit (metres, m²)."""
+        zr = np.asarray(zr, dtype=np.float64)
+        b = zr - median_zr
+        pred = self.scale * zr + self.offset_m
+        # gradient of pred = c + e^u·s_ref(c)·b in (u, ln c): s·b, and c + s·b (s_ref = c/f) or c (1)
+        dv = self.placement_m + (self.scale * b if focal_px is not None else np.zeros_like(b))
+        g = np.stack([self.scale * b, dv], axis=-1)
+        var = np.einsum("...i,ij,...j->...", g, self.cov, g)
+        return pred, np.maximum(var, 0.0)
+
+
+def fit_anchors(
     zr: np.ndarray,
     z: np.ndarray,
     sigma: np.ndarray,
-    region: np.ndarray,
-    n_regions: int,
-    s0: float,
+    median_zr: float,
+    focal_px: float | None,
     scale_prior_rel: float | None,
-    region_prior_m: float,
-) -> tuple[float, float, np.ndarray]:
-    """Fit ``z ≈ s·zr + t + δ[region]`` to the anchors (weighted least squares with priors).
+    prior_m: float | None = None,
+    prior_sigma_m: float | None = None,
+) -> AnchorFit:
+    """Alg. A3's global fit ``z ≈ s·zr + t`` to the anchors, weighted by their noise, with the
+    scale positive by construction.
+
+    The unknowns are the placement ``c`` (metric depth of the SFS median ``median_zr``) and the
+    log scale ratio ``u``: ``s = e^u · s_ref``, ``s_ref = c / focal_px`` (one relative SFS unit
+    is a pixel pitch at the object's depth; ``focal_px=None``: metric SFS depth, ``s_ref = 1``),
+    ``t = c − s·median_zr``. Minimised (:func:`scipy.optimize.least_squares`, ``u`` bounded to
+    a factor 1e6):
+
+        Σ_i ((ẑ_i − z_i)/σ_i)² + (u / scale_prior_rel)² + ((c − prior_m)/prior_sigma_m)²
+
+    the last two terms only when given: a log-normal scale prior (so it is never overruled into
+    a sign flip) and a Gaussian prior on the placement (the set-up's working distance). An
+    anchor whose ``σ`` is far above the prior's moves nothing.
 
     Args:
         zr: ``(k,)`` relative SFS depth at the anchors.
         z: ``(k,)`` iToF z-depth of the anchors, metres.
         sigma: ``(k,)`` anchor standard deviations, metres (finite, > 0).
-        region: ``(k,)`` region index of each anchor.
-        n_regions: number of regions (offsets ``δ``).
-        s0: prior scale (metres per relative unit).
-        scale_prior_rel: relative standard deviation of the scale prior; None = no prior.
-        region_prior_m: standard deviation of the per-region offsets, metres; 0 = no offsets.
-
-    Returns:
-        ``(s, t, δ)``: scale (m per unit), offset (m) and ``(n_regions,)`` offsets (m).
+        median_zr: the SFS map's median relative depth.
+        focal_px: focal length in pixels (relative SFS depth), or None (metric SFS depth).
+        scale_prior_rel: standard deviation of ``u`` (≈ the relative tolerance of the scale);
+            None = no scale prior (needs anchors at two SFS depths).
+        prior_m, prior_sigma_m: the placement prior, metres; None = none.
 
     Raises:
-        NirspiError: when the anchors cannot determine the unknowns (e.g. no anchor, or anchors
-            at equal SFS depth without a scale prior).
+        NirspiError: no anchor, or anchors that cannot determine the scale without its prior.
     """
+    zr = np.asarray(zr, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    sig = np.asarray(sigma, dtype=np.float64)
     k = len(z)
-    if k == 0:
+    has_prior = prior_m is not None and prior_sigma_m is not None and prior_sigma_m > 0
+    if k == 0 and not has_prior:
         raise NirspiError("fusion: no valid iToF anchor on the SFS depth map; cannot make it metric")
-    use_regions = region_prior_m > 0
-    ncols = 2 + (n_regions if use_regions else 0)
-    rows, rhs = [], []
-    for i in range(k):
-        row = np.zeros(ncols)
-        row[0], row[1] = zr[i], 1.0
-        if use_regions:
-            row[2 + int(region[i])] = 1.0
-        rows.append(row / sigma[i])
-        rhs.append(z[i] / sigma[i])
-    if scale_prior_rel is not None:
-        row = np.zeros(ncols)
-        tol = scale_prior_rel * abs(s0)
-        row[0] = 1.0 / tol
-        rows.append(row)
-        rhs.append(s0 / tol)
-    if use_regions:
-        for j in range(n_regions):
-            row = np.zeros(ncols)
-            row[2 + j] = 1.0 / region_prior_m
-            rows.append(row)
-            rhs.append(0.0)
-    a, b = np.array(rows), np.array(rhs)
-    theta, _, rank, _ = np.linalg.lstsq(a, b, rcond=None)
-    if rank < ncols:
+    if k == 0 and scale_prior_rel is None:
+        scale_prior_rel = 0.2  # no anchor: the scale is the geometric one, as with one anchor
+    if scale_prior_rel is None and (k < 2 or float(np.ptp(zr)) <= 0):
         raise NirspiError(
             f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
             "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
         )
-    delta = theta[2:] if use_regions else np.zeros(n_regions)
-    return float(theta[0]), float(theta[1]), np.asarray(delta, dtype=np.float64)
+    b = zr - median_zr
+    rel = focal_px is not None
+    f_px = float(focal_px) if focal_px is not None else 1.0
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        c = np.exp(x[1])
+        s = np.exp(x[0]) * (c / f_px if rel else 1.0)
+        out = [(c + s * b - z) / sig]
+        if scale_prior_rel is not None:
+            out.append(np.array([x[0] / scale_prior_rel]))
+        if has_prior:
+            out.append(np.array([(c - float(prior_m)) / float(prior_sigma_m)]))  # type: ignore[arg-type]
+        return np.concatenate(out)
+
+    # start: u = 0 and the weighted least-squares placement at that scale (closed form)
+    w = 1.0 / sig**2
+    a = 1.0 + b / f_px if rel else np.ones(k)
+    shift = np.zeros(k) if rel else b
+    num = float(np.sum(w * a * (z - shift)))
+    den = float(np.sum(w * a * a))
+    if has_prior:
+        num += float(prior_m) / float(prior_sigma_m) ** 2  # type: ignore[arg-type]
+        den += 1.0 / float(prior_sigma_m) ** 2  # type: ignore[arg-type]
+    c0 = num / den if den > 0 and np.isfinite(num / den) else float(np.median(z))
+    c0 = max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        sol = least_squares(
+            residuals,
+            np.array([0.0, np.log(c0)]),
+            bounds=([-_LOG_RATIO_BOUND, -np.inf], [_LOG_RATIO_BOUND, np.log(1e12)]),
+            x_scale="jac",
+            xtol=1e-12,
+            ftol=1e-12,
+            gtol=1e-12,
+        )
+    u, v = (float(x) for x in sol.x)
+    c = float(np.exp(v))
+    s_ref = c / f_px if rel else 1.0
+    s = float(np.exp(u) * s_ref)
+    res = residuals(sol.x)
+    jac = np.asarray(sol.jac, dtype=np.float64)
+    cov = np.linalg.pinv(jac.T @ jac)
+    if not (np.isfinite(s) and np.isfinite(c) and np.all(np.isfinite(res)) and np.all(np.isfinite(cov))):
+        raise NirspiError("fusion: the anchors' fit of the depth scale and offset did not converge to finite values")
+    return AnchorFit(
+        scale=s,
+        offset_m=float(c - s * median_zr),
+        placement_m=c,
+        placement_sigma_m=float(c * np.sqrt(max(cov[1, 1], 0.0))),
+        scale_ref=float(s_ref),
+        chi2=float(np.sum(res**2)),
+        dof=int(len(res) - 2),
+        anchor_chi2=float(np.sum(res[:k] ** 2)),
+        cov=cov,
+    )
+
+
+def consistent_anchors(
+    zr: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    alpha: float | None,
+    fit: Callable[[np.ndarray], AnchorFit],
+    median_zr: float,
+    focal_px: float | None,
+) -> tuple[np.ndarray, dict[int, str], AnchorFit]:
+    """The anchors that pass a χ² test of consistency, the rejected ones with their reason, and
+    the final fit.
+
+    The χ² of the weighted fit (anchors and priors) is compared with the ``1 − alpha`` quantile
+    of the χ² distribution with its degrees of freedom (the goodness-of-fit test of a weighted
+    least-squares fit: Bevington & Robinson, *Data Reduction and Error Analysis*, 3rd ed., §11.1;
+    Press et al., *Numerical Recipes*, 3rd ed., §15.1). When it fails, each anchor is predicted
+    from the others (leave-one-out fit, predictive variance ``σ_i² + var(ẑ_i)``) and the one
+    farthest from its prediction is rejected if its squared standardised deviation exceeds the
+    χ²₁ quantile at ``alpha / k`` (Bonferroni over the ``k`` anchors tested); then refit and
+    test again. An anchor within its noise of the others is never rejected, so a fit that fails
+    only because the anchors together disagree with a prior keeps them all. ``alpha=None``: no
+    test. ``fit(idx)`` fits the anchors ``idx`` (indices into the arrays).
+    """
+    from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
+
+    keep = np.arange(len(z))
+    rejected: dict[int, str] = {}
+    cur = fit(keep)
+    while alpha is not None and len(keep) >= 2 and cur.dof >= 1 and chi2_dist.sf(cur.chi2, cur.dof) < alpha:
+        worst, worst_d2 = -1, 0.0
+        for j in keep:
+            others = keep[keep != j]
+            try:
+                loo = fit(others)
+            except NirspiError:
+                continue
+            pred, var = loo.predict(zr[j : j + 1], median_zr, focal_px)
+            d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + var[0]))
+            if d2 > worst_d2:
+                worst, worst_d2 = int(j), d2
+        limit = float(chi2_dist.ppf(1.0 - alpha / len(keep), 1))
+        if worst < 0 or worst_d2 <= limit:
+            break
+        rejected[worst] = (
+            f"inconsistent: {np.sqrt(worst_d2):.1f} sigma from the depth the other anchors and the SFS shape "
+            f"predict there (limit {np.sqrt(limit):.2f} sigma: the fit's chi2 test at alpha={alpha:g}, "
+            f"Bonferroni over {len(keep)} anchors)"
+        )
+        keep = keep[keep != worst]
+        cur = fit(keep)
+    return keep, rejected, cur
+
+
+def worse_than_prior(cur: AnchorFit, prior_sigma_m: float | None, n_anchors: int, scale_prior: bool) -> str | None:
+    """Why the fused placement is expected to be worse than SFS placed by the prior alone, or
+    None. No ground truth: from the fit's own numbers.
+
+    The fit weighs the anchors by their stated σ: its placement is ``c = w·c_a + (1 − w)·c_p``
+    with the anchors' share ``w = 1 − σ_c² / σ_p²`` (``σ_c`` the fitted placement's standard
+    deviation, ``σ_p`` the prior's). If the anchors in fact scatter ``R`` times more than their σ
+    (``R² = χ²_anchors / dof``, the Birge ratio, floored at 1; ``dof = k − 1`` with a scale prior,
+    ``k − 2`` without), the placement's mean square error is ``w²R²σ_a² + (1 − w)²σ_p²``
+    (``σ_a² = σ_c² / w`` the anchors' own variance), against ``σ_p²`` for the prior alone: it is
+    larger exactly when ``R² > 2 + σ_p²/σ_a²``."""
+    if prior_sigma_m is None or not prior_sigma_m > 0:
+        return None
+    dof = n_anchors - (1 if scale_prior else 2)
+    if dof < 1:
+        return None
+    r2 = max(1.0, cur.anchor_chi2 / dof)
+    share = 1.0 - (cur.placement_sigma_m / prior_sigma_m) ** 2
+    if not share > 0:
+        return None
+    var_a = cur.placement_sigma_m**2 / share
+    if r2 > 2.0 + prior_sigma_m**2 / var_a:
+        return (
+            f"the {n_anchors} anchors scatter {np.sqrt(r2):.3g} times their stated sigma (chi2 {cur.anchor_chi2:.3g} "
+            f"on {dof} dof), so the placement they carry (weight {share:.2f}) is expected to be worse than the "
+            f"working-distance prior's ({prior_sigma_m * 1e3:.3g} mm): limit {np.sqrt(2.0 + prior_sigma_m**2 / var_a):.3g}"
+        )
+    return None
 
 
 def grid_triangles(valid: np.ndarray) -> np.ndarray:
@@ -269,8 +446,13 @@ def semi_even_points(tri: np.ndarray, ref: np.ndarray, d_pitch_m: float, min_ang
     ny = np.where(ok, np.ceil(safe2 / d2), 1).astype(np.int64)
     counts = nx * ny
     total = int(counts.sum())
-    if total > _MAX_POINTS:
-        raise ConfigError("d_pitch_mm", d_pitch_m * 1e3, f"a pitch giving <= {_MAX_POINTS} points (got {total})")
+    if total > _MAX_POINTS:  # a property of the data (how far the surface spans), not of the config
+        span = float(np.linalg.norm(np.ptp(tri.reshape(-1, 3), axis=0)))
+        raise NirspiError(
+            f"fusion: the fused surface spans {span:.3g} m ({len(tri)} triangles), so Alg. A4 at a "
+            f"{d_pitch_m * 1e3:g} mm pitch would need {total} points (more than {_MAX_POINTS}); the metric "
+            "depth is implausible for a camera-scale object (hint: a coarser fusion.d_pitch_mm)"
+        )
     t_idx = np.repeat(np.arange(len(tri)), counts)
     start = np.repeat(np.cumsum(counts) - counts, counts)
     local = np.arange(total) - start
@@ -421,6 +603,15 @@ class ItofFusion:
         scale_prior_rel: relative tolerance of the prior scale ``Z̄/f`` (SFS in pixel-pitch
             units); null = fit the scale from the anchors alone (needs anchors at different SFS
             depths).
+        prior_distance_mm: the set-up's working distance, mm: a Gaussian prior on the depth of
+            the SFS map's median (``conf/fusion/itof.yaml``: the scene's ``distance_mm``, the
+            same nominal distance the metrics' geometric SFS baseline assumes); null = none
+            (the anchors alone place the depth).
+        prior_distance_rel: its relative standard deviation (assumed 0.25: the paper's objects
+            stand at 20 cm in a 35 cm chamber, ±5 cm).
+        anchor_alpha: level of the χ² test of the anchors' consistency (an anchor beyond its
+            noise of the others' prediction is rejected, :func:`consistent_anchors`); null = no
+            test.
         local_offsets: with at least ``min_anchors_local`` valid anchors, each anchor's image
             region gets its own offset: the anchor's residual after the global fit, shrunk by
             how well SFS and iToF already agree there (module docstring).
@@ -445,6 +636,9 @@ class ItofFusion:
     min_voxels_across: int = 16
     min_angle_deg: float = 1.0
     scale_prior_rel: float | None = 0.2
+    prior_distance_mm: float | None = None
+    prior_distance_rel: float = 0.25
+    anchor_alpha: float | None = 0.01
     local_offsets: bool = True
     min_anchors_local: int = 3
     blend_px: float = 8.0
@@ -470,6 +664,14 @@ class ItofFusion:
             raise ConfigError("min_angle_deg", self.min_angle_deg, "degrees in (0, 90)")
         if self.scale_prior_rel is not None and not (np.isfinite(self.scale_prior_rel) and self.scale_prior_rel > 0):
             raise ConfigError("scale_prior_rel", self.scale_prior_rel, "a relative tolerance > 0, or null")
+        if self.prior_distance_mm is not None and not (
+            np.isfinite(self.prior_distance_mm) and self.prior_distance_mm > 0
+        ):
+            raise ConfigError("prior_distance_mm", self.prior_distance_mm, "a distance in mm > 0, or null")
+        if not (np.isfinite(self.prior_distance_rel) and self.prior_distance_rel > 0):
+            raise ConfigError("prior_distance_rel", self.prior_distance_rel, "a relative tolerance > 0")
+        if self.anchor_alpha is not None and not 0.0 < self.anchor_alpha < 1.0:
+            raise ConfigError("anchor_alpha", self.anchor_alpha, "a test level in (0, 1), or null (no test)")
         if not isinstance(self.local_offsets, bool):
             raise ConfigError("local_offsets", self.local_offsets, "true or false")
         if int(self.min_anchors_local) != self.min_anchors_local or not 1 <= self.min_anchors_local <= 64:
@@ -560,25 +762,70 @@ class ItofFusion:
             kept = despike(zr_map, valid, self.despike_k, unit)
             spikes, valid = int(valid.sum() - kept.sum()), kept
         used, zr, z, sig, reasons = self._anchor_values(zr_map, valid, itof, camera)
-        if not used.any():
+        prior_m = None if self.prior_distance_mm is None else self.prior_distance_mm * 1e-3
+        prior_sig = None if prior_m is None else self.prior_distance_rel * prior_m
+        wrap = float((itof.info or {}).get("ambiguity_range_m", np.inf))
+        useless = sig * np.sqrt(12.0) >= wrap  # a wrapped phase this noisy is uniform over the range
+        for k in np.flatnonzero(used & useless):
+            used[k] = False
+            reasons[k] = (
+                f"uninformative: sigma {sig[k]:.3g} m >= the iToF's ambiguity range / sqrt(12) = "
+                f"{wrap / np.sqrt(12.0):.3g} m (its wrapped phase is then about uniform over the range)"
+            )
+            warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=3)
+        if not used.any() and prior_m is not None:
+            warnings.warn(
+                "fusion: no usable iToF anchor; the depth is placed by the working-distance prior alone "
+                f"(fusion.prior_distance_mm={self.prior_distance_mm:g}) at the geometric scale",
+                stacklevel=3,
+            )
+        elif not used.any():
             why = "; ".join(f"spot {k}: {r}" for k, r in enumerate(reasons)) or "the iToF sample has no spot"
             raise NirspiError(f"fusion: no valid iToF anchor on the SFS depth map ({why}); cannot make it metric")
-        s0 = 1.0
-        if not depth.metric:
-            zbar = float(np.average(z[used], weights=1.0 / sig[used] ** 2))
-            s0 = zbar / camera.focal_px  # metres per pixel pitch at the anchors' depth
+        idx = np.flatnonzero(used)
+        zr_u, z_u = zr[used], z[used]
+        median_zr = float(np.median(zr_map[valid]))
+        focal = None if depth.metric else float(camera.focal_px)
+
+        def scale_prior(count: int) -> float | None:  # one anchor cannot fit a scale: use the prior
+            return self.scale_prior_rel if count >= 2 else (self.scale_prior_rel or 0.2)
+
+        def fit_on(sig_all: np.ndarray) -> Callable[[np.ndarray], AnchorFit]:
+            def fit(ix: np.ndarray) -> AnchorFit:
+                return fit_anchors(
+                    zr_u[ix], z_u[ix], sig_all[ix], median_zr, focal, scale_prior(len(ix)), prior_m, prior_sig
+                )
+
+            return fit
+
+        # the SFS noise in metres needs the scale: first the geometric one at the anchors' median
+        # depth (robust to a wild anchor; the prior's without anchors), then the fitted one
         noise_rel = depth_noise(zr_map, valid)  # SFS noise, depth units
-        sfs_sigma = abs(s0) * noise_rel  # metres
-        eff_sig = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
-        prior = self.scale_prior_rel if used.sum() >= 2 else (self.scale_prior_rel or 0.2)
-        s, t, _ = fit_metric_depth(zr[used], z[used], eff_sig, np.zeros(int(used.sum()), int), 1, s0, prior, 0.0)
-        if s <= 0:
-            warnings.warn(f"fusion: fitted depth scale {s:.3g} <= 0 (SFS depth inverted?)", stacklevel=3)
+        c_guess = float(np.median(z_u)) if len(z_u) else float(prior_m or 1.0)
+        scale = c_guess / focal if focal is not None else 1.0
+        for _ in range(2):
+            sfs_sigma = scale * noise_rel  # metres
+            eff_all = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
+            keep, rejected, cur = consistent_anchors(
+                zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), median_zr, focal
+            )
+            scale = cur.scale
+        for j, why in rejected.items():
+            used[idx[j]] = False
+            reasons[idx[j]] = why
+            warnings.warn(f"fusion: iToF spot {idx[j]} not used: {why}", stacklevel=3)
+        eff_sig = eff_all[keep]
+        s, t = cur.scale, cur.offset_m
         z_m = s * zr_map + t
         pts = np.asarray(itof.points_m, dtype=np.float64).reshape(-1, 3)
         delta = np.zeros(len(pts))
         gains = np.zeros(len(pts))
-        if self.local_offsets and used.sum() >= self.min_anchors_local:
+        quality = self._quality(
+            cur, len(keep), len(rejected), scale_prior(len(keep)) is not None, prior_m, prior_sig, eff_sig
+        )
+        # local offsets only where the anchors place the depth (not a prior) and are not flagged
+        placed = float(quality.get("anchor_share", 1.0)) >= 0.5 and not quality["worse_than_sfs"]
+        if self.local_offsets and placed and used.sum() >= self.min_anchors_local:
             resid = z[used] - (s * zr[used] + t)
             var = eff_sig**2
             # positive-part shrinkage: only the disagreement beyond the combined noise is applied
@@ -593,16 +840,64 @@ class ItofFusion:
             raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
         fit = {
             "scale": s,
-            "scale_prior": s0,
+            "scale_prior": cur.scale_ref,
             "offset_m": t,
+            "placement_m": cur.placement_m,
+            "placement_sigma_m": cur.placement_sigma_m,
             "region_offsets_m": [float(v) for v in delta],
             "offset_gains": [float(v) for v in gains],
             "anchors_used": int(used.sum()),
             "anchors_rejected": {str(k): r for k, r in enumerate(reasons) if r},
             "sfs_noise_m": float(sfs_sigma),
             "spikes_removed": spikes,
+            **quality,
         }
         return np.where(valid, z_m, np.inf), valid, fit
+
+    def _quality(
+        self,
+        cur: AnchorFit,
+        n_kept: int,
+        n_inconsistent: int,
+        scale_prior: bool,
+        prior_m: float | None,
+        prior_sig: float | None,
+        eff_sig: np.ndarray,
+    ) -> dict:
+        """The fit's χ² test, the anchors' share of the placement and the ``worse_than_sfs``
+        flag for the record; warns about a flag or a placement that the anchors hardly inform.
+
+        Flagged (with a placement prior) when :func:`worse_than_prior` says so, or when the χ²
+        test rejected at least as many anchors as it kept: the anchors then disagree among
+        themselves and nothing but their count decides which are right, so their placement is
+        not expected to beat the prior's (a rule, not a computed expectation)."""
+        from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats
+
+        out: dict = {"chi2": cur.chi2, "chi2_dof": cur.dof}
+        if cur.dof >= 1:
+            out["chi2_p"] = float(chi2_dist.sf(cur.chi2, cur.dof))
+        why = worse_than_prior(cur, prior_sig, n_kept, scale_prior)
+        if why is None and prior_sig is not None and n_inconsistent and n_inconsistent >= n_kept:
+            why = (
+                f"the chi2 test rejected {n_inconsistent} of {n_kept + n_inconsistent} anchors as inconsistent: "
+                "the anchors disagree among themselves, so the kept ones are not expected to place the depth "
+                "better than the working-distance prior"
+            )
+        out["worse_than_sfs"] = why is not None
+        if prior_m is not None and prior_sig is not None:
+            share = float(np.clip(1.0 - (cur.placement_sigma_m / prior_sig) ** 2, 0.0, 1.0))
+            out.update(prior_distance_m=prior_m, anchor_share=share)
+            if share < 0.5 and why is None and n_kept:
+                warnings.warn(
+                    f"fusion: the {n_kept} iToF anchor(s) (sigma {float(eff_sig.min()):.3g} m at best) carry "
+                    f"{100 * share:.0f} % of the depth placement; the rest is the working-distance prior "
+                    f"(fusion.prior_distance_mm={self.prior_distance_mm:g}, +- {100 * self.prior_distance_rel:g} %)",
+                    stacklevel=4,
+                )
+        if why is not None:
+            out["worse_than_sfs_reason"] = why
+            warnings.warn(f"fusion: fused depth flagged worse than SFS alone: {why}", stacklevel=4)
+        return out
 
     def voxel_size_m(self, z_m: np.ndarray, valid: np.ndarray, camera: Camera) -> float:
         """The merging voxel, metres: ``voxel_mm``, or ``voxel_px`` pixel pitches at the object's

@@ -57,6 +57,17 @@ BASELINE_RMSE = {
     "fit": "metrics.depth_rmse_sfs_fit_mm",
 }
 FUSED_RMSE = "metrics.depth_rmse_fused_mm"
+#: The fusion's own flag: its fit says the fused depth is expected to be worse than SFS alone
+#: (:func:`nirspi_pipe.mesh.fusion.worse_than_prior`); flagged jobs stay in the means and are counted.
+FLAG = "info.fusion.worse_than_sfs"
+
+
+def flagged(g: pd.DataFrame) -> float:
+    """How many rows of ``g`` the fusion flagged worse than SFS alone; NaN when the records
+    carry no flag (made before the flag existed)."""
+    if FLAG not in g:
+        return np.nan
+    return float(g[FLAG].map(lambda v: v is True or v == 1 or str(v).lower() == "true").sum())
 
 
 def fogged(df: pd.DataFrame) -> pd.Series:
@@ -89,6 +100,7 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
                     "scan": scan,
                     "klux": float(klux),
                     "n": int(g[METRIC].notna().sum()),
+                    "flagged": flagged(g),
                     **st,
                     "paper_improvement_pct": p,
                     "diff_pct_points": st["improvement_pct_mean"] - p,
@@ -189,8 +201,8 @@ def _markdown(
         "Each cell: ours, mean ± standard error clustered by seed (n jobs = objects × seeds), for the "
         "offset-free baseline (primary), the centre-placed and the global-fit baselines; the paper's value.",
         "",
-        "| scan | kLux | paper | offset-free (primary) | centre-placed | global-fit | n |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| scan | kLux | paper | offset-free (primary) | centre-placed | global-fit | n | flagged |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in table.itertuples():
         cells = [
@@ -202,8 +214,20 @@ def _markdown(
         lines.append(
             f"| {SCAN_LABELS[r.scan]} | {r.klux:g} | {r.paper_improvement_pct:.2f} | "
             + " | ".join(cells)
-            + f" | {r.n} |"
+            + f" | {r.n} | {'n/a' if np.isnan(r.flagged) else int(r.flagged)} |"
         )
+    total = flagged(df)
+    lines += [
+        "",
+        "Flagged: "
+        + (
+            "n/a (the records carry no `info.fusion.worse_than_sfs`)."
+            if np.isnan(total)
+            else f"{int(total)} of {len(df)} jobs carry `info.fusion.worse_than_sfs` (the fusion's own fit, "
+            "without the ground truth, expects its depth to be worse than SFS placed at the working distance: "
+            "its anchors scatter beyond their stated noise); they are kept in every mean above."
+        ),
+    ]
     if has_free and "offsetfree_of_means" in table:
         lines += [
             "",
