@@ -216,12 +216,18 @@ def fit_gain_offset(reference: np.ndarray, estimate: np.ndarray) -> tuple[float,
     in the reference's units."""
     x = np.asarray(estimate, dtype=np.float64).ravel()
     y = np.asarray(reference, dtype=np.float64).ravel()
-    xc = x - x.mean()
+    # fitted on the estimate scaled to a peak magnitude of 1: no overflow of the sums of squares
+    # for an image near the float64 limits (a reconstruction of ±3e300, issue 40)
+    scale = float(np.max(np.abs(x))) if x.size and np.all(np.isfinite(x)) else 0.0
+    if not scale > 0:
+        return 0.0, float(y.mean())
+    xs = x / scale
+    xc = xs - xs.mean()
     var = float(xc @ xc)
     if not var > 0:
         return 0.0, float(y.mean())
     a = float(xc @ (y - y.mean())) / var
-    return a, float(y.mean() - a * x.mean())
+    return a / scale, float(y.mean() - a * xs.mean())
 
 
 def normalised_pair(reference: np.ndarray, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -231,8 +237,12 @@ def normalised_pair(reference: np.ndarray, estimate: np.ndarray) -> tuple[np.nda
     peak = float(np.max(ref)) if ref.size else 0.0
     if peak > 0:
         ref = ref / peak
-    a, b = fit_gain_offset(ref, estimate)
-    return ref, a * np.asarray(estimate, dtype=np.float64) + b
+    est = np.asarray(estimate, dtype=np.float64)
+    a, b = fit_gain_offset(ref, est)
+    scale = float(np.max(np.abs(est))) if est.size and np.all(np.isfinite(est)) else 0.0
+    if not scale > 0:
+        return ref, np.full_like(est, b)
+    return ref, (a * scale) * (est / scale) + b
 
 
 def _psnr_normalised(ref: np.ndarray, est: np.ndarray) -> float:
