@@ -132,6 +132,8 @@ EDGES = [
      "fog.piezo_frequency_hz=1e3"),
     ("fog.piezo_frequency_hz=1e300", "fog.piezo_frequency_hz=1e+300 is not allowed; allowed: a frequency in Hz in [1000, 1e+09]",
      "fog.piezo_frequency_hz=1e9"),
+    ("fog.droplet_diameter_um=1e-300", "fog.droplet_diameter_um=1e-300 is not allowed; allowed: a diameter in µm in [0.001, 10000], or null",
+     "fog.droplet_diameter_um=1e-3"),
     ("solver=completion solver.noise=1e300", "solver.noise=1e+300 is not allowed; allowed: auto, or a noise sigma per measurement in [0, 1e+12]",
      "solver=completion solver.noise=1e12"),
 ]  # fmt: skip
@@ -245,6 +247,10 @@ def test_every_json_file_of_a_small_sweep_is_strict(tmp_path: Path) -> None:
     assert len([f for f in files if f.name == "record.json"]) == 2
     for f in files:
         _strict(f.read_text())
+    import pandas as pd
+
+    table = pd.read_parquet(out / "results.parquet")  # collect reads the spelling back as a number
+    assert sorted(table["fog.extent_mm"].tolist()) == [350.0, math.inf]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,7 +30,15 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_names, objective_values, pareto_mask
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import SweepFileError, launcher_failures, load_sweep_file
-from nirspi_pipe.records import RECORD_NAME, OutputError, atomic_write, drop_links, read_record, refuse_link
+from nirspi_pipe.records import (
+    RECORD_NAME,
+    OutputError,
+    atomic_write,
+    decode_nonfinite,
+    drop_links,
+    read_record,
+    refuse_link,
+)
 from nirspi_pipe.report import write_report
 from nirspi_pipe.safeio import sanitize_text
 from nirspi_pipe.tables import build_table
@@ -129,7 +137,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
         config = rec.get("config", {})
         for p in params:
             if p != "seed":
-                row[p] = _lookup(config, p)
+                row[p] = decode_nonfinite(_lookup(config, p))  # ".inf" in a record is inf (records.py)
         _flatten("metrics", rec.get("metrics"), row)
         _flatten("timings_ms", rec.get("timings_ms"), row)
         _flatten("derived", rec.get("derived"), row)

@@ -77,6 +77,12 @@ class MieEfficiencies(NamedTuple):
 PIEZO_RANGE_HZ = (1e3, 1e9)
 
 
+#: Smallest ``droplet_diameter_um``. Assumed: 1 nm, a cluster of some 30 water molecules, is far
+#: below any fog droplet (the paper's: 2.9 µm); at 1e-300 µm miepython's series divided 0 by 0
+#: (measured), at 1e-3 µm the run finishes with finite numbers (measured at 8²).
+DROPLET_MIN_UM = 1e-3
+
+
 def droplet_diameter_m(
     piezo_frequency_hz: float,
     surface_tension_n_m: float = WATER_SURFACE_TENSION_N_M,
@@ -240,9 +246,11 @@ class MieFog:
     def __post_init__(self) -> None:
         if self.droplet_diameter_um is None:
             droplet_diameter_m(self.piezo_frequency_hz)  # validates the frequency
-        elif not np.isfinite(self.droplet_diameter_um) or not 0 < self.droplet_diameter_um <= 1e4:
+        elif not np.isfinite(self.droplet_diameter_um) or not DROPLET_MIN_UM <= self.droplet_diameter_um <= 1e4:
             raise ConfigError(
-                "droplet_diameter_um", self.droplet_diameter_um, "a diameter in µm in (0, 10000], or null"
+                "droplet_diameter_um",
+                self.droplet_diameter_um,
+                f"a diameter in µm in [{DROPLET_MIN_UM:g}, 10000], or null",
             )
         if not np.isfinite(self.number_density_per_cm3) or self.number_density_per_cm3 < 0:
             raise ConfigError("number_density_per_cm3", self.number_density_per_cm3, "a density >= 0 per cm³")
