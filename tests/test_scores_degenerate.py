@@ -247,3 +247,14 @@ def test_a_compressed_acquisition_is_tested_on_what_its_patterns_see() -> None:
     share = float(np.mean(ts > stdtrit(14, 0.95)))
     assert abs(share - 0.05) < 5 * np.sqrt(0.05 * 0.95 / 2000), share
     assert not np.any(ts > stdtrit(14, 1 - CONTENT_LEVEL))
+
+
+def test_a_noise_free_image_of_a_nearly_flat_board_scores_within_the_bounds() -> None:
+    """The exact reconstruction of a board at 1 km (contrast of its fall-off alone) shows the
+    reference exactly: scored, PSNR at the cap, SSIM inside [-1, 1] (it was 1 + 2.4e-13)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = nirspi_pipe.run(["scene=plane", "scene.distance_mm=1e6", "detector=ideal", "fog=none", "illumination=none"])
+    m = r.record()["metrics"]
+    assert m["psnr"] >= 100.0 and -1.0 <= m["ssim"] <= 1.0 and -1.0 <= m["upscale_ssim"] <= 1.0
+    assert NO_CONTENT_FLAG not in m and DEGENERATE_FLAG not in m

@@ -206,7 +206,10 @@ def ssim(truth: np.ndarray, estimate: np.ndarray, data_range: float = 1.0) -> fl
         structural_similarity,
     )
 
-    return float(structural_similarity(truth, estimate, data_range=data_range, win_size=win))
+    value = float(structural_similarity(truth, estimate, data_range=data_range, win_size=win))
+    # SSIM lies in [-1, 1] (Wang et al. 2004, Eq. 13: a product of terms of modulus <= 1); float64
+    # rounding put a noise-free 8² image of a board at 1 km at 1 + 2.4e-13 (issue 40)
+    return float(np.clip(value, -1.0, 1.0)) if np.isfinite(value) else value
 
 
 def fit_gain_offset(reference: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
