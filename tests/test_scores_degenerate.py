@@ -210,7 +210,11 @@ def test_tables_show_degenerate_cells_and_say_what_their_means_left_out(tmp_path
     assert "Degenerate scores, left out of every mean" in md and "5 of 64 jobs" in md
     assert "| degenerate / degenerate / degenerate (n=4) |" in md  # the sphere's Basic cell, no number
     assert "‡4" in md and "‡1" in md and "nan" not in md
+    from nirspi_pipe.report import write_report
+
     for k in (0, 5):
+        report = write_report(tmp_path, [], _frame(k)).read_text()
+        assert (f"{k} jobs left a normalised score out as degenerate" in report) == (k > 0)
         so = scan_order.build(_frame(k), tmp_path)
         assert int(so["psnr8_db_degenerate"].sum()) == k
         assert ("‡" in (tmp_path / "scan_order.md").read_text()) == (k > 0)

@@ -30,6 +30,19 @@ def write_report(sweep: Path, tables: list[str], frame: pd.DataFrame) -> Path:
             f"{len(frame)} jobs ({', '.join(f'{v} {k}' for k, v in status.items())}); "
             f"code {', '.join(sorted(code)) or 'unknown'}."
         )
+        flags = [
+            c
+            for c in frame.columns
+            if c.startswith("metrics.") and c.endswith(("degenerate_reference", "degenerate_image"))
+        ]
+        hit = frame[flags].apply(pd.to_numeric, errors="coerce").fillna(0.0).gt(0.0)
+        if flags and hit.to_numpy().any():
+            lines.append(
+                f"{int(hit.any(axis=1).sum())} jobs left a normalised score out as degenerate (docs/paper.md, "
+                '"Metrics"; per flag: '
+                + ", ".join(f"{c.removeprefix('metrics.')} {int(hit[c].sum())}" for c in flags if hit[c].any())
+                + "); the tables say where."
+            )
         if "timings_ms.total" in frame:
             lines.append(f"Pipeline time summed over jobs: {frame['timings_ms.total'].sum() / 1e3:.1f} s.")
     for name in tables:
