@@ -36,7 +36,6 @@ object, so the mesh is the visible sheet; ``closed: true`` keeps the whole power
 from __future__ import annotations
 
 import heapq
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -57,6 +56,14 @@ from nirspi_pipe.types import Mesh, PointCloud
 #: measured between OpenBLAS kernel sets in the fused cloud (2e-16 m), so the combinatorial steps
 #: see the same input on every CPU (issue 12) while the geometry does not move measurably.
 CLOUD_QUANTUM_M = 1e-8
+
+#: A cloud whose second singular value is below this fraction of its first lies on a line (assumed:
+#: 1e-9, far above float64's 2e-16 and far below any real cloud's aspect, e.g. 0.1 for a 1:10 strip).
+COLLINEAR_REL = 1e-9
+
+#: Clouds farther from the camera than this many extents are centred for Qhull (assumed: 1000; the
+#: project's scenes are within 10 extents; Qhull refused a 4 cm cap 1000 km away).
+FAR_EXTENTS = 1000.0
 
 __all__ = ["PowerCrust", "compute_poles", "power_crust", "circumcentres"]
 
@@ -243,7 +250,17 @@ def power_crust(
     Returns ``(vertices (v, 3) metres, faces (f, 3), info)``; faces are oriented from the inner
     to the outer pole (outward normals).
     """
-    s = np.asarray(samples, dtype=np.float64)
+    s = _usable_samples(samples)
+    # A cloud far from the camera for its size (a board 1000 km away) is moved to its centre for
+    # Qhull, whose precision checks refuse coordinates 1e7 times the extent; the view labelling
+    # still sees the camera at the origin. Clouds nearer than FAR_EXTENTS extents (every scene of
+    # the project) are not moved: their arithmetic, and so their meshes, stay bit for bit.
+    lo, hi = s.min(axis=0), s.max(axis=0)
+    origin = 0.5 * (lo + hi)
+    if float(np.max(np.abs(origin))) <= FAR_EXTENTS * max(float(np.max(hi - lo)), 1e-300):
+        origin = np.zeros(3)
+    view = s
+    s = s - origin
     poles, radii, owner = compute_poles(s, box_factor)
     # merge coincident poles (e.g. all inner poles of an exact sphere sit at its centre): they
     # would make the regular triangulation degenerate
@@ -272,7 +289,7 @@ def power_crust(
     # the six edges of each tetrahedron, with the two other vertices (the ring around the edge)
     edge_sel = np.array([(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)])
     if labelling == "view":
-        inner = _label_view(poles, s)
+        inner = _label_view(poles + origin, view)
     else:
         ends = tets[:, edge_sel[:, :2]].reshape(-1, 2)
         inner = _label_amenta(poles, radii, pairs, s, np.unique(np.sort(ends, axis=1), axis=0))
@@ -284,7 +301,30 @@ def power_crust(
         raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
     m = len(poles)
     info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(n_poly)}
-    return verts, faces, info
+    return verts + origin, faces, info
+
+
+def _usable_samples(samples: np.ndarray) -> np.ndarray:
+    """``samples`` ``(n, 3)`` without exact duplicates (first of each kept, order kept: a cloud
+    without duplicates is returned as it is), or :class:`NirspiError` in one line when no surface
+    can be made of them: fewer than 5 distinct points, or all of them on one line."""
+    s = np.asarray(samples, dtype=np.float64)
+    if s.ndim != 2 or s.shape[1] != 3:
+        raise NirspiError(f"power crust: needs points of shape (n, 3), got {s.shape}")
+    if len(s):
+        _, first = np.unique(s, axis=0, return_index=True)
+        if len(first) < len(s):
+            s = s[np.sort(first)]
+    if len(s) < 5:
+        given = len(np.asarray(samples))
+        raise NirspiError(
+            f"power crust: needs at least 5 distinct points, got {len(s)}"
+            + (f" ({given} given; points within the {CLOUD_QUANTUM_M:g} m grid are one)" if given != len(s) else "")
+        )
+    sv = np.linalg.svd(s - s.mean(axis=0), compute_uv=False)
+    if sv[1] <= COLLINEAR_REL * sv[0]:
+        raise NirspiError(f"power crust: the {len(s)} points lie on one line; no surface passes through them")
+    return s
 
 
 @lru_cache(maxsize=1)
@@ -394,7 +434,7 @@ class PowerCrust:
         pts = np.asarray(cloud.points_m, dtype=np.float64)
         if not np.all(np.isfinite(pts)):
             raise NirspiError("power crust: the point cloud has non-finite points")
-        pts = np.round(pts / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M
+        pts = _usable_samples(np.round(pts / CLOUD_QUANTUM_M) * CLOUD_QUANTUM_M)  # duplicates dropped
         spacing = sample_spacing(pts)  # once: the crust's welding, the trim and the remeshing use it
         weld = self.weld_factor
         if self.remesh_iterations > 0:
@@ -404,11 +444,19 @@ class PowerCrust:
         if not self.closed:
             verts, faces = trim_to_samples(verts, faces, pts, self.trim_factor, spacing)
             if len(faces) == 0:
-                warnings.warn("power crust: no face left near the samples after trimming", stacklevel=2)
+                raise NirspiError(
+                    f"power crust: no face lies near the {len(pts)} points after trimming (too few or too "
+                    "scattered for a surface)"
+                )
         remesher = self._remesher  # type: ignore[attr-defined]
         verts, faces, rinfo = remesh_to_cloud(
             verts, faces, pts, self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges, spacing, remesher
         )
+        if len(faces) == 0:
+            raise NirspiError(
+                f"power crust: the clean-up left no face of the crust of the {len(pts)} points (too few or too "
+                "scattered for a surface)"
+            )
         info.update(rinfo)
         info["faces"] = int(len(faces))
         info["remesher"] = remesher
