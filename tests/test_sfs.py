@@ -106,6 +106,15 @@ def test_not_converged_warns(sphere):
     assert np.isfinite(d.depth_m).all()
 
 
+@pytest.mark.parametrize("model", [LaxFriedrichsSFS(), LaxFriedrichsSFS(scheme="second_order"), PerspectiveSFS()])
+def test_a_black_image_is_not_swept(model: object) -> None:
+    """No object pixel: an empty depth map at once (the perspective model with fall-off swept the
+    whole black 32² grid for 2 s; docs/hardcases.md, sfs-perspective-black)."""
+    with pytest.warns(UserWarning, match="no object pixels"):
+        d = model.solve(Image2D(np.zeros((32, 32))), Camera(resolution=32))  # type: ignore[attr-defined]
+    assert not d.mask.any() and np.all(d.depth_m == 0.0) and d.info["sweeps"] == 0 and d.info["converged"]
+
+
 def test_constant_image():
     img = Image2D(np.full((16, 16), 0.6))
     with warnings.catch_warnings():

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 import sys
 import time
@@ -548,12 +549,31 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
         "**pending** (does not hold yet; the owner of the fix is named), **FAILS** (does not hold).",
         "",
     ]
+    if pending:
+        lines += ["## Pending: cases that do not hold yet", ""]
+        for o in pending:
+            now = "holds now: unmark it" if o.holds else "; ".join(o.problems)[:240]
+            lines.append(f"- `{o.case.id}`: {_cell(str(o.case.pending))}. Now: {_cell(now)}")
+        lines.append("")
+    noted = [o for o in outcomes if o.case.note]
+    if noted:
+        lines += [
+            "## Bounds that state a measurement",
+            "",
+            "Where a bound is looser than the ideal (or than what other docs said), the case says why:",
+            "",
+        ]
+        for o in noted:
+            got = ", ".join(f"`{b.split()[0]}` = {_fmt(v)}" for b, v, _ in o.measured) or _cell(o.message[:120])
+            lines.append(f"- `{o.case.id}` ({got}): {_cell(str(o.case.note))}")
+        lines.append("")
     group = None
     for o in outcomes:
         c = o.case
         if c.group != group:
             group = c.group
             lines += [
+                "",
                 f"## {group}",
                 "",
                 "| id | what | how | expected | bound | measured | status |",
@@ -578,13 +598,9 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
             measured = _cell(o.message[:160])
         else:
             measured = o.status
-        status = (
-            "holds"
-            if o.holds
-            else (f"pending ({c.pending})" if c.pending else "**FAILS**: " + "; ".join(o.problems)[:300])
-        )
+        status = "holds" if o.holds else ("pending" if c.pending else "**FAILS**: " + "; ".join(o.problems)[:300])
         if c.note:
-            status += f"<br>*{c.note}*"
+            status += " (note below)"
         lines.append(
             f"| `{c.id}` | {_cell(c.what)} | `{_cell(how)}` | {expected} | {bounds} | {measured} | {_cell(status)} |"
         )
@@ -593,7 +609,6 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
 
 
 def _stamp() -> str:
-    import os
     import platform
     import subprocess
 
@@ -636,7 +651,12 @@ def main(argv: list[str] | None = None) -> int:
         if ns.ids:
             print(f"{_PROG}: --write-docs runs every case; not written", file=sys.stderr)
             return 2
-        ns.out.write_text(render(outcomes, _stamp()), encoding="utf-8")
+        wall, cpu = sum(o.seconds for o in outcomes), sum(o.cpu_seconds for o in outcomes)
+        load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
+        stamp = (
+            f"{_stamp()} The cases took {wall:.0f} s ({cpu:.0f} s of CPU) in one process; load average {load} after."
+        )
+        ns.out.write_text(render(outcomes, stamp), encoding="utf-8")
         print(f"wrote {ns.out}")
     return 0 if all(o.holds or o.case.pending for o in outcomes) else 1
 

@@ -426,7 +426,10 @@ class LaxFriedrichsSFS:
                 f, prep, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average, self.device
             )
         problem = SweepProblem(rhs=f, fixed=prep.sources, init=np.where(prep.sources, z_src, BIG))
-        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average, self.device)
+        if prep.mask.any():
+            res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), self.slope_average, self.device)
+        else:  # no object pixel (prepare_image warned): nothing to sweep, an empty depth map
+            res = SweepResult(z=np.full(f.shape, BIG), sweeps=0, final_change=0.0, converged=True)
         extra = {
             "focal_px": float(camera.focal_px),
             "backend_requested": self.backend,
@@ -580,7 +583,10 @@ class PerspectiveSFS:
         problem = SweepProblem(rhs=rhs, fixed=fixed, init=init, model=model, xhat=xh, yhat=yh, focal_px=f)
         scheme = self.scheme
         backend = self.effective_backend(max(rows, cols))
-        res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), device=self.device)
+        if prep.mask.any():
+            res = _run(problem, scheme, backend, float(self.tol), int(self.max_sweeps), device=self.device)
+        else:  # no object pixel (prepare_image warned): nothing to sweep, an empty depth map
+            res = SweepResult(z=np.full(rhs.shape, BIG), sweeps=0, final_change=0.0, converged=True)
         w = np.where(prep.mask, res.z, np.nan)
         valid = prep.mask & (res.z < 0.5 * BIG)
         z_rel = np.zeros_like(res.z)
