@@ -324,45 +324,46 @@ def consistent_anchors(
     fit: Callable[[np.ndarray], AnchorFit],
     median_zr: float,
     focal_px: float | None,
+    tau_m: float = 0.0,
 ) -> tuple[np.ndarray, dict[int, str], AnchorFit]:
-    """The anchors that pass a χ² test of consistency, the rejected ones with their reason, and
-    the final fit.
+    """The anchors that pass an outlier test, the rejected ones with their reason, and the final
+    fit.
 
-    The χ² of the weighted fit (anchors and priors) is compared with the ``1 − alpha`` quantile
-    of the χ² distribution with its degrees of freedom (the goodness-of-fit test of a weighted
-    least-squares fit: Bevington & Robinson, *Data Reduction and Error Analysis*, 3rd ed., §11.1;
-    Press et al., *Numerical Recipes*, 3rd ed., §15.1). When it fails, each anchor is predicted
-    from the others (leave-one-out fit, predictive variance ``σ_i² + var(ẑ_i)``) and the one
-    farthest from its prediction is rejected if its squared standardised deviation exceeds the
-    χ²₁ quantile at ``alpha / k`` (Bonferroni over the ``k`` anchors tested); then refit and
-    test again. An anchor within its noise of the others is never rejected, so a fit that fails
-    only because the anchors together disagree with a prior keeps them all. ``alpha=None``: no
-    test. ``fit(idx)`` fits the anchors ``idx`` (indices into the arrays).
+    Each anchor is predicted from the others (leave-one-out fit, weighted by ``sigma``) and its
+    squared standardised deviation ``d² = (z_i − ẑ_i)² / (σ_i² + τ² + var(ẑ_i))`` is compared
+    with the χ²₁ quantile at ``alpha / k`` (the outlier test on externally studentised residuals
+    with a Bonferroni bound over the ``k`` anchors: Cook & Weisberg, *Residuals and Influence in
+    Regression*, 1982, §2.2.2; Weisberg, *Applied Linear Regression*, 4th ed., §9.1.2). ``τ``
+    (``tau_m``) is the SFS map's own shape error at an anchor, which the local offsets absorb
+    (the caller passes the map's relief: an anchor within it can be a local SFS error, not a bad
+    anchor). The farthest anchor beyond the bound is rejected, the rest refitted and tested
+    again; the family-wise chance of rejecting a good anchor is at most ``alpha``.
+    ``alpha=None``: no test. ``fit(idx)`` fits the anchors ``idx`` (indices into the arrays).
     """
     from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
 
     keep = np.arange(len(z))
     rejected: dict[int, str] = {}
     cur = fit(keep)
-    while alpha is not None and len(keep) >= 2 and cur.dof >= 1 and chi2_dist.sf(cur.chi2, cur.dof) < alpha:
-        worst, worst_d2 = -1, 0.0
+    while alpha is not None and len(keep) >= 2:
+        worst, worst_d2, worst_dev = -1, 0.0, 0.0
         for j in keep:
-            others = keep[keep != j]
             try:
-                loo = fit(others)
+                loo = fit(keep[keep != j])
             except NirspiError:
                 continue
             pred, var = loo.predict(zr[j : j + 1], median_zr, focal_px)
-            d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + var[0]))
+            d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + tau_m**2 + var[0]))
             if d2 > worst_d2:
-                worst, worst_d2 = int(j), d2
+                worst, worst_d2, worst_dev = int(j), d2, float(z[j] - pred[0])
         limit = float(chi2_dist.ppf(1.0 - alpha / len(keep), 1))
         if worst < 0 or worst_d2 <= limit:
             break
         rejected[worst] = (
-            f"inconsistent: {np.sqrt(worst_d2):.1f} sigma from the depth the other anchors and the SFS shape "
-            f"predict there (limit {np.sqrt(limit):.2f} sigma: the fit's chi2 test at alpha={alpha:g}, "
-            f"Bonferroni over {len(keep)} anchors)"
+            f"inconsistent: {abs(worst_dev):.3g} m "
+            f"from the depth the other anchors and the SFS shape predict there, {np.sqrt(worst_d2):.1f} times its "
+            f"sigma with the SFS relief (limit {np.sqrt(limit):.2f}: outlier test at alpha={alpha:g}, Bonferroni over "
+            f"{len(keep)} anchors)"
         )
         keep = keep[keep != worst]
         cur = fit(keep)
@@ -806,8 +807,9 @@ class ItofFusion:
         for _ in range(2):
             sfs_sigma = scale * noise_rel  # metres
             eff_all = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
+            relief = scale * float(np.ptp(zr_map[valid]))  # metres: the SFS map's own depth extent
             keep, rejected, cur = consistent_anchors(
-                zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), median_zr, focal
+                zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), median_zr, focal, relief
             )
             scale = cur.scale
         for j, why in rejected.items():
