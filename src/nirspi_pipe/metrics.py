@@ -60,9 +60,10 @@ PSNR_CAP_DB = 200.0
 
 #: One-sided level of the content test (:func:`content_test`): 5σ of a normal, p = 2.87e-7, the
 #: particle physicists' "discovery" convention (Particle Data Group, Review of Particle Physics,
-#: "Statistics", §40.3.2: Z = 5 for discovery). Chosen so strict because the test also guards the
-#: claim that an image without content never gets a score: a pure-noise image independent of the
-#: reference passes with probability 2.87e-7 (tests/test_scores_degenerate.py measures it).
+#: chapter "Statistics", significance tests: Z = 5 for a discovery). Chosen so strict because
+#: the test also guards the claim that an image without content never gets a score: an image
+#: independent of the reference passes with probability at most 2.87e-7
+#: (tests/test_scores_degenerate.py checks the statistic's calibration on noise images).
 CONTENT_LEVEL = 2.866515719235352e-7
 #: The flag a degenerate reference leaves in the metrics (1.0) instead of ``psnr``/``ssim``.
 DEGENERATE_FLAG = "degenerate_reference"
@@ -111,15 +112,15 @@ def content_test(
     The fit regresses the reference on the image, ``reference = a·estimate + b + e``. The scores
     mean something only where the gain ``a`` is distinguishable from zero: the one-sided t-test of
     the regression slope (H0: ``a ≤ 0``; ``t = r·√ν / √(1 − r²)`` with ``r`` the sample correlation
-    and ``ν = n − 2`` degrees of freedom, Student's t; e.g. Draper & Smith, *Applied Regression
-    Analysis*, 3rd ed., §1.4, or any regression text) at level :data:`CONTENT_LEVEL`. Otherwise
+    and ``ν = n − 2`` degrees of freedom, Student's t; the textbook test of a regression slope,
+    e.g. Draper & Smith, *Applied Regression Analysis*, chapter 1) at level :data:`CONTENT_LEVEL`. Otherwise
     the fit only returns ``mean(reference)`` plus a chance fraction of its contrast, and PSNR/SSIM
     would measure how flat the reference is, not the image (issue 40). One-sided: an image that
     is the reference's negative is not a picture of it.
 
     ``independent`` is how many independent values the image carries (default: its pixels): an
-    image interpolated from, or reconstructed out of, fewer values has ``n`` = that many (the
-    upscaled image: the camera's pixels; a compressed acquisition: its measurements). ``seen``,
+    image reconstructed out of fewer values has ``n`` = that many (a compressed acquisition: its
+    distinct measured patterns, :func:`measured_values`). ``seen``,
     when given, is the part of the reference those values can show (:func:`measured_view`: the
     reference projected onto the measured patterns); the image is then tested against it and
     against the reference, each at half the level (Bonferroni): a zero-filled reconstruction
