@@ -88,6 +88,33 @@ def test_net_fails_a_nonfinite_product_and_a_python_overflow() -> None:
         _clock_call(lambda: Image2D(np.full((1, 1), 1e200**2)))
 
 
+def test_net_names_the_floating_point_error_behind_a_later_failure() -> None:
+    def fails_after_overflow() -> Image2D:
+        x = np.array([1e300]) * 1e300
+        raise ValueError(f"bounds must be finite, got {x[0]}")
+
+    with pytest.raises(NumericalError, match=r"^solver: .*overflow encountered in multiply.*then ValueError"):
+        _clock_call(fails_after_overflow)
+    with pytest.raises(KeyError):  # a failure without a floating-point error is left as it is (a bug)
+        _clock_call(lambda: {}["x"])
+
+
+def test_time_varying_effects_with_steps_beyond_float64_settle() -> None:
+    """A correlation time far below the pattern period (Δt/τ overflows) is uncorrelated noise
+    and a settled LED droop, not a floating-point error."""
+    _finishes_finite(
+        [
+            "source.pattern_rate_hz=1e-6",
+            "fog.fluctuation_rel=1",
+            "fog.fluctuation_time_s=1e-300",
+            "illumination.wander_rel=10",
+            "illumination.wander_time_s=1e-300",
+            "source.effects.led_droop_rel=1",
+            "source.effects.led_droop_time_s=1e-300",
+        ]
+    )
+
+
 def test_net_fails_a_job_end_to_end_naming_the_stage(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A reconstruction of ±1e300 (finite) used to finish 'ok' with overflow warnings in the
     scores; it now fails in one line naming the stage whose arithmetic overflowed."""
@@ -134,6 +161,16 @@ EDGES = [
      "fog.piezo_frequency_hz=1e9"),
     ("fog.droplet_diameter_um=1e-300", "fog.droplet_diameter_um=1e-300 is not allowed; allowed: a diameter in µm in [0.001, 10000], or null",
      "fog.droplet_diameter_um=1e-3"),
+    ("solver=completion solver.f0=1e-300", "solver.f0=1e-300 is not allowed; allowed: a roll-off frequency in [0.001, 1000] (cycles per image side)",
+     "solver=completion solver.f0=1e-3 solver.alpha=6"),
+    ("solver=completion solver.f0=1e300", "solver.f0=1e+300 is not allowed; allowed: a roll-off frequency in [0.001, 1000] (cycles per image side)",
+     "solver=completion solver.f0=1e3 solver.alpha=6"),
+    ("source.pattern_rate_hz=1e-300", "source.pattern_rate_hz=1e-300 is not allowed; allowed: a rate in Hz in [1e-06, 1e+12]",
+     "source.pattern_rate_hz=1e-6 illumination.drift_rel_per_s=10 illumination.flicker_rel=10 illumination.flicker_hz=1e9"),
+    ("illumination.flicker_hz=1e300", "illumination.flicker_hz=1e+300 is not allowed; allowed: a frequency in Hz in [0, 1e+09]",
+     "source.pattern_rate_hz=1e12 illumination.flicker_rel=10 illumination.flicker_hz=1e9"),
+    ("illumination.spectrum=halogen illumination.mains_hz=1e9", "illumination.mains_hz=1000000000.0 is not allowed; allowed: a mains frequency in Hz in (0, 5e+08]",
+     "illumination.spectrum=halogen illumination.mains_hz=5e8 source.pattern_rate_hz=1e-6"),
     ("solver=completion solver.noise=1e300", "solver.noise=1e+300 is not allowed; allowed: auto, or a noise sigma per measurement in [0, 1e+12]",
      "solver=completion solver.noise=1e12"),
 ]  # fmt: skip

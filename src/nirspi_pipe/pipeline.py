@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError, NumericalError
+from nirspi_pipe.errors import ConfigError, NirspiError, NumericalError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
 from nirspi_pipe.records import config_hash
 from nirspi_pipe.scene.render import forget_renders
@@ -115,6 +115,13 @@ def _fp_errors(caught: list[warnings.WarningMessage]) -> list[warnings.WarningMe
     return [w for w in caught if issubclass(w.category, RuntimeWarning) and _FP_WARNING.match(str(w.message))]
 
 
+def _fp_summary(errors: list[warnings.WarningMessage]) -> str:
+    """One phrase for a stage's floating-point errors: the first, where, and how many more."""
+    more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
+    first = " ".join(str(errors[0].message).split())
+    return f"the stage's arithmetic left float64's range: {first} at {_where(errors[0])}{more}"
+
+
 def _nonfinite_output(out: Any) -> str | None:
     """``field (k of n values NaN or Inf)`` for the first product field of ``out`` that holds a
     non-finite number, else None."""
@@ -160,14 +167,18 @@ class _Clock:
                 raise NumericalError(
                     name, f"the stage's arithmetic left float64's range ({type(exc).__name__}: {exc})"
                 ) from exc
+            except NirspiError:
+                raise
+            except Exception as exc:  # a failure that follows a floating-point error is that error's
+                first = _fp_errors(self.caught[seen:])
+                if not first:
+                    raise
+                raise NumericalError(
+                    name, f"{_fp_summary(first)}, then {type(exc).__name__}: {str(exc).strip()[:200]}"
+                ) from exc
         errors = _fp_errors(self.caught[seen:])
         if errors:
-            more = f" (+{len(errors) - 1} more)" if len(errors) > 1 else ""
-            raise NumericalError(
-                name,
-                f"the stage's arithmetic left float64's range: {errors[0].message} at {_where(errors[0])}{more}; "
-                "its result is not a finite number",
-            )
+            raise NumericalError(name, f"{_fp_summary(errors)}; its result is not a finite number")
         bad = _nonfinite_output(out)
         if bad is not None:
             raise NumericalError(name, f"the stage's result {bad}")

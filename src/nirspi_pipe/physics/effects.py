@@ -351,7 +351,8 @@ class LedDroop:
 
     def factor(self, t_s: np.ndarray) -> np.ndarray:
         """Relative LED power at times ``t_s`` (s), dimensionless."""
-        return 1.0 + self.rel * -np.expm1(-np.asarray(t_s, dtype=np.float64) / self.time_s)
+        with np.errstate(over="ignore"):  # t/τ beyond float64 is the settled droop: exp(-inf) = 0
+            return 1.0 + self.rel * -np.expm1(-np.asarray(t_s, dtype=np.float64) / self.time_s)
 
     def apply(self, readings: Readings, exposure: Exposure) -> Readings:
         return replace(

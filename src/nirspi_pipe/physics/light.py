@@ -174,6 +174,13 @@ def klux_to_photon_irradiance(
     return total * band_fraction(tuple(band_nm), temperature_k)[1]
 
 
+#: Highest ``mains_hz`` and ``flicker_hz``, Hz. Assumed: mains are 50/60 Hz (400 Hz aboard
+#: aircraft) and lamp flicker twice that; 1 GHz is beyond any light source's modulation the
+#: 150 µs integration could follow. Above it ``2π f t`` overflowed float64 (measured:
+#: flicker_hz = 1e300 at one pattern per 1e300 s gave sin(inf) = NaN).
+MAX_HZ = 1e9
+
+
 @dataclass(frozen=True)
 class Background:
     """Background (ambient) light on the scene: ``illumination=none|klux``.
@@ -223,8 +230,8 @@ class Background:
             raise ConfigError("band_nm", list(band), "a band inside 360-1800 nm for spectrum=sun (the tabulated rows)")
         if not np.isfinite(self.filament_time_s) or self.filament_time_s <= 0:
             raise ConfigError("filament_time_s", self.filament_time_s, "a thermal time constant in s > 0")
-        if not np.isfinite(self.mains_hz) or self.mains_hz <= 0:
-            raise ConfigError("mains_hz", self.mains_hz, "a mains frequency in Hz > 0")
+        if not np.isfinite(self.mains_hz) or not 0 < self.mains_hz <= MAX_HZ / 2:  # a halogen flickers at 2×
+            raise ConfigError("mains_hz", self.mains_hz, f"a mains frequency in Hz in (0, {MAX_HZ / 2:g}]")
         if self.flicker_rel is None:
             object.__setattr__(self, "flicker_rel", self.flicker_amplitude())
             if self.spectrum == "halogen":
@@ -239,8 +246,8 @@ class Background:
             v = getattr(self, key)
             if not np.isfinite(v) or abs(v) > 10.0 or (key != "drift_rel_per_s" and v < 0):
                 raise ConfigError(key, v, "a relative amount in [0, 10] (drift: [-10, 10] per s)")
-        if not np.isfinite(self.flicker_hz) or self.flicker_hz < 0:
-            raise ConfigError("flicker_hz", self.flicker_hz, "a frequency in Hz >= 0")
+        if not np.isfinite(self.flicker_hz) or not 0 <= self.flicker_hz <= MAX_HZ:
+            raise ConfigError("flicker_hz", self.flicker_hz, f"a frequency in Hz in [0, {MAX_HZ:g}]")
         if not np.isfinite(self.wander_time_s) or self.wander_time_s <= 0:
             raise ConfigError("wander_time_s", self.wander_time_s, "a correlation time in s > 0")
 

@@ -27,7 +27,8 @@ def ornstein_uhlenbeck(times_s: np.ndarray, std: float, tau_s: float, rng: np.ra
         return np.zeros(t.shape)
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    a = np.exp(-np.diff(ts) / tau_s)
+    with np.errstate(over="ignore"):  # Δt/τ beyond float64: uncorrelated steps, exp(−inf) = 0
+        a = np.exp(-np.diff(ts) / tau_s)
     z = rng.standard_normal(ts.size)
     innov = std * np.sqrt(np.maximum(1.0 - a * a, 0.0)) * z[1:]
     if a.size and np.allclose(a, a[0], rtol=1e-12, atol=0.0):

@@ -107,6 +107,14 @@ EXACT_FLOOR = 1e-12
 _BATCH = 256
 
 
+#: Roll-off frequencies ``f0`` a prior may have, cycles per image side. Assumed: the shipped fit
+#: is 1.81 (experiments/completion); 1e-3 (a roll-off a thousandth of a cycle across the image)
+#: and 1e3 (beyond the highest frequency of a 4096² image, 2048) bracket every prior a user can
+#: mean. Outside, float64 failed (measured: f0 = 1e-300 made the spectrum 0^-α = inf at DC,
+#: 1e300 overflowed f0²).
+F0_RANGE = (1e-3, 1e3)
+
+
 @dataclass(frozen=True)
 class PowerLawPrior:
     """A stationary image covariance with power spectrum ``(f0² + |f|²)^(−α/2)``.
@@ -125,8 +133,9 @@ class PowerLawPrior:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.alpha) and 0 <= self.alpha <= 6):
             raise ConfigError("alpha", self.alpha, "a spectral exponent in [0, 6]")
-        if not (np.isfinite(self.f0) and self.f0 > 0):
-            raise ConfigError("f0", self.f0, "a roll-off frequency > 0 (cycles per image side)")
+        lo, hi = F0_RANGE
+        if not (np.isfinite(self.f0) and lo <= self.f0 <= hi):
+            raise ConfigError("f0", self.f0, f"a roll-off frequency in [{lo:g}, {hi:g}] (cycles per image side)")
         if not np.isfinite(self.mean):
             raise ConfigError("mean", self.mean, "a finite prior mean radiance")
 

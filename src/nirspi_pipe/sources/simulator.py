@@ -49,6 +49,13 @@ def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
     return [np.random.default_rng(s) for s in seq.spawn(k)]
 
 
+#: Pattern rates the simulator accepts, Hz. Assumed: the paper's device shows 1000 patterns/s;
+#: one pattern in 11.6 days (1e-6 Hz) and 1e12 per second (beyond any DMD or LED driver, tens
+#: of kHz to MHz) bracket every rate a user can mean. At 1e-300 Hz the time stamps (1e300 s and
+#: more) overflowed float64 in the drift's squares (measured, illumination.drift_rel_per_s=10).
+PATTERN_RATE_HZ = (1e-6, 1e12)
+
+
 @dataclass(frozen=True)
 class Simulator:
     """Simulated single-pixel camera: the forward model ``effects`` applied to the scene.
@@ -70,8 +77,9 @@ class Simulator:
     needs_scene: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.pattern_rate_hz) or not self.pattern_rate_hz > 0:
-            raise ConfigError("pattern_rate_hz", self.pattern_rate_hz, "a rate in Hz > 0")
+        lo, hi = PATTERN_RATE_HZ
+        if not np.isfinite(self.pattern_rate_hz) or not lo <= self.pattern_rate_hz <= hi:
+            raise ConfigError("pattern_rate_hz", self.pattern_rate_hz, f"a rate in Hz in [{lo:g}, {hi:g}]")
         if int(self.dark_readings) != self.dark_readings or not 0 <= self.dark_readings <= 100000:
             raise ConfigError("dark_readings", self.dark_readings, "an integer from 0 to 100000")
         if not isinstance(self.effects, ForwardModel):
