@@ -23,15 +23,16 @@ from typing import Any, NoReturn
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
+from omegaconf import OmegaConf
 
 from nirspi_pipe import __version__
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
-from nirspi_pipe.app.entry import Refused, check_invocation, parse_args
+from nirspi_pipe.app.entry import Refused, check_invocation, check_job, parse_args
 from nirspi_pipe.app.helptext import register_resolvers
 from nirspi_pipe.app.plugins import activate, discover, format_report
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import SWEEP_FILE, SweepFileError
-from nirspi_pipe.records import OutputError
+from nirspi_pipe.records import OutputError, drop_links, refuse_link
 from nirspi_pipe.summary import format_summary
 from nirspi_pipe.targets import trusted_paths
 
@@ -44,6 +45,11 @@ _EXIT_CONFIG = 2
 
 def _hydra_task(cfg: Any) -> None:
     hc = HydraConfig.get()
+    try:  # the second gate: the Hydra node this job received, whatever launched it (issue 41)
+        check_job(hc, cfg)
+    except Refused as exc:  # a sweep stops here: its other jobs would receive the same node
+        print(f"nirspi-run: error: job refused: {exc}", file=sys.stderr)
+        raise SystemExit(_EXIT_CONFIG) from None
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     overrides = list(hc.overrides.task)
@@ -112,6 +118,12 @@ def run(argv: list[str] | None = None) -> None:
         invocation = check_invocation(args)  # the composed config, Hydra's node included, before Hydra
     except Refused as exc:
         _refuse(exc)
+    if not {"--cfg", "--help", "--hydra-help", "--info", "--shell-completion"} & set(invocation.flags):
+        try:  # Hydra writes its own files before our task runs: no link among them (issue 41)
+            _hydra_files_without_links(invocation.config, invocation.multirun)
+        except OutputError as exc:
+            print(f"nirspi-run: error: {exc}", file=sys.stderr)
+            raise SystemExit(1) from None
     register_resolvers()  # ${nirspi_help:...} in the --help template
     main = hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=CONFIG_NAME)(_hydra_task)
     sys.argv = [sys.argv[0], *invocation.hydra_argv]
@@ -123,6 +135,40 @@ def run(argv: list[str] | None = None) -> None:
             file=sys.stderr,
         )
         raise SystemExit(130) from None
+
+
+#: What Hydra writes itself in a run or job folder before nirspi-pipe's task runs (with
+#: ``hydra.output_subdir`` set): ``.hydra/`` and these files in it, and the job's ``<name>.log``.
+_HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
+
+
+def _hydra_files_without_links(cfg: Any, multirun: bool) -> None:
+    """Before Hydra runs: the run folder (``hydra.run.dir``) or the sweep folder
+    (``hydra.sweep.dir``) is refused when it is a symbolic link (:class:`OutputError`); in it
+    (and, for a sweep, in every folder below it) a ``.hydra`` that is a link, a link among
+    ``.hydra``'s files, a ``*.log`` link and a sweep's ``multirun.yaml`` link are removed (the
+    link, never its target), so Hydra writes new files there instead of writing through them.
+    A link planted *during* the run is not defended (docs/hostile.md)."""
+    key = "sweep.dir" if multirun else "run.dir"
+    try:
+        folder = Path(str(OmegaConf.select(cfg.hydra, key, throw_on_missing=True)))
+    except Exception:  # noqa: BLE001 - ${now:...} resolves only in Hydra: a new folder, nothing to clean
+        return
+    refuse_link(folder, f"{'sweep' if multirun else 'output'} folder (hydra.{key})")
+    if not folder.is_dir():
+        return
+    drop_links(folder, ("multirun.yaml",) if multirun else ())
+    folders = [Path(d) for d, _, _ in os.walk(folder)] if multirun else [folder]  # os.walk follows no link
+    for one in folders:
+        try:
+            names = [
+                e.name for e in os.scandir(one) if e.is_symlink() and (e.name == ".hydra" or e.name.endswith(".log"))
+            ]
+        except OSError:
+            continue
+        drop_links(one, tuple(names))
+        if (one / ".hydra").is_dir():
+            drop_links(one / ".hydra", _HYDRA_FILES)
 
 
 def _refuse(exc: Exception) -> NoReturn:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -39,6 +40,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.object_type import ObjectType
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Glob, IntervalSweep
+from hydra.types import RunMode
 from omegaconf import OmegaConf
 
 from nirspi_pipe.app import allowlist
@@ -207,10 +209,23 @@ def _one_line(text: object, limit: int = 300) -> str:
 
 
 def _compose(config_name: str, overrides: list[str]) -> Any:
-    """The configuration Hydra will compose (``return_hydra_config``), or :class:`Refused`."""
+    """The configuration Hydra will compose (``return_hydra_config``), or :class:`Refused`.
+
+    What Hydra fills itself (``hydra.overrides``, ``hydra.runtime``) is checked to be exactly what
+    it fills from ``overrides`` (:func:`check_filled_by_hydra`): Hydra re-applies
+    ``hydra.overrides.hydra`` to every sweep job and sweeps ``hydra.overrides.task``, so a list a
+    config brings there would run unchecked."""
+    user_folder = any(ov.key_or_group == "hydra.searchpath" for ov in _parse(overrides))
+    running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
     try:
+        if running is not None:  # inside a running app (a job's gate in a worker): set aside, restored below
+            GlobalHydra.instance().clear()
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-            return compose(config_name, overrides, return_hydra_config=True)
+            cfg = compose(config_name, overrides, return_hydra_config=True)
+            known = None
+            if user_folder:  # a user's file may plant hydra.runtime.choices: compare with Hydra's own
+                loader = GlobalHydra.instance().config_loader()
+                known = dict(loader.compute_defaults_list(config_name, overrides, RunMode.RUN).overrides.known_choices)
     except Exception as exc:  # noqa: BLE001 - any composition failure is a refusal (fail closed)
         problem = yaml_problem(exc)
         if problem:
@@ -222,6 +237,52 @@ def _compose(config_name: str, overrides: list[str]) -> Any:
         raise Refused(
             f"the configuration does not compose: {_one_line(text[0] if text else type(exc).__name__)}"
         ) from None
+    finally:
+        if running is not None:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(running)
+    check_filled_by_hydra(OmegaConf.to_container(cfg.hydra, resolve=False), overrides, known)  # type: ignore[arg-type]
+    return cfg
+
+
+#: The leaves of ``hydra.runtime`` Hydra sets itself when it composes (the run's ``output_dir``
+#: when a job starts).
+_RUNTIME_KEYS = frozenset({"version", "version_base", "cwd", "config_sources", "output_dir", "choices"})
+
+
+def check_filled_by_hydra(
+    hydra_node: dict[str, Any], overrides: list[str], known_choices: dict[str, Any] | None = None
+) -> None:
+    """:class:`Refused` unless ``hydra.overrides`` and ``hydra.runtime`` of a composed node are
+    exactly what Hydra fills from ``overrides``: ``overrides.hydra`` the input lines of the Hydra
+    overrides, ``overrides.task`` the others, in order; ``runtime`` only Hydra's own keys, its
+    ``output_dir`` unset, and (``known_choices``: Hydra's defaults list) no group choice that
+    Hydra did not make."""
+    parsed = _parse(overrides)
+    want = {
+        "hydra": [ov.input_line for ov in parsed if ov.is_hydra_override()],
+        "task": [ov.input_line for ov in parsed if not ov.is_hydra_override()],
+    }
+    got = hydra_node.get("overrides") or {}
+    if not isinstance(got, dict) or set(got) != set(want) or any(got[k] != want[k] for k in want):
+        extra = [str(v) for k in want for v in (got.get(k) or []) if v not in want[k]] if isinstance(got, dict) else []
+        shown = f" (it holds {_short(extra[0])})" if extra else ""
+        raise Refused(
+            f"hydra.overrides differs from the command line{shown}: it is not allowed in a config or an "
+            "override; allowed: Hydra fills it from the command line (set each key by its own override)"
+        )
+    runtime = hydra_node.get("runtime") or {}
+    extra_keys = sorted(set(runtime) - _RUNTIME_KEYS) if isinstance(runtime, dict) else ["runtime"]
+    if extra_keys or runtime.get("output_dir") != "???":
+        key = f"hydra.runtime.{extra_keys[0]}" if extra_keys else "hydra.runtime.output_dir"
+        raise Refused(f"{key} is not allowed: Hydra fills hydra.runtime itself; allowed: leave it out")
+    if known_choices is not None:
+        planted = sorted(set(runtime.get("choices") or {}) - set(known_choices))
+        if planted:
+            raise Refused(
+                f"hydra.runtime.choices.{planted[0]} is not allowed: Hydra fills hydra.runtime itself "
+                "(a record would name a choice that was not made); allowed: choose the group (+GROUP=NAME)"
+            )
 
 
 @lru_cache(maxsize=8)
@@ -502,6 +563,92 @@ def check_hydra_node(hydra_node: dict[str, Any], plain_keys: list[str] | None = 
     return _check_diffs(user, diffs, hydra_node)
 
 
+#: Leaves of a job's Hydra node that its launcher or sweeper sets for that job (job number and
+#: id, the job's name (``hydra.main`` names it after the task's module, the compose API
+#: ``app``), run mode, the keyed job folder): checked by kind, not compared with the checked node.
+_JOB_TIME_KEYS = ("job.num", "job.id", "job.name", "mode", "sweep.subdir")
+
+#: The leaves of Hydra's node that :func:`check_invocation` passed in this process (without the
+#: keys Hydra fills and :data:`_JOB_TIME_KEYS`): :func:`check_job` takes a job's node equal to
+#: one of them without composing the reference again.
+_APPROVED: list[dict[str, Any]] = []
+
+
+def _comparable_leaves(hydra_node: dict[str, Any]) -> dict[str, Any]:
+    return {
+        k: v
+        for k, v in _leaves(hydra_node).items()
+        if k not in _JOB_TIME_KEYS and not any(_match(p, k) for p in allowlist.IGNORED_KEYS)
+    }
+
+
+def check_job(hydra_cfg: Any, job_cfg: Any = None) -> None:
+    """The second gate, in the job itself (issue 41): the Hydra node a job actually received
+    (after its launcher's per-job composition, ``load_sweep_config``) against the allow-list,
+    before the job's code runs; :class:`Refused` otherwise.
+
+    * the overrides Hydra re-applies to the job (``hydra.overrides.hydra``) and the job's own
+      (``hydra.overrides.task``) never set what Hydra fills nor place a group under ``hydra``;
+    * every other leaf equals the node :func:`check_invocation` passed in this process, or,
+      where there is none (a joblib or submitit worker) or it differs, the node is compared
+      leaf by leaf with Hydra's default composition (:func:`check_hydra_node`); the job's
+      number, id, mode and folder (``sweep.subdir``) are checked by kind, and the job folder
+      after resolution is relative without ``..``;
+    * ``job_cfg`` (the job's part): every ``_target_`` on the allow-list.
+
+    ``hydra_cfg`` is the job's ``hydra`` node as OmegaConf (``HydraConfig.get()``), attached to
+    its config so that ``${hydra.job.num}`` resolves."""
+    raw = OmegaConf.to_container(hydra_cfg, resolve=False)
+    if not isinstance(raw, dict):
+        raise Refused("the job's Hydra node is not a mapping; allowed: the node Hydra composes")
+    node: dict[str, Any] = {str(k): v for k, v in raw.items()}
+    listed = node.get("overrides") or {}
+    texts = [str(t) for k in ("hydra", "task") for t in (listed.get(k) or [])] if isinstance(listed, dict) else []
+    _check_override_places(_parse(texts))
+    leaves = _leaves(node)
+    for key in _JOB_TIME_KEYS:
+        kind = _kind_of(key)
+        problem = _check_kind(kind, key, leaves.get(key), node) if kind and key in leaves else None
+        if problem:
+            raise Refused(f"hydra.{key}={_short(leaves.get(key))} is not allowed; allowed: {problem}")
+    if _comparable_leaves(node) not in _APPROVED:
+        full = {**node, "job": {**(node.get("job") or {}), "num": "???", "id": "???"}}
+        check_hydra_node(full)
+    _check_node_paths(hydra_cfg)
+    if job_cfg is not None:
+        job = job_cfg if isinstance(job_cfg, dict) else OmegaConf.to_container(job_cfg, resolve=False)
+        try:
+            check_targets({k: v for k, v in job.items() if k != "hydra"} if isinstance(job, dict) else job)
+        except ConfigError as exc:
+            raise Refused(str(exc)) from None
+
+
+def refuse_job(cfg: Any) -> None:
+    """:func:`check_job` on a job's whole composed config (a launcher's or sweeper's
+    ``load_sweep_config``); a refusal is one line on stderr and ``SystemExit(2)``: the sweep
+    stops before the job (and the others, composed alike) runs."""
+    try:
+        check_job(cfg.hydra, cfg)
+    except Refused as exc:
+        print(f"nirspi-run: error: job refused: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _check_node_paths(hydra_cfg: Any) -> None:
+    """A job's folders after resolution (``sweep.subdir``, ``output_subdir``, ``job.name``):
+    relative, without ``..``."""
+    for key in ("sweep.subdir", "output_subdir", "job.name"):
+        try:
+            value = OmegaConf.select(hydra_cfg, key, throw_on_missing=True)
+        except Exception:  # noqa: BLE001 - a value only a later step fills: checked unresolved above
+            continue
+        if value is None:
+            continue
+        text = str(value)
+        if text.startswith("/") or ".." in Path(text).parts or "\\" in text:
+            raise Refused(f"hydra.{key}={text!r} is not allowed; allowed: a relative folder without '..'")
+
+
 def _changed_hydra_choices(hydra_node: dict[str, Any]) -> list[tuple[str, str]]:
     """The ``hydra/…`` group choices that differ from the defaults, each checked: only the groups
     of :data:`allowlist.HYDRA_CHOICE_GROUPS` (and their subgroups that the defaults lack) may
@@ -632,11 +779,13 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
         _refuse_flags_in_api(args)
     flags, overrides = parse_args(list(args))
     overrides, compose_overrides = _job_overrides(flags, overrides)
+    _check_searchpath_first(_parse(compose_overrides))  # before anything is composed or imported
     user_paths = bool(flags.get("--config-dir")) or any(
         ov.key_or_group == "hydra.searchpath" for ov in _parse(compose_overrides)
     )
     overrides, compose_overrides = _with_config_dir(flags, overrides, compose_overrides)
     parsed = _parse(compose_overrides)
+    _check_override_places(parsed)
     _check_sweep_places(parsed, flags)
     config_name = _primary_config(flags)
     fixed = [o for o, ov in zip(compose_overrides, parsed, strict=True) if not ov.is_sweep_override()]
@@ -648,6 +797,7 @@ def check_invocation(args: list[str], *, api: bool = False) -> Invocation:
     _check_composed(cfg, flags, simple)
     sweeps = [ov for ov in parsed if ov.is_sweep_override()]
     _check_sweeps(cfg, sweeps, fixed, config_name, user_paths, flags)
+    _APPROVED.append(_comparable_leaves(OmegaConf.to_container(cfg.hydra, resolve=False)))  # type: ignore[arg-type]
     return Invocation(
         flags=flags,
         overrides=tuple(overrides),
@@ -712,6 +862,40 @@ def _with_config_dir(
     if "--shell-completion" not in flags:
         overrides = compose_overrides
     return overrides, compose_overrides
+
+
+def _check_searchpath_first(parsed: list[Any]) -> None:
+    """``hydra.searchpath`` overrides checked before the first composition (issue 41): Hydra
+    imports a ``pkg://`` or ``structured://`` entry's module while it composes, so an entry that
+    is not a default one or an existing ``file://`` folder is refused before that."""
+    for ov in parsed:  # a package under hydra (+x@hydra.searchpath) is refused before compose too
+        if ov.key_or_group != "hydra.searchpath":
+            continue
+        if ov.is_sweep_override() or ov.is_delete():
+            raise Refused(f"{ov.input_line[:80]} is not allowed; allowed: hydra.searchpath=[file:///a/folder, ...]")
+        problem = _check_searchpath(ov.value())
+        if problem:
+            raise Refused(f"hydra.searchpath={_short(ov.value())} is not allowed; allowed: {problem}")
+
+
+def _check_override_places(parsed: list[Any]) -> None:
+    """Overrides never set what Hydra fills itself (``hydra.overrides``, ``hydra.runtime``, the
+    whole ``hydra`` node) and never place a group under ``hydra`` (``+scene@hydra.callbacks.x``):
+    the package is Hydra's parsed one (``Override.package``), not a split of the text."""
+    for ov in parsed:
+        key = ov.key_or_group
+        if key == "hydra" or key.startswith(("hydra.overrides", "hydra.runtime")):
+            filled = ".".join(key.split(".")[:2])
+            raise Refused(
+                f"{ov.input_line[:80]} is not allowed: Hydra fills {filled} itself; allowed: set each Hydra "
+                "key by its own override (hydra.run.dir=...)"
+            )
+        package = ov.package
+        if package is not None and (package == "hydra" or package.startswith("hydra.") or package == "_global_.hydra"):
+            raise Refused(
+                f"{ov.get_key_element()[:80]}: a package under hydra is not allowed; allowed: the group's own "
+                "package (leave out @...)"
+            )
 
 
 def _check_sweep_places(parsed: list[Any], flags: dict[str, str | None]) -> None:
@@ -792,7 +976,7 @@ def _hydra_keys_if_plain(fixed: list[Any]) -> list[str] | None:
     keys: list[str] = []
     for ov in fixed:
         key = ov.key_or_group
-        if ov.is_delete() or "@" in key or key == "hydra" or key.startswith("hydra/"):
+        if ov.is_delete() or ov.package is not None or key == "hydra" or key.startswith("hydra/"):
             return None
         if _group_exists(key):
             continue  # a trusted option file (its name is checked to exist: validate.check_overrides)
@@ -875,7 +1059,7 @@ def _check_sweeps(
         sweep_texts += _experiment_sweeps(experiments, fixed, config_name, flags)
     groups = all_groups()
     for ov in _parse(sweep_texts):
-        key = ov.key_or_group.split("@", 1)[0].lstrip("+~")
+        key = ov.key_or_group  # Hydra's parse: no package, no +/~ prefix
         if _is_hydra_key(key):
             raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
         if ov.is_delete():
@@ -921,9 +1105,8 @@ def _check_group_value(
     allowed = group_options(key)
     if text not in ("null", "None", validate.OFF_OPTION) and text not in allowed and not user_paths:
         raise Refused(f"{key}={text} is not an option; allowed: {', '.join(allowed)} (or null)")
-    if user_paths:
-        prefix = "+" if ov.is_add() else ""
-        _check_composed(_compose(config_name, [*fixed, f"{prefix}{ov.key_or_group}={text}"]), flags)
+    if user_paths:  # composed as Hydra composes it: the parsed key element (+, ++, @package) kept
+        _check_composed(_compose(config_name, [*fixed, f"{ov.get_key_element()}={text}"]), flags)
 
 
 def _check_key_value(job: dict[str, Any], key: str, value: Any) -> None:

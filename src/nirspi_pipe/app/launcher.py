@@ -42,6 +42,7 @@ from hydra.plugins.launcher import Launcher
 from omegaconf import open_dict
 from threadpoolctl import threadpool_limits
 
+from nirspi_pipe.app.entry import refuse_job
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import objective_values
 from nirspi_pipe.app.sweeper import ComposedJob, composed_job, format_progress
@@ -101,6 +102,7 @@ class NirspiLauncherBase(Launcher):
             with open_dict(cfg):
                 cfg.hydra.job.num = initial_job_idx + idx
                 cfg.hydra.job.id = f"{cfg.hydra.job.name}_{initial_job_idx + idx}"
+            refuse_job(cfg)  # the node this job would run with (issue 41), before anything of it runs
             out_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
             items.append((out_dir, initial_job_idx + idx, composed_job(cfg)))
         sweep_dir = Path(str(self.config.hydra.sweep.dir))

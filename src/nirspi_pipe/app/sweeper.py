@@ -56,6 +56,7 @@ from hydra.plugins.sweeper import Sweeper
 from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
+from nirspi_pipe.app.entry import refuse_job
 from nirspi_pipe.records import (
     RECORD_NAME,
     InputHasher,
@@ -477,8 +478,11 @@ class NirspiSweeperBase(Sweeper):
 
     def compose(self, overrides: list[str]) -> Any:
         """A job's config exactly as Hydra composes it for the launcher
-        (``config_loader.load_sweep_config``)."""
-        return self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+        (``config_loader.load_sweep_config``), its Hydra node checked as the job's own
+        (:func:`nirspi_pipe.app.entry.refuse_job`: a refusal stops the sweep, exit 2)."""
+        cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+        refuse_job(cfg)
+        return cfg
 
     def _composed(self, overrides: list[str]) -> ComposedJob:
         """:meth:`compose`, as a :class:`ComposedJob`."""

@@ -30,14 +30,17 @@ that ``backend: auto`` reads (:mod:`nirspi_pipe.accel`).
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import glob
 import io
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -301,8 +304,10 @@ def nvidia_icd_env(env: dict[str, str]) -> tuple[dict[str, str], str]:
     if not found:
         return env, "no libnvidia-opencl.so.1 found: the ICD loader's defaults are left as they are"
     lib = found[0]
-    folder = Path(os.environ.get("TMPDIR", "/tmp")) / "nirspi-icd"
-    folder.mkdir(parents=True, exist_ok=True)
+    # a private folder (mode 0700, a new name: tempfile.mkdtemp), never a fixed path in the shared
+    # temp folder, where another user could plant a link or an ICD of their own (issue 41)
+    folder = Path(tempfile.mkdtemp(prefix="nirspi-icd-"))
+    atexit.register(shutil.rmtree, folder, True)
     (folder / "nvidia.icd").write_text(lib + "\n")
     env = dict(env, OCL_ICD_VENDORS=str(folder))
     libdir = str(Path(lib).parent)

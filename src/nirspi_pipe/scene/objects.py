@@ -55,18 +55,50 @@ class Sphere:
         return compose_scene("sphere", camera, rays, hit, t, normals, refl, self.distance_mm * 1e-3)
 
 
+#: ``skimage:<name>`` → the sample image file shipped inside scikit-image's ``skimage/data``
+#: folder (issue 41: a fixed list, read from that folder with the bounded reader; no function of
+#: ``skimage.data`` is called, so nothing is downloaded). Each file decodes to the same pixels as
+#: ``skimage.data.<name>()`` (tests/test_security_per_job.py); ``horse`` and
+#: ``shepp_logan_phantom`` are left out (their functions change the file's pixels).
+SKIMAGE_SAMPLES: dict[str, str] = {
+    "astronaut": "astronaut.png",
+    "brick": "brick.png",
+    "camera": "camera.png",
+    "cat": "chelsea.png",
+    "cell": "cell.png",
+    "checkerboard": "chessboard_GRAY.png",
+    "chelsea": "chelsea.png",
+    "clock": "clock_motion.png",
+    "coffee": "coffee.png",
+    "coins": "coins.png",
+    "colorwheel": "color.png",
+    "grass": "grass.png",
+    "gravel": "gravel.png",
+    "hubble_deep_field": "hubble_deep_field.jpg",
+    "immunohistochemistry": "ihc.png",
+    "logo": "logo.png",
+    "microaneurysms": "microaneurysms.png",
+    "moon": "moon.png",
+    "page": "page.png",
+    "retina": "retina.jpg",
+    "rocket": "rocket.jpg",
+    "text": "text.png",
+}
+
+
 def load_gray_image(path: str) -> np.ndarray:
     """Load a grayscale image in [0, 1] from a file, or ``skimage:<name>`` for a scikit-image
-    sample (``skimage:camera``, ``skimage:astronaut``, …). Raises :class:`ConfigError` on
-    ``path`` when it cannot be read."""
+    sample shipped with it (:data:`SKIMAGE_SAMPLES`: ``skimage:camera``, ``skimage:astronaut``,
+    …). Raises :class:`ConfigError` on ``path`` when it cannot be read."""
     from skimage import color, data, util  # start-up: loads skimage, lazy_loader (8 ms here)
 
     if path.startswith("skimage:"):
         name = path.split(":", 1)[1]
-        loader = getattr(data, name, None)
-        if loader is None or not callable(loader):
-            raise ConfigError("path", path, "an image file or skimage:<sample name> (e.g. skimage:camera)")
-        img = loader()
+        if name not in SKIMAGE_SAMPLES:
+            raise ConfigError(
+                "path", path, f"an image file or skimage:<sample> with sample one of {', '.join(SKIMAGE_SAMPLES)}"
+            )
+        img = _read_image_bounded(Path(str(data.__file__)).parent / SKIMAGE_SAMPLES[name], path)
     else:
         file = Path(path).expanduser()
         if not file.is_file():
