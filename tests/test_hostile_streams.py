@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from nirspi_pipe.device.emulator import Emulator
 from nirspi_pipe.device.protocol import FRAME_DTYPE, PROTOCOL, StreamError, encode_end
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.sources.stream import Stream
 
 LOOPBACK = "127.0.0.1"
@@ -215,6 +216,28 @@ def test_emulator_and_client_use_loopback_only() -> None:
     assert emu._sock is not None and emu._sock.getsockname()[0] == LOOPBACK
     emu._sock.close()
     assert Stream.host == LOOPBACK and port > 0
+
+
+@pytest.mark.parametrize("host", ["10.0.0.1", "192.168.1.20", "example.com", "0.0.0.0", "::", "127.0.0.1.evil.org"])
+def test_the_client_refuses_a_remote_host_unless_allowed(host: str) -> None:
+    """Loopback by default (issue 41): a host that is not loopback is refused naming
+    ``host`` and the key that allows it, before any connection; ``allow_remote=true`` takes it."""
+    with pytest.raises(ConfigError, match="source.allow_remote=true") as err:
+        Stream(host=host, port=9)
+    assert err.value.key == "host"
+    assert Stream(host=host, port=9, allow_remote=True).host == host
+
+
+@pytest.mark.parametrize("host", ["127.0.0.1", "127.3.2.1", "::1", "[::1]", "localhost", "LOCALHOST"])
+def test_the_client_takes_loopback_hosts(host: str) -> None:
+    assert Stream(host=host, port=9).host == host
+
+
+@pytest.mark.parametrize(("host", "allow"), [("", False), ("a b", True), ("x\n", True), ("127.0.0.1", "yes")])
+def test_bad_host_or_allow_remote_values_name_their_key(host: str, allow: object) -> None:
+    with pytest.raises(ConfigError) as err:
+        Stream(host=host, port=9, allow_remote=allow)  # type: ignore[arg-type]
+    assert err.value.key in ("host", "allow_remote")
 
 
 @settings(max_examples=40, deadline=None)

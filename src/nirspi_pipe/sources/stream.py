@@ -6,6 +6,7 @@ and streams one frame per ±1 pattern back. ``nirspi-device-emulator`` speaks th
 
 from __future__ import annotations
 
+import ipaddress
 import socket
 import struct
 import time
@@ -123,12 +124,26 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
     )
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is a loopback address written as such (``127.0.0.0/8``, ``::1``) or
+    ``localhost``; names are not resolved (a name is loopback only when it is ``localhost``)."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
 @dataclass(frozen=True)
 class Stream:
     """Source ``stream``: measure the scan's patterns with a device over TCP.
 
     Attributes:
-        host: device address (the emulator listens on 127.0.0.1).
+        host: device address: a loopback address (``127.0.0.1``, any of ``127.0.0.0/8``,
+            ``::1``, ``localhost``; the emulator listens on 127.0.0.1) unless ``allow_remote``.
+        allow_remote: connect to a host that is not loopback (a device on the network);
+            false by default, so a config from someone else cannot make a run connect out.
         port: TCP port of the device (1–65535).
         timeout_s: total seconds for one acquisition (connect, request, header, every frame and
             the end marker); a device that has not finished by then fails with field
@@ -139,12 +154,26 @@ class Stream:
     host: str = "127.0.0.1"
     port: int | None = None
     timeout_s: float = 10.0
+    allow_remote: bool = False
 
     needs_scene = False
 
     def __post_init__(self) -> None:
-        if not isinstance(self.host, str) or not self.host:
+        if not isinstance(self.allow_remote, bool):
+            raise ConfigError("allow_remote", self.allow_remote, "true or false")
+        if (
+            not isinstance(self.host, str)
+            or not self.host
+            or len(self.host) > 253
+            or any(ord(c) <= 32 or ord(c) == 127 for c in self.host)
+        ):
             raise ConfigError("host", self.host, "a host name or IP address")
+        if not self.allow_remote and not is_loopback(self.host):
+            raise ConfigError(
+                "host",
+                self.host,
+                "a loopback address (127.0.0.1, ::1, localhost); a device on the network needs source.allow_remote=true",
+            )
         if (
             self.port is None
             or isinstance(self.port, bool)
