@@ -228,3 +228,20 @@ def test_plots_say_what_error_bars_are_and_legends_cover_nothing(tmp_path, monke
             for ax in fig.axes:
                 assert not box.overlaps(ax.get_window_extent(renderer)), (name, ax.get_title())
             assert not any(box.overlaps(d) for d in drawn if d.width > 0 and d.height > 0), name
+
+
+def test_table3_counts_jobs_the_fusion_flagged(tmp_path):
+    """Jobs whose fusion flagged its depth worse than SFS alone (info.fusion.worse_than_sfs) are
+    counted per cell and in a note, and stay in the means; records without the flag say n/a."""
+    frame = _frame("chamber")
+    flags = np.zeros(len(frame), dtype=bool)
+    hit = frame.index[(frame["scan"] == "hilbert") & (frame["illumination.klux"] == 5.0)][:3]
+    flags[hit] = True
+    table = build_table("table3", frame.assign(**{"info.fusion.worse_than_sfs": flags}), tmp_path / "a")
+    got = {(r.scan, r.klux): r.flagged for r in table.itertuples()}
+    assert got[("hilbert", 5.0)] == 3 and sum(got.values()) == 3
+    assert table.set_index(["scan", "klux"]).loc[("hilbert", 5.0), "n"] == 4  # kept in the mean
+    md = (tmp_path / "a" / "table3.md").read_text()
+    assert "Flagged: 3 of 32 jobs" in md and "| flagged |" in md
+    plain = build_table("table3", frame, tmp_path / "b")
+    assert plain["flagged"].isna().all() and "Flagged: n/a" in (tmp_path / "b" / "table3.md").read_text()

@@ -5,14 +5,24 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
 0. **Despiking.** SFS pixels that stand out of their 3×3 median by more than ``despike_k``
    robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
 1. **Anchors and metric scaling (Alg. A3).** The relative SFS depth ``z_r`` becomes metric depth
-   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``: a global scale ``s`` and offset ``t`` fitted to the
-   valid iToF anchors (weights ``1/(σ_k² + σ_SFS²)``, ``σ_SFS`` the SFS noise estimated from the
-   map, :func:`depth_noise`) with the prior ``s ≈ s₀ = Z̄/f`` (relative tolerance
-   ``scale_prior_rel``); 1 anchor fits ``t`` only, 2 fit ``s`` and ``t``. With at least
-   ``min_anchors_local`` anchors each anchor's image region (Voronoi cells of the anchors, blended
-   over ``blend_px``, :func:`anchor_weights`) gets a local offset ``δ_k = g_k·r_k``: its residual
-   after the global fit shrunk by ``g_k = max(0, 1 − (σ_k² + σ_SFS²)/r_k²)``, so agreement within
-   the noise applies nothing. Every rejected anchor is warned about with its reason.
+   ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``. The global scale and offset are fitted to the valid
+   iToF anchors (:func:`fit_anchors`) as a placement ``c`` (the metric depth of the map's
+   median) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel pitch at
+   the object's depth), so the scale is positive by construction; weighted least squares with
+   weights ``1/(σ_k² + σ_SFS²)`` (``σ_SFS`` the SFS noise estimated from the map,
+   :func:`depth_noise`), a log-normal scale prior (``scale_prior_rel``) and a Gaussian prior on
+   ``c``, the set-up's working distance (``prior_distance_mm``, ± ``prior_distance_rel``): an
+   anchor whose σ is far above the prior's moves nothing. Anchors whose σ is at least the
+   ambiguity range/√12 (a wrapped phase that noisy is about uniform) are not used; the rest pass
+   a leave-one-out outlier test (:func:`consistent_anchors`, level ``anchor_alpha``, Bonferroni
+   over the anchors) against their σ plus the SFS map's relief; rejected anchors are listed with
+   their reason. The record's ``worse_than_sfs`` says when the fit itself expects its placement
+   to be worse than the prior's (:func:`worse_than_prior`, or as many anchors rejected as kept).
+   With at least ``min_anchors_local`` anchors, and when they (not the prior) place the depth,
+   each anchor's image region (Voronoi cells of the anchors, blended over ``blend_px``,
+   :func:`anchor_weights`) gets a local offset ``δ_k = g_k·r_k``: its residual after the global
+   fit shrunk by ``g_k = max(0, 1 − (σ_k² + σ_SFS²)/r_k²)``, so agreement within the noise
+   applies nothing. Every anchor not used is warned about with its reason.
 2. **Back-projection** of every valid pixel with the pinhole camera, and triangulation of the
    pixel grid (two triangles per 2×2 block of valid pixels; triangles whose longest edge exceeds
    ``max_edge_factor`` × the median are dropped: they bridge SFS outliers or depth jumps).
