@@ -71,7 +71,9 @@ def test_metrics3d_on_a_3d_run():
     from nirspi_pipe.types import Acquisition, Camera, Image2D
 
     scene = Sphere().render(Camera(64))
-    acq = Acquisition(n=64, indices=np.arange(1), y_pos=np.zeros(1), truth=scene)
+    # the 2D image below is the truth: a stand-in for a reconstruction from every pattern (the
+    # normalised scores count the patterns an image could carry, metrics.measured_values)
+    acq = Acquisition(n=64, indices=np.arange(64 * 64), y_pos=np.zeros(64 * 64), truth=scene)
     rng = np.random.default_rng(0)
     depth = degraded_depth(scene, rng, noise_px=1.0, outlier_fraction=0.05)
     itof = ContinuousWave4(averaging_s=500.0).measure(scene, acq, rng)
