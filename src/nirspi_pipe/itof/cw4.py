@@ -17,8 +17,8 @@ demodulation)::
 which is unambiguous up to ``c / (2 f_mod)`` (31.2 m at 4.8 MHz); farther targets wrap.
 
 Noise. The ``A_k`` are Poisson counts (shot noise of signal and background light; a Gaussian of
-the same mean and variance above 10⁷ electrons, the photodiode's rule,
-:func:`nirspi_pipe.physics.detector.sample_electrons`) accumulated over
+the same mean and variance above 10¹⁸ electrons, where numpy's Poisson sampler stops, with the
+photodiode's code, :func:`nirspi_pipe.physics.detector.sample_electrons`) accumulated over
 ``frames = round(averaging_s / T_int)`` integration windows of ``T_int``. The shot-noise
 range deviation (Lange & Seitz 2001) is ``σ_shot = c/(4π f) · sqrt(ΣA_k / 2) / (2 a)`` with
 ``a = ½·|(A0 − A2, A3 − A1)|``, estimated from the measured counts as a device would. On top sits
@@ -56,6 +56,12 @@ SPOT_MODES = ("auto", "fixed")
 
 C_M_S = 299_792_458.0  # speed of light, m/s
 H_J_S = 6.626_070_15e-34  # Planck constant, J·s
+#: Poisson counts up to here, a Gaussian of the same mean and variance above (the photodiode's
+#: rule, :func:`~nirspi_pipe.physics.detector.sample_electrons`). Assumed: 1e18, below numpy's
+#: Poisson limit (~9.2e18), rather than the photodiode's 1e7 switch, so that every count numpy
+#: could draw keeps its Poisson draw (the default spots hold ~1e12 e⁻: the same random stream,
+#: hence the same numbers, as before the fallback existed); at 1e18 the two are indistinguishable.
+_POISSON_MAX = 1e18
 #: Largest laser power, mW (assumed: 1 TW, far beyond any laser; it keeps the photo-electron
 #: counts, ~3e26 for the default sphere, within float64 with room for a target at the lens).
 _MAX_POWER_MW = 1e15
@@ -398,8 +404,8 @@ class ContinuousWave4:
             phi = np.mod(4.0 * np.pi * f * r / C_M_S, 2.0 * np.pi) if hit else 0.0
             mean = n_b / 4.0 + n_s / 4.0 * (1.0 + self.demod_contrast * np.cos(phi + k_phase))
             # shot noise of signal + background: Poisson, a Gaussian of the same mean and variance
-            # above the detector's switch (numpy's Poisson refuses means above ~9e18)
-            counts = sample_electrons(mean, rng, shot=True, read_noise_e=0.0)
+            # above _POISSON_MAX (numpy's Poisson refuses means above ~9.2e18)
+            counts = sample_electrons(mean, rng, shot=True, read_noise_e=0.0, poisson_max=_POISSON_MAX)
             dist_0d, amp, offset = demodulate_4phase(counts, f)  # one pixel: 0-d arrays
             dist = float(dist_0d)
             s_phi: float

@@ -34,13 +34,20 @@ ELEMENTARY_CHARGE = 1.602176634e-19  # C
 _POISSON_MAX = 1e7
 
 
-def sample_electrons(mean_e: np.ndarray, rng: np.random.Generator, shot: bool, read_noise_e: float) -> np.ndarray:
+def sample_electrons(
+    mean_e: np.ndarray,
+    rng: np.random.Generator,
+    shot: bool,
+    read_noise_e: float,
+    poisson_max: float = _POISSON_MAX,
+) -> np.ndarray:
     """Random photoelectron counts around ``mean_e`` (e⁻, ≥ 0): Poisson shot noise (when
-    ``shot``) and Gaussian read noise of ``read_noise_e`` e⁻ rms. Never NaN for finite input."""
+    ``shot``; a Gaussian of the same mean and variance above ``poisson_max`` e⁻) and Gaussian
+    read noise of ``read_noise_e`` e⁻ rms. Never NaN for finite input."""
     mean = np.clip(np.nan_to_num(np.asarray(mean_e, dtype=np.float64), nan=0.0, posinf=1e300), 0.0, 1e300)
     out = mean
     if shot:
-        small = mean <= _POISSON_MAX
+        small = mean <= poisson_max
         out = np.empty_like(mean)
         out[small] = rng.poisson(mean[small])
         big = ~small
