@@ -167,12 +167,14 @@ def test_no_anchor_error_names_every_reason(sphere):
 def test_failed_record_keeps_its_warnings(tmp_path):
     from nirspi_pipe.app.jobs import execute_job
 
-    # one spot aimed off the object: fusion has no anchor and the job fails
+    # one spot aimed off the object: fusion has no anchor and, without the working-distance prior
+    # (which would place the depth alone, with a warning), the job fails
     cfg = _cfg(
         "itof=cw4",
         "itof.aim_directions=[[0.15,0.15,0.98]]",
         "sfs=second_order",
         "fusion=itof",
+        "fusion.prior_distance_mm=null",
         "output.images=false",
         "output.arrays=false",
     )
