@@ -426,3 +426,36 @@ def test_the_gpu_check_writes_its_icd_file_in_a_private_folder(tmp_path: Path, m
     assert stat.S_IMODE(folder.stat().st_mode) == 0o700
     assert (folder / "nvidia.icd").read_text() == "/usr/lib64/libnvidia-opencl.so.1\n"
     assert victim.read_text() == VICTIM_TEXT and str(folder) in line
+
+
+# ------------------------------------------------------------------ tracebacks and silent acceptances (issue 41)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["seed=${seed}"], "seed: the interpolation does not resolve (Recursive interpolation"),
+        (["seed=${nope}"], "seed: the interpolation does not resolve"),
+        (["-m", "hydra/sweeper=optuna", "objective=metrics.psnr", "hydra.sweeper.max_failure_rate=5"], "[0, 1]"),
+        (
+            ["-m", "hydra/sweeper=optuna", "objective=metrics.psnr", "+hydra.sweeper.sampler._partial_=true"],
+            "_partial_",
+        ),
+    ],
+)
+def test_values_that_crashed_later_are_refused_in_one_line(args: list[str], message: str) -> None:
+    _refused(args, message)
+
+
+@pytest.mark.slow
+def test_cli_flags_and_folders_that_crashed_or_were_ignored(tmp_path: Path) -> None:
+    """``--version``/``--plugins`` with anything else: refused (exit 2); a run folder Hydra
+    cannot create (``/proc/nope``): one line naming it, exit 1, no traceback."""
+    for args in (["--version", "seed=1"], ["--plugins", "-m"], ["--version", "--plugins"]):
+        res = _cli(args, tmp_path)
+        assert res.returncode == 2 and "takes nothing else" in res.stderr and not res.stdout, (args, res.stderr)
+    res = _cli(["hydra.run.dir=/proc/nope/x", "camera.resolution=8"], tmp_path)
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 1 and len(lines) == 1 and "hydra.run.dir" in lines[0] and "/proc/nope" in lines[0], (
+        res.stderr
+    )

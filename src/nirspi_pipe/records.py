@@ -49,7 +49,7 @@ import numpy as np
 
 from nirspi_pipe import __version__
 from nirspi_pipe.errors import NirspiError
-from nirspi_pipe.safeio import sanitize_text
+from nirspi_pipe.safeio import read_regular, sanitize_text
 
 __all__ = [
     "RECORD_NAME",
@@ -599,9 +599,26 @@ def write_record(folder: Path, record: Mapping[str, Any]) -> Path:
     return atomic_write(Path(folder) / RECORD_NAME, text)
 
 
+#: The largest ``record.json`` read back (assumed: about a thousand times the 12 kB a default
+#: run's record takes, so that no real record is refused and a planted file costs little).
+RECORD_READ_LIMIT = 16 << 20
+
+
 def read_record(path: Path) -> dict[str, Any]:
-    """Read one ``record.json`` (``Infinity``/``NaN`` allowed, as written)."""
-    return json.loads(Path(path).read_text())
+    """Read one ``record.json`` (``Infinity``/``NaN`` allowed, as written). A file that is not
+    regular (a FIFO, a device: refused without blocking), larger than :data:`RECORD_READ_LIMIT`,
+    not JSON, nested too deep, or not an object whose ``meta`` (when present) is an object
+    raises a ``ValueError`` naming the file (:class:`nirspi_pipe.safeio.UnsafeInputError` for
+    the first two), never blocks."""
+    raw = read_regular(path, RECORD_READ_LIMIT, str(path))
+    try:
+        data = json.loads(raw)
+    except RecursionError:
+        raise ValueError(f"{sanitize_text(path, 300)}: JSON nested too deep; allowed: a record.json") from None
+    if not isinstance(data, dict) or not isinstance(data.get("meta", {}), dict):
+        shape = type(data).__name__ if not isinstance(data, dict) else "an object whose meta is not an object"
+        raise ValueError(f"{sanitize_text(path, 300)}: {shape}, not a record; allowed: a record.json nirspi-run wrote")
+    return data
 
 
 def write_arrays(

@@ -15,6 +15,7 @@ import ast
 import math
 import os
 import re
+import stat
 import struct
 import zipfile
 import zlib
@@ -52,6 +53,48 @@ _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u200b-\u200f\u202a-\u202e\u2066-\u20
 
 class UnsafeInputError(NirspiError, ValueError):
     """A file or stream declares more than it holds, or more than the memory budget allows."""
+
+
+def open_regular(path: str | Path, where: str | None = None) -> Any:
+    """``path`` opened for binary reading when it is a regular file; :class:`UnsafeInputError`
+    (one line naming it) for a FIFO, a device, a socket or a folder, without blocking: it is
+    opened with ``O_NONBLOCK`` (a FIFO with no writer would block a plain ``open``), checked with
+    ``fstat`` + ``S_ISREG`` on the open descriptor (no swap between check and read), and only
+    then switched back to blocking reads."""
+    where = where or str(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except FileNotFoundError:
+        raise UnsafeInputError(f"{where}: file does not exist") from None
+    except OSError as exc:
+        raise UnsafeInputError(f"{where}: cannot open ({exc.strerror or exc})") from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kind = "a FIFO" if stat.S_ISFIFO(mode) else "a folder" if stat.S_ISDIR(mode) else "a device or socket"
+            raise UnsafeInputError(f"{where}: {kind}, not a regular file; allowed: a regular file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path: str | Path, limit: int, where: str | None = None) -> bytes:
+    """The bytes of the regular file ``path`` (:func:`open_regular`), its size checked against
+    ``limit`` bytes before reading, and at most ``limit`` bytes read (a file growing meanwhile
+    is refused too); :class:`UnsafeInputError` otherwise."""
+    where = where or str(path)
+    with open_regular(path, where) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if size > limit:
+            raise UnsafeInputError(f"{where}: {_fmt_bytes(size)}, more than the {_fmt_bytes(limit)} allowed here")
+        data = fh.read(limit + 1)
+    if len(data) > limit:
+        raise UnsafeInputError(f"{where}: more than the {_fmt_bytes(limit)} allowed here")
+    return bytes(data)
 
 
 def read_budget(budget: int | None = None) -> int:
@@ -219,13 +262,8 @@ def read_npz(
     path = Path(path)
     where = where or f"{path}"
     limit = read_budget(budget)
-    try:
-        file_len = path.stat().st_size
-        fh = open(path, "rb")  # closed by the `with fh` below
-    except FileNotFoundError:
-        raise UnsafeInputError(f"{where}: file does not exist") from None
-    except OSError as exc:
-        raise UnsafeInputError(f"{where}: cannot open ({exc.strerror or exc})") from None
+    fh = open_regular(path, where)  # a regular file (never a FIFO or device); closed by `with fh` below
+    file_len = os.fstat(fh.fileno()).st_size
     out: dict[str, np.ndarray] = {}
     with fh:
         head = fh.read(6)

@@ -67,7 +67,8 @@ IGNORED_KEYS: tuple[str, ...] = ("runtime.**", "overrides.**", "job.config_name"
 #: * ``name``: a file-name-safe word (``[A-Za-z0-9_.-]``, not ``.``/``..``); ``name_or_null``;
 #: * ``mode``: RUN, MULTIRUN or null; ``verbose``: true/false, a logger name or a list of them;
 #: * ``bool``, ``int`` (>= 1, or -1 for n_jobs), ``int_or_null``, ``number_or_null`` (> 0),
-#:   ``scalar`` (a number, a boolean, null or a word);
+#:   ``fraction`` (a number in [0, 1]), ``scalar`` (a number, a boolean, null or a word; never at
+#:   a key starting with ``_`` such as ``_partial_``: those are instructions to Hydra's instantiate);
 #: * ``sweep``: a sweep string (``a,b``, ``range(…)``, ``choice(…)``, ``interval(a,b)``,
 #:   ``tag(…)``) for the key it names, checked value by value like a command-line sweep;
 #: * ``experiments``: a list of options of the ``experiment`` group;
@@ -122,9 +123,9 @@ HYDRA_KEYS: dict[str, str] = {
     "sweeper.direction": "direction",
     "sweeper.study_name": "name_or_null",
     "sweeper.storage": "null",
-    # TEMP (issue 34, for issue 32 to take over): the share of failed trials Optuna's sweeper, and
-    # the results callback's exit code, accept; should be a number in [0, 1] (the plugin asserts it)
-    "sweeper.max_failure_rate": "number_or_null",
+    # the share of failed trials Optuna's sweeper, and the results callback's exit code, accept:
+    # a number in [0, 1] (the plugin asserts it, with a traceback, issue 41)
+    "sweeper.max_failure_rate": "fraction",
     "sweeper.sampler._target_": "optuna_target",
     "sweeper.sampler.*": "scalar",
     "sweeper.pruner._target_": "optuna_target",

@@ -33,6 +33,7 @@ from nirspi_pipe.app.plugins import activate, discover, format_report
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import SWEEP_FILE, SweepFileError
 from nirspi_pipe.records import OutputError, drop_links, refuse_link
+from nirspi_pipe.safeio import sanitize_text
 from nirspi_pipe.summary import format_summary
 from nirspi_pipe.targets import trusted_paths
 
@@ -52,7 +53,7 @@ def _hydra_task(cfg: Any) -> None:
         raise SystemExit(_EXIT_CONFIG) from None
     out_dir = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
-    overrides = list(hc.overrides.task)
+    overrides = [str(o) for o in OmegaConf.to_container(hc.overrides.task, resolve=False) or []]  # as typed
     # hc.job is a DictConfig at run time (typed as the JobConf dataclass); num is '???' in a single run
     job_num: int | None = hc.job.get("num")  # type: ignore[attr-defined]
     from nirspi_pipe.app.jobs import execute_job  # start-up: loads 13 modules of ours (26 ms here)
@@ -102,9 +103,13 @@ def run(argv: list[str] | None = None) -> None:
     when the composed configuration passes."""
     args = list(sys.argv[1:] if argv is None else argv)
     try:
-        flags, _ = parse_args(args)
+        flags, overrides = parse_args(args)
     except Refused as exc:
         _refuse(exc)
+    for alone in ("--version", "--plugins"):  # ours: they print and run nothing, so nothing may go with them
+        if alone in flags and (overrides or len(flags) > 1):
+            extra = next(iter(overrides), None) or next(f for f in flags if f != alone)
+            _refuse(Refused(f"{alone} takes nothing else ({extra[:60]!r} given); allowed: nirspi-run {alone} alone"))
     if "--version" in flags:  # the project's version (Hydra's own flag would print Hydra's)
         print(f"nirspi-pipe {__version__} (hydra-core {version('hydra-core')})")
         return
@@ -155,8 +160,13 @@ def _hydra_files_without_links(cfg: Any, multirun: bool) -> None:
     except Exception:  # noqa: BLE001 - ${now:...} resolves only in Hydra: a new folder, nothing to clean
         return
     refuse_link(folder, f"{'sweep' if multirun else 'output'} folder (hydra.{key})")
-    if not folder.is_dir():
-        return
+    try:  # Hydra creates it first thing, with a traceback when it cannot
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot create the {'sweep' if multirun else 'output'} folder {sanitize_text(folder, 300)} "
+            f"(hydra.{key}): {exc.strerror or exc}"
+        ) from None
     drop_links(folder, ("multirun.yaml",) if multirun else ())
     folders = [Path(d) for d, _, _ in os.walk(folder)] if multirun else [folder]  # os.walk follows no link
     for one in folders:
@@ -221,8 +231,11 @@ def collect(argv: list[str] | None = None) -> None:
     if ns.print_table:
         import pandas as pd  # start-up: loads pandas, pyarrow, cloudpickle (307 ms here)
 
+        shown = frame.head(20).copy()
+        for col in shown.select_dtypes(include="object").columns:  # text from records: no control or bidi characters
+            shown[col] = shown[col].map(lambda v: sanitize_text(v, 120) if isinstance(v, str) else v)
         with pd.option_context("display.width", 160, "display.max_columns", 12):
-            print(frame.head(20).to_string(index=False))
+            print(shown.to_string(index=False))
     if not ns.quiet:
         counts = frame["status"].value_counts().to_dict() if len(frame) else {}
         by_status = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none"

@@ -42,6 +42,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Glob, IntervalSweep
 from hydra.types import RunMode
 from omegaconf import OmegaConf
+from omegaconf.errors import InterpolationKeyError, InterpolationResolutionError
 
 from nirspi_pipe.app import allowlist
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, group_options
@@ -428,9 +429,14 @@ def _kind_number_or_null(key: str, value: Any, hydra_node: dict[str, Any]) -> st
     return None if value is None or (_is_number(value) and value > 0) else "a number > 0 or null"
 
 
+def _kind_fraction(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    return None if _is_number(value) and 0 <= value <= 1 else "a number in [0, 1]"
+
+
 def _kind_scalar(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
-    if key.rsplit(".", 1)[-1] in allowlist.OPTUNA_REFUSED_OPTIONS:
-        return "(nothing: this option names code or a nested object)"
+    last = key.rsplit(".", 1)[-1]
+    if last in allowlist.OPTUNA_REFUSED_OPTIONS or last.startswith("_"):
+        return "(nothing: this option names code, a nested object or an instruction to instantiate)"
     ok = value is None or isinstance(value, bool) or _is_number(value)
     ok = ok or (isinstance(value, str) and bool(_WORD.match(value)))
     return None if ok else "a number, true/false, null or a single word"
@@ -494,6 +500,7 @@ _KIND_CHECKS: dict[str, Callable[[str, Any, dict[str, Any]], str | None]] = {
     "n_jobs": _kind_n_jobs,
     "int_or_null": _kind_int_or_null,
     "number_or_null": _kind_number_or_null,
+    "fraction": _kind_fraction,
     "scalar": _kind_scalar,
     "joblib_backend": _kind_joblib_backend,
     "direction": _kind_direction,
@@ -952,6 +959,15 @@ def _plain(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     job_part = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"])
     try:
         job = OmegaConf.to_container(job_part, resolve=True)
+    except (InterpolationKeyError, InterpolationResolutionError) as exc:
+        names_hydra = "'hydra." in str(exc)  # ${hydra.job.name}: Hydra's node is masked out here
+        if (isinstance(exc, InterpolationKeyError) and not names_hydra) or "Recursive interpolation" in str(exc):
+            key = getattr(exc, "full_key", None) or "?"
+            raise Refused(
+                f"{key}: the interpolation does not resolve ({_one_line(str(exc).splitlines()[0])}); "
+                "allowed: a value, or ${other.key} naming another key"
+            ) from None
+        job = OmegaConf.to_container(job_part, resolve=False)  # a resolver only a running app has
     except Exception:  # noqa: BLE001 - then checked unresolved
         job = OmegaConf.to_container(job_part, resolve=False)
     hydra_node = OmegaConf.to_container(cfg.hydra, resolve=False)

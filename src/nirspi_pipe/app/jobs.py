@@ -46,6 +46,7 @@ from nirspi_pipe.records import (
     read_record,
     write_record,
 )
+from nirspi_pipe.safeio import read_regular
 
 __all__ = [
     "ATTEMPTS_NAME",
@@ -81,10 +82,10 @@ def read_attempts(folder: Path) -> dict[str, Any]:
     """``attempts.json`` of a job folder: ``{"attempts": n, "source_hash": ..., "last": ...}``;
     ``{"attempts": 0}`` when there is none or it is unreadable."""
     try:
-        data = json.loads((Path(folder) / ATTEMPTS_NAME).read_text())
+        data = json.loads(read_regular(Path(folder) / ATTEMPTS_NAME, 1 << 16))  # never a FIFO; a few bytes
         if isinstance(data, dict) and isinstance(data.get("attempts"), int):
             return data
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         pass
     return {"attempts": 0}
 

@@ -30,6 +30,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_names, objective_values, pareto_mask
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import SweepFileError, launcher_failures, load_sweep_file
+from nirspi_pipe.finite import drop_nonfinite
 from nirspi_pipe.records import (
     RECORD_NAME,
     OutputError,
@@ -40,7 +41,7 @@ from nirspi_pipe.records import (
     refuse_link,
 )
 from nirspi_pipe.report import write_report
-from nirspi_pipe.safeio import sanitize_text
+from nirspi_pipe.safeio import read_regular, sanitize_text
 from nirspi_pipe.tables import build_table
 
 __all__ = ["find_records", "records_to_frame", "collect", "CollectResults", "override_keys"]
@@ -183,12 +184,18 @@ def collect(sweep_dir: str | Path, write: bool = True) -> pd.DataFrame:
             records.append((job, {"meta": {"status": "failed", "error": "job folder is a symbolic link; refused"}}))
             continue
         try:
-            records.append((job, read_record(path)))
+            rec = read_record(path)
         except FileNotFoundError:
             records.append((job, {"meta": {"status": "missing", "error": "no record: killed or not run"}}))
         except (OSError, ValueError, RecursionError) as exc:
-            log.warning("unreadable record %s: %s", path, exc)
+            log.warning("unreadable record %s: %s", sanitize_text(path, 300), sanitize_text(exc, 300))
             records.append((job, {"meta": {"status": "failed", "error": f"unreadable record: {exc}"}}))
+        else:
+            # a row with status ok holds no NaN or Inf, whoever wrote the record (issue 41)
+            removed = drop_nonfinite(rec) if rec.get("meta", {}).get("status") == "ok" else []
+            if removed:
+                log.warning("record %s: %s", sanitize_text(path, 300), sanitize_text("; ".join(removed), 300))
+            records.append((job, rec))
     frame = records_to_frame(records)
     objective = read_objective(sweep)
     if objective is not None:
@@ -227,10 +234,10 @@ def read_objective(sweep: Path) -> tuple[list[str], list[str]] | None:
     """``(objective names, directions)`` of a sweep from its :data:`OBJECTIVE_FILE`; None when it
     has none or it is unreadable (then no ``pareto`` column)."""
     try:
-        info = json.loads((Path(sweep) / OBJECTIVE_FILE).read_text())
+        info = json.loads(read_regular(Path(sweep) / OBJECTIVE_FILE, 1 << 20))  # never a FIFO
         names = objective_names(info["objective"])
         directions = directions_of(info["direction"], len(names))
-    except (OSError, ValueError, KeyError, TypeError, ObjectiveError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError, ObjectiveError):
         return None
     return (names, directions) if names and directions else None
 

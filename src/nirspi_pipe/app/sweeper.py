@@ -59,6 +59,7 @@ from omegaconf.errors import InterpolationResolutionError
 from nirspi_pipe.app.entry import refuse_job
 from nirspi_pipe.records import (
     RECORD_NAME,
+    RECORD_READ_LIMIT,
     InputHasher,
     OutputError,
     atomic_write,
@@ -69,6 +70,7 @@ from nirspi_pipe.records import (
     refuse_link,
     write_record,
 )
+from nirspi_pipe.safeio import read_regular
 
 __all__ = [
     "SWEEP_FILE",
@@ -259,8 +261,8 @@ def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
     path = Path(sweep_dir) / SWEEP_FILE
     if not path.exists():
         return None
-    try:
-        info = json.loads(path.read_text())
+    try:  # a regular file only (a FIFO would block), bounded like a record
+        info = json.loads(read_regular(path, RECORD_READ_LIMIT, str(path)))
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise SweepFileError(
             f"{path} is not readable JSON ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"

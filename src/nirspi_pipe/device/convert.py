@@ -29,7 +29,7 @@ import numpy as np
 
 from nirspi_pipe.device.recording import RecordingError, match_hadamard, save_recording
 from nirspi_pipe.errors import NirspiError
-from nirspi_pipe.safeio import read_npz
+from nirspi_pipe.safeio import open_regular, read_npz
 
 __all__ = ["convert", "load_any", "main"]
 
@@ -146,7 +146,8 @@ def load_any(path: Path) -> dict[str, np.ndarray]:
     if path.suffix.lower() == ".mat":
         from scipy.io import loadmat  # start-up: loads scipy and numpy (714 ms here)
 
-        return {k: v for k, v in loadmat(path).items() if not k.startswith("__")}
+        with open_regular(path) as fh:  # a regular file only: a FIFO or device is refused, never read
+            return {k: v for k, v in loadmat(fh).items() if not k.startswith("__")}
 
     return read_npz(path, str(path), mmap=False)
 
