@@ -183,6 +183,26 @@ def test_impossible_scene_inputs_name_the_key(make, key):
     assert err.value.key == key
 
 
+@pytest.mark.parametrize(
+    ("make", "key", "value"),
+    [
+        (lambda: Torus(distance_mm=1e-3), "distance_mm", 1e-3),  # the torus's 55 mm was never set
+        (lambda: Sphere(distance_mm=20.0), "distance_mm", 20.0),
+        (lambda: Cube(distance_mm=10.0), "distance_mm", 10.0),
+        (lambda: Sphere(diameter_mm=500.0), "diameter_mm", 500.0),
+        (lambda: Cube(side_mm=300.0), "side_mm", 300.0),  # its own value, not the diagonal 519.6
+        (lambda: Torus(outer_diameter_mm=500.0, distance_mm=100.0), "outer_diameter_mm", 500.0),
+    ],
+)
+def test_a_size_too_large_for_the_distance_names_the_key_that_was_changed(make, key, value):
+    """Issue 40: never blame a key the user did not set. A size at its default with a changed
+    distance names the distance; a changed size names the size, with the value the user gave."""
+    with pytest.raises(ConfigError) as err:
+        make()
+    assert err.value.key == key and err.value.value == value
+    assert str(err.value).startswith(f"{key}=") and "in front of the camera" in str(err.value)
+
+
 def test_unreadable_mesh_file_names_the_key(tmp_path):
     bad = tmp_path / "bad.ply"
     bad.write_text("not a mesh")

@@ -376,6 +376,13 @@ def _degenerate_cloud(name: str) -> np.ndarray:
         "inf": lambda: np.vstack([cap, [[0.0, np.inf, 0.2]]]),
         "far": lambda: cap + np.array([0.0, 0.0, 1e6]),
         "tiny": lambda: cap * 1e-9,
+        "strip_20nm": lambda: (
+            np.column_stack([np.linspace(-0.02, 0.02, 50), np.zeros(50), np.full(50, 0.2)])
+            + np.random.default_rng(1).normal(0.0, 2e-8, (50, 3))
+        ),
+        "behind_camera": lambda: cap * np.array([1.0, 1.0, -1.0]),
+        "outlier_1km": lambda: np.vstack([cap, [[0.0, 0.0, 1000.0]]]),
+        "two_clusters": lambda: np.vstack([cap[:32], cap[:32] + np.array([0.0, 0.0, 0.5])]),
     }
     return np.asarray(clouds[name](), dtype=np.float64)
 

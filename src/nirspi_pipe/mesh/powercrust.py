@@ -58,8 +58,9 @@ from nirspi_pipe.types import Mesh, PointCloud
 CLOUD_QUANTUM_M = 1e-8
 
 #: A cloud whose second singular value is below this fraction of its first lies on a line (assumed:
-#: 1e-9, far above float64's 2e-16 and far below any real cloud's aspect, e.g. 0.1 for a 1:10 strip).
-COLLINEAR_REL = 1e-9
+#: 1e-5, a 5 cm strip 0.5 µm wide, far below any surface the camera samples at ~1 mm; a line of 50
+#: points with 20 nm of jitter, ratio 2e-6, gave a one-triangle mesh).
+COLLINEAR_REL = 1e-5
 
 #: Clouds farther from the camera than this many extents are centred for Qhull (assumed: 1000; the
 #: project's scenes are within 10 extents; Qhull refused a 4 cm cap 1000 km away).
@@ -260,6 +261,12 @@ def power_crust(
     if float(np.max(np.abs(origin))) <= FAR_EXTENTS * max(float(np.max(hi - lo)), 1e-300):
         origin = np.zeros(3)
     view = s
+    if labelling == "view" and not bool(np.all(view[:, 2] > 0)):
+        behind = int(np.sum(~(view[:, 2] > 0)))
+        raise NirspiError(
+            f"power crust: labelling 'view' sees the points from the camera at the origin, but {behind} of the "
+            f"{len(view)} points are not in front of it (z <= 0)"
+        )
     s = s - origin
     poles, radii, owner = compute_poles(s, box_factor)
     # merge coincident poles (e.g. all inner poles of an exact sphere sit at its centre): they

@@ -13,7 +13,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.safeio import UnsafeInputError, check_budget, sanitize_text
-from nirspi_pipe.scene.render import check_common, compose_scene
+from nirspi_pipe.scene.render import check_common, check_size, compose_scene
 from nirspi_pipe.types import Camera, Scene
 
 __all__ = ["Sphere", "ImageTarget", "load_gray_image"]
@@ -37,8 +37,7 @@ class Sphere:
 
     def __post_init__(self) -> None:
         check_common(self.distance_mm, self.reflectance, self.supersample)
-        if not 0 < self.diameter_mm < 2 * self.distance_mm:
-            raise ConfigError("diameter_mm", self.diameter_mm, f"a diameter in mm in (0, {2 * self.distance_mm:g})")
+        check_size(self, "diameter_mm")
 
     def render(self, camera: Camera) -> Scene:
         """Ray-cast the sphere; see :func:`~nirspi_pipe.scene.render.compose_scene`."""

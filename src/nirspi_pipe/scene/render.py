@@ -10,6 +10,7 @@ normals are averaged over the hitting rays only.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import fields
 from typing import Any
 
 import numpy as np
@@ -59,6 +60,28 @@ def forget_renders(files_only: bool = False) -> None:
 #: How many renders :func:`render_cached` keeps (a fine 32² torus is ~100 kB).
 MAX_REMEMBERED = 8
 _REMEMBERED: OrderedDict[tuple[Any, Any], Scene] = OrderedDict()
+
+
+def check_size(obj: Any, key: str, factor: float = 1.0, limit: float = 2.0) -> None:
+    """``factor × obj.<key>`` (mm) must lie in ``(0, limit × obj.distance_mm)``: the object stays in
+    front of the camera. A size that is no size (not finite, <= 0) is named. A size too large for
+    the distance names the key the user changed: the distance when the size is at its default and
+    the distance is not (``scene=torus scene.distance_mm=1`` names ``distance_mm``, not the torus's
+    ``outer_diameter_mm`` that the user never set), else the size, with its own value."""
+    value, distance = getattr(obj, key), float(obj.distance_mm)
+    span = f"in mm in (0, {limit * distance / factor:g}) at distance_mm={distance:g}"
+    if not np.isfinite(value) or not value > 0:
+        raise ConfigError(key, value, f"a size {span}")
+    if factor * value < limit * distance:
+        return
+    defaults = {f.name: f.default for f in fields(obj)}
+    if value == defaults.get(key) and distance != defaults.get("distance_mm"):
+        raise ConfigError(
+            "distance_mm",
+            obj.distance_mm,
+            f"a distance in mm > {factor * value / limit:g} for {key}={value:g} (the object must stay in front of the camera)",
+        )
+    raise ConfigError(key, value, f"a size {span} (the object must stay in front of the camera)")
 
 
 def check_common(distance_mm: float, reflectance: float, supersample: int) -> None:

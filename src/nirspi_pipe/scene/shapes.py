@@ -28,7 +28,7 @@ import numpy as np
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.safeio import UnsafeInputError
 from nirspi_pipe.scene.meshfiles import MeshFileError, read_mesh_file
-from nirspi_pipe.scene.render import check_common, compose_scene
+from nirspi_pipe.scene.render import check_common, check_size, compose_scene
 from nirspi_pipe.types import Camera, Scene
 
 __all__ = [
@@ -65,13 +65,6 @@ def _check_rotation(rotation_deg: Any) -> tuple[float, float, float]:
     if len(rot) != 3 or not all(np.isfinite(rot)):
         raise ConfigError("rotation_deg", rotation_deg, "three finite angles [rx, ry, rz] in degrees")
     return rot[0], rot[1], rot[2]
-
-
-def _check_size(key: str, value: float, distance_mm: float) -> None:
-    if not np.isfinite(value) or not 0 < value < 2 * distance_mm:
-        raise ConfigError(
-            key, value, f"a size in mm in (0, {2 * distance_mm:g}) (the object must stay in front of the camera)"
-        )
 
 
 def ray_boxes(
@@ -130,7 +123,7 @@ class Torus:
 
     def __post_init__(self) -> None:
         check_common(self.distance_mm, self.reflectance, self.supersample)
-        _check_size("outer_diameter_mm", self.outer_diameter_mm, self.distance_mm)
+        check_size(self, "outer_diameter_mm")
         if not np.isfinite(self.inner_diameter_mm) or not 0 <= self.inner_diameter_mm < self.outer_diameter_mm:
             raise ConfigError(
                 "inner_diameter_mm", self.inner_diameter_mm, f"a diameter in mm in [0, {self.outer_diameter_mm:g})"
@@ -204,7 +197,7 @@ class Cube:
 
     def __post_init__(self) -> None:
         check_common(self.distance_mm, self.reflectance, self.supersample)
-        _check_size("side_mm", self.side_mm * np.sqrt(3), self.distance_mm)
+        check_size(self, "side_mm", factor=float(np.sqrt(3)))  # its diagonal in front of the camera
         object.__setattr__(self, "rotation_deg", _check_rotation(self.rotation_deg))
 
     def render(self, camera: Camera) -> Scene:
@@ -241,7 +234,7 @@ class UShape:
     def __post_init__(self) -> None:
         check_common(self.distance_mm, self.reflectance, self.supersample)
         for key in ("width_mm", "height_mm", "depth_mm"):
-            _check_size(key, getattr(self, key), self.distance_mm)
+            check_size(self, key)
         if not np.isfinite(self.thickness_mm) or not 0 < self.thickness_mm < 0.5 * min(
             self.width_mm, 2 * self.height_mm
         ):
@@ -488,7 +481,7 @@ class MeshScene:
         if not self.path:
             raise ConfigError("path", self.path, "a mesh file (.ply, .stl, .obj)")
         if self.size_mm is not None:
-            _check_size("size_mm", self.size_mm, self.distance_mm)
+            check_size(self, "size_mm")
         if not np.isfinite(self.scale) or not self.scale > 0:
             raise ConfigError("scale", self.scale, "a factor > 0 (file units to mm)")
         object.__setattr__(self, "rotation_deg", _check_rotation(self.rotation_deg))

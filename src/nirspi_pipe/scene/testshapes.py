@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.scene.render import check_common, compose_scene
+from nirspi_pipe.scene.render import check_common, check_size, compose_scene
 from nirspi_pipe.scene.shapes import raycast_mesh, rotation_matrix
 from nirspi_pipe.types import Camera, Scene
 
@@ -203,8 +203,7 @@ class GeneratedShape:
         check_common(self.distance_mm, self.reflectance, self.supersample)
         if self.kind not in KINDS:
             raise ConfigError("kind", self.kind, ", ".join(KINDS))
-        if not (np.isfinite(self.size_mm) and 0 < self.size_mm < self.distance_mm):
-            raise ConfigError("size_mm", self.size_mm, "a size in mm > 0 and below distance_mm")
+        check_size(self, "size_mm", limit=1.0)
         off = np.asarray(self.offset_mm, dtype=np.float64)
         if off.shape != (2,) or not np.all(np.isfinite(off)):
             raise ConfigError("offset_mm", self.offset_mm, "[x, y] in mm")
