@@ -187,3 +187,22 @@ def test_collect_keeps_no_nan_in_ok_rows_and_prints_no_control_characters(tmp_pa
     assert ok["metrics.mse"].tolist() == [0.5]
     numeric = ok.select_dtypes("number").to_numpy(dtype=float)
     assert not (~pd.isna(numeric) & ~(abs(numeric) < float("inf"))).any()
+
+
+def test_the_input_hash_covers_regular_files_only(tmp_path: Path) -> None:
+    """``meta.inputs`` (docs/hostile.md): string leaves naming existing regular files, relative
+    to the working directory, the ``hydra`` node aside; a FIFO, a device, a folder are not inputs
+    (and are never opened to be hashed)."""
+    import os
+
+    from nirspi_pipe.records import InputHasher
+
+    (tmp_path / "rec.npz").write_bytes(b"data")
+    os.mkfifo(tmp_path / "fifo")
+    config = {
+        "source": {"path": "rec.npz"},
+        "scene": {"path": str(tmp_path / "fifo"), "other": "/dev/zero", "dir": str(tmp_path)},
+        "hydra": {"run": {"dir": "rec.npz"}},
+    }
+    hashes = InputHasher().hashes(config, base=tmp_path)
+    assert set(hashes) == {"source.path"} and len(hashes["source.path"]) == 64

@@ -611,7 +611,7 @@ def check_job(hydra_cfg: Any, job_cfg: Any = None) -> None:
     node: dict[str, Any] = {str(k): v for k, v in raw.items()}
     listed = node.get("overrides") or {}
     texts = [str(t) for k in ("hydra", "task") for t in (listed.get(k) or [])] if isinstance(listed, dict) else []
-    _check_override_places(_parse(texts))
+    _check_override_places([_parse_cached(t) for t in texts])
     leaves = _leaves(node)
     for key in _JOB_TIME_KEYS:
         kind = _kind_of(key)
@@ -764,6 +764,12 @@ def _parse(overrides: list[str]) -> list[Any]:
             first = str(exc).strip().splitlines()
             raise Refused(f"{text[:80]!r} is not a valid override: {_one_line(first[0] if first else exc)}") from None
     return out
+
+
+@lru_cache(maxsize=4096)
+def _parse_cached(text: str) -> Any:
+    """:func:`_parse` of one override, cached: a sweep's jobs repeat the same overrides."""
+    return _parse([text])[0]
 
 
 def _is_hydra_key(key: str) -> bool:
