@@ -64,3 +64,12 @@ def test_a_refusal_must_name_the_key_the_user_set() -> None:
     assert outcome.status == "refused" and not outcome.holds
     assert "does not start with scan.ratio" in outcome.problems[0]
     assert isinstance(outcome, Outcome) and np.isfinite(outcome.seconds)
+
+
+def test_command_line_refuses_unknown_ids_and_partial_docs(capsys: pytest.CaptureFixture[str]) -> None:
+    from nirspi_pipe.hardcases import main
+
+    assert main(["no-such-case"]) == 2
+    assert "unknown case ids ['no-such-case']" in capsys.readouterr().err
+    assert main(["--write-docs", "crust-cap"]) == 2  # docs/hardcases.md is written from every case only
+    assert main(["crust-cap"]) == 0 and "holds" in capsys.readouterr().out

@@ -655,8 +655,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=_PROG, description="Run the hard-case catalogue (issue 40).")
     parser.add_argument("ids", nargs="*", help="only these case ids")
     parser.add_argument("--write-docs", action="store_true", help="write docs/hardcases.md (every case)")
-    parser.add_argument("--out", type=Path, default=Path("docs/hardcases.md"))
+    parser.add_argument("--out", type=Path, default=None, help="default: docs/hardcases.md of this clone")
     ns = parser.parse_args(argv)
+    if ns.write_docs and ns.ids:  # checked first: the run takes minutes
+        print(f"{_PROG}: --write-docs runs every case; give no ids", file=sys.stderr)
+        return 2
+    if ns.write_docs and ns.out is None:
+        from nirspi_pipe.readme_numbers import find_clone  # the clone holding this module, or the cwd's
+
+        clone = find_clone()
+        if clone is None:
+            print(f"{_PROG}: not in a clone of nirspi-pipe; give --out FILE", file=sys.stderr)
+            return 2
+        ns.out = clone / "docs" / "hardcases.md"
     cases = load_cases()
     if ns.ids:
         unknown = sorted(set(ns.ids) - {c.id for c in cases})
@@ -675,9 +686,6 @@ def main(argv: list[str] | None = None) -> int:
             + ("" if o.holds else f"  [{'; '.join(o.problems)[:300]}]")
         )
     if ns.write_docs:
-        if ns.ids:
-            print(f"{_PROG}: --write-docs runs every case; not written", file=sys.stderr)
-            return 2
         wall, cpu = sum(o.seconds for o in outcomes), sum(o.cpu_seconds for o in outcomes)
         load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
         stamp = (
