@@ -305,7 +305,10 @@ def power_crust(
     wtol = max(weld_factor * spacing, 1e-7 * max(float(np.ptp(s, axis=0).max()), 1e-12))
     verts, faces, n_poly = crust_faces(poles, tets, centres, inner, wtol)
     if len(faces) == 0:
-        raise NirspiError("power crust: no face between inner and outer poles (labelling failed)")
+        raise NirspiError(
+            f"power crust: no face between inner and outer poles ({int(inner.sum())} of {len(poles)} poles "
+            f"labelled inner by labelling {labelling!r}): too few points, or one far from the others"
+        )
     m = len(poles)
     info = {"poles": int(m), "inner_poles": int(inner.sum()), "power_faces": int(n_poly)}
     return verts + origin, faces, info
