@@ -459,3 +459,92 @@ def test_cli_flags_and_folders_that_crashed_or_were_ignored(tmp_path: Path) -> N
     assert res.returncode == 1 and len(lines) == 1 and "hydra.run.dir" in lines[0] and "/proc/nope" in lines[0], (
         res.stderr
     )
+
+
+# ------------------------------------------------------------------ generative: what each job receives
+
+_PIECES = [
+    'hydra.overrides.hydra=["hydra.job_logging.handlers.file.filename=VICTIM"]',
+    "hydra.overrides.task=['hydra.sweep.subdir=../..']",
+    "+hydra.runtime.choices.experiment=paper",
+    "+experiment@hydra.job_logging=x",
+    "+scene@hydra.callbacks.evil=sphere",
+    "+experiment=plant",
+    "+experiment=ok,subdir",
+    "+experiment=env",
+    "+experiment=ok",
+    "hydra.sweep.subdir=../..",
+    "hydra.sweep.subdir=a_${hydra.job.num}",
+    "hydra.job.name=n1",
+    "hydra.verbose=true",
+    "seed=${seed}",
+    "seed=0,1",
+    "scene=cube,sphere",
+    "camera.resolution=8,16",
+]
+#: Hydra's settings a job may never receive changed (the oracle, independent of the allow-list code).
+_FIXED = ("job_logging", "hydra_logging", "callbacks", "job.env_set", "job.env_copy", "job.chdir", "output_subdir")
+
+
+def _select(node: dict, dotted: str) -> object:
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, dict) else None  # type: ignore[assignment]
+    return node
+
+
+_JOBS: list[tuple[dict, str]] = []
+
+
+def _capture(cfg: object) -> None:  # the task function Hydra's basic launcher runs per job
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    _JOBS.append((OmegaConf.to_container(hc, resolve=False), str(hc.runtime.output_dir)))  # type: ignore[arg-type]
+
+
+@pytest.mark.slow
+def test_every_job_hydra_runs_receives_a_node_inside_the_allow_list(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """Hypothesis draws override combinations (lists Hydra fills, packages, interpolations,
+    sweeps, ``-cd`` experiments); each is checked, and what passes is run by Hydra itself
+    (``hydra.main``, basic sweeper and launcher: Hydra's own per-job composition) with a task
+    that records each job's Hydra node: no job's logging, callbacks, environment, chdir or
+    output_subdir differs from the default, and every job folder lies inside the sweep folder."""
+    import hydra
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
+        default = OmegaConf.to_container(compose(CONFIG_NAME, [], return_hydra_config=True).hydra, resolve=False)
+    root = tmp_path_factory.mktemp("gen")
+    conf = _planting_folder(root, root / "VICTIM")
+    counter = iter(range(10**6))
+
+    @settings(max_examples=8, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+    @given(st.lists(st.sampled_from(_PIECES), min_size=1, max_size=3, unique=True))
+    def one(pieces: list[str]) -> None:
+        sweep = root / f"s{next(counter)}"
+        pieces = [piece.replace("VICTIM", str(root / "VICTIM")) for piece in pieces]
+        args = ["-m", "-cd", str(conf), "hydra/sweeper=basic", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"]
+        try:
+            inv = check_invocation([*args, *pieces])
+        except Refused as exc:
+            assert "\n" not in str(exc)
+            return
+        _JOBS.clear()
+        old = sys.argv
+        sys.argv = ["nirspi-run", *inv.hydra_argv]
+        try:
+            hydra.main(version_base="1.3", config_path=f"pkg://{CONFIG_MODULE}", config_name=inv.config_name)(
+                _capture
+            )()
+        finally:
+            sys.argv = old
+        assert _JOBS, pieces
+        for node, out_dir in _JOBS:
+            for key in _FIXED:
+                assert _select(node, key) == _select(default, key), (pieces, key)  # type: ignore[arg-type]
+            assert Path(out_dir).resolve().is_relative_to(sweep.resolve()), (pieces, out_dir)
+            listed = [str(t) for k in ("hydra", "task") for t in node["overrides"][k]]
+            assert not any("hydra.overrides" in t or "hydra.runtime" in t or "@hydra" in t for t in listed), pieces
+
+    one()
