@@ -6,11 +6,11 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    robust standard deviations are dropped (SFS outliers; the paper removes them with its filter).
 1. **Anchors and metric scaling (Alg. A3).** The relative SFS depth ``z_r`` becomes metric depth
    ``Z = s·z_r + t + Σ_k w_k(pixel)·δ_k``. The global scale and offset are fitted to the valid
-   iToF anchors (:func:`fit_anchors`) as a placement ``c`` (the metric depth of the map's
-   median) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel pitch at
-   the object's depth), so the scale is positive by construction; weighted least squares with
+   iToF anchors (:func:`fit_anchors`) as a placement ``c`` (the metric depth at the anchors'
+   mean SFS depth) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel
+   pitch at the anchors' depth), so the scale is positive by construction; weighted least squares with
    weights ``1/(σ_k² + σ_SFS²)`` (``σ_SFS`` the SFS noise estimated from the map,
-   :func:`depth_noise`), a log-normal scale prior (``scale_prior_rel``) and a Gaussian prior on
+   :func:`depth_noise`), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
    ``c``, the set-up's working distance (``prior_distance_mm``, ± ``prior_distance_rel``): an
    anchor whose σ is far above the prior's moves nothing. Anchors whose σ is at least the
    ambiguity range/√12 (a wrapped phase that noisy is about uniform) are not used; the rest pass
@@ -185,7 +185,7 @@ class AnchorFit:
     Attributes:
         scale: ``s`` (metres per SFS unit), > 0 by construction (``s = e^u · s_ref``).
         offset_m: ``t`` (metres), so that ``z = s·zr + t``.
-        placement_m: ``c``, the metric depth of the SFS map's median (metres, > 0).
+        placement_m: ``c``, the metric depth at the reference SFS depth ``ref_zr`` (metres, > 0).
         placement_sigma_m: the fit's standard deviation of ``c`` (metres; from the Jacobian).
         scale_ref: ``s_ref``, the geometric scale at the placement (``c / focal_px``; 1 for
             metric SFS depth).
@@ -205,10 +205,10 @@ class AnchorFit:
     anchor_chi2: float
     cov: np.ndarray
 
-    def predict(self, zr: np.ndarray, median_zr: float, focal_px: float | None) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, zr: np.ndarray, ref_zr: float, focal_px: float | None) -> tuple[np.ndarray, np.ndarray]:
         """Metric depth at relative depths ``zr`` and its variance from the fit (metres, m²)."""
         zr = np.asarray(zr, dtype=np.float64)
-        b = zr - median_zr
+        b = zr - ref_zr
         pred = self.scale * zr + self.offset_m
         # gradient of pred = c + e^u·s_ref(c)·b in (u, ln c): s·b, and c + s·b (s_ref = c/f) or c (1)
         dv = self.placement_m + (self.scale * b if focal_px is not None else np.zeros_like(b))
@@ -221,7 +221,7 @@ def fit_anchors(
     zr: np.ndarray,
     z: np.ndarray,
     sigma: np.ndarray,
-    median_zr: float,
+    ref_zr: float,
     focal_px: float | None,
     scale_prior_rel: float | None,
     prior_m: float | None = None,
@@ -230,15 +230,16 @@ def fit_anchors(
     """Alg. A3's global fit ``z ≈ s·zr + t`` to the anchors, weighted by their noise, with the
     scale positive by construction.
 
-    The unknowns are the placement ``c`` (metric depth of the SFS median ``median_zr``) and the
+    The unknowns are the placement ``c`` (metric depth at the SFS depth ``ref_zr``) and the
     log scale ratio ``u``: ``s = e^u · s_ref``, ``s_ref = c / focal_px`` (one relative SFS unit
     is a pixel pitch at the object's depth; ``focal_px=None``: metric SFS depth, ``s_ref = 1``),
-    ``t = c − s·median_zr``. Minimised (:func:`scipy.optimize.least_squares`, ``u`` bounded to
+    ``t = c − s·ref_zr``. Minimised (:func:`scipy.optimize.least_squares`, ``u`` bounded to
     a factor 1e6):
 
-        Σ_i ((ẑ_i − z_i)/σ_i)² + (u / scale_prior_rel)² + ((c − prior_m)/prior_sigma_m)²
+        Σ_i ((ẑ_i − z_i)/σ_i)² + ((e^u − 1) / scale_prior_rel)² + ((c − prior_m)/prior_sigma_m)²
 
-    the last two terms only when given: a log-normal scale prior (so it is never overruled into
+    the last two terms only when given: a Gaussian prior on the scale ratio ``e^u`` (positive
+    by construction, so it is never overruled into
     a sign flip) and a Gaussian prior on the placement (the set-up's working distance). An
     anchor whose ``σ`` is far above the prior's moves nothing.
 
@@ -246,7 +247,8 @@ def fit_anchors(
         zr: ``(k,)`` relative SFS depth at the anchors.
         z: ``(k,)`` iToF z-depth of the anchors, metres.
         sigma: ``(k,)`` anchor standard deviations, metres (finite, > 0).
-        median_zr: the SFS map's median relative depth.
+        ref_zr: the reference relative depth of the placement (the caller: the anchors' mean SFS
+            depth, so ``c/f`` is the pixel pitch at their depth).
         focal_px: focal length in pixels (relative SFS depth), or None (metric SFS depth).
         scale_prior_rel: standard deviation of ``u`` (≈ the relative tolerance of the scale);
             None = no scale prior (needs anchors at two SFS depths).
@@ -269,7 +271,7 @@ def fit_anchors(
             f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
             "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
         )
-    b = zr - median_zr
+    b = zr - ref_zr
     rel = focal_px is not None
     f_px = float(focal_px) if focal_px is not None else 1.0
 
@@ -278,7 +280,7 @@ def fit_anchors(
         s = np.exp(x[0]) * (c / f_px if rel else 1.0)
         out = [(c + s * b - z) / sig]
         if scale_prior_rel is not None:
-            out.append(np.array([x[0] / scale_prior_rel]))
+            out.append(np.array([np.expm1(x[0]) / scale_prior_rel]))  # ratio e^u ~ N(1, rel), > 0
         if has_prior:
             out.append(np.array([(c - float(prior_m)) / float(prior_sigma_m)]))  # type: ignore[arg-type]
         return np.concatenate(out)
@@ -315,7 +317,7 @@ def fit_anchors(
         raise NirspiError("fusion: the anchors' fit of the depth scale and offset did not converge to finite values")
     return AnchorFit(
         scale=s,
-        offset_m=float(c - s * median_zr),
+        offset_m=float(c - s * ref_zr),
         placement_m=c,
         placement_sigma_m=float(c * np.sqrt(max(cov[1, 1], 0.0))),
         scale_ref=float(s_ref),
@@ -332,7 +334,7 @@ def consistent_anchors(
     sigma: np.ndarray,
     alpha: float | None,
     fit: Callable[[np.ndarray], AnchorFit],
-    median_zr: float,
+    ref_zr: float,
     focal_px: float | None,
     tau_m: float = 0.0,
 ) -> tuple[np.ndarray, dict[int, str], AnchorFit]:
@@ -362,7 +364,7 @@ def consistent_anchors(
                 loo = fit(keep[keep != j])
             except NirspiError:
                 continue
-            pred, var = loo.predict(zr[j : j + 1], median_zr, focal_px)
+            pred, var = loo.predict(zr[j : j + 1], ref_zr, focal_px)
             d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + tau_m**2 + var[0]))
             if d2 > worst_d2:
                 worst, worst_d2, worst_dev = int(j), d2, float(z[j] - pred[0])
@@ -615,7 +617,7 @@ class ItofFusion:
             units); null = fit the scale from the anchors alone (needs anchors at different SFS
             depths).
         prior_distance_mm: the set-up's working distance, mm: a Gaussian prior on the depth of
-            the SFS map's median (``conf/fusion/itof.yaml``: the scene's ``distance_mm``, the
+            the anchors' mean SFS depth (``conf/fusion/itof.yaml``: the scene's ``distance_mm``, the
             same nominal distance the metrics' geometric SFS baseline assumes); null = none
             (the anchors alone place the depth).
         prior_distance_rel: its relative standard deviation (assumed 0.25: the paper's objects
@@ -795,7 +797,10 @@ class ItofFusion:
             raise NirspiError(f"fusion: no valid iToF anchor on the SFS depth map ({why}); cannot make it metric")
         idx = np.flatnonzero(used)
         zr_u, z_u = zr[used], z[used]
-        median_zr = float(np.median(zr_map[valid]))
+        # the reference of the placement c and of the geometric scale c/f: the anchors' mean SFS
+        # depth (one relative unit is a pixel pitch at the anchors' depth, as the old s0 = Z̄/f);
+        # the map's median without anchors. Fixed for every fit below (leave-one-out included).
+        ref_zr = float(np.mean(zr_u)) if len(zr_u) else float(np.median(zr_map[valid]))
         focal = None if depth.metric else float(camera.focal_px)
 
         def scale_prior(count: int) -> float | None:  # one anchor cannot fit a scale: use the prior
@@ -804,7 +809,7 @@ class ItofFusion:
         def fit_on(sig_all: np.ndarray) -> Callable[[np.ndarray], AnchorFit]:
             def fit(ix: np.ndarray) -> AnchorFit:
                 return fit_anchors(
-                    zr_u[ix], z_u[ix], sig_all[ix], median_zr, focal, scale_prior(len(ix)), prior_m, prior_sig
+                    zr_u[ix], z_u[ix], sig_all[ix], ref_zr, focal, scale_prior(len(ix)), prior_m, prior_sig
                 )
 
             return fit
@@ -819,7 +824,7 @@ class ItofFusion:
             eff_all = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
             relief = scale * float(np.ptp(zr_map[valid]))  # metres: the SFS map's own depth extent
             keep, rejected, cur = consistent_anchors(
-                zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), median_zr, focal, relief
+                zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), ref_zr, focal, relief
             )
             scale = cur.scale
         for j, why in rejected.items():
