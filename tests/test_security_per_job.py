@@ -554,3 +554,23 @@ def test_every_job_hydra_runs_receives_a_node_inside_the_allow_list(tmp_path_fac
             assert not any("hydra.overrides" in t or "hydra.runtime" in t or "@hydra" in t for t in listed), pieces
 
     one()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["compose", "--experiment", "../../etc/passwd"],
+        ["compose", "--sample", "0"],
+        ["readers", "--repeat", "-1"],
+        ["readers", "--mb", "nan"],
+    ],
+)
+def test_bench_arguments_are_checked_in_one_line(args: list[str], tmp_path: Path) -> None:
+    from conftest import script
+
+    res = subprocess.run(
+        [script("nirspi-bench"), *args], cwd=tmp_path, capture_output=True, text=True, timeout=120, env=_env()
+    )
+    lines = res.stderr.strip().splitlines()
+    assert res.returncode == 2 and "Traceback" not in res.stderr and "is not" in lines[-1], res.stderr[-2000:]
+    assert not res.stdout.strip()

@@ -198,7 +198,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--sample", type=int, default=10, help="jobs per grid composed through Hydra to time it")
     parser.add_argument("--check-all", action="store_true", help="compare every job of every grid with Hydra's")
     ns = parser.parse_args(argv)
-    names = ns.experiment or experiments()
+    shipped = experiments()
+    for name in ns.experiment or ():  # a shipped experiment's name, never a path (issue 41)
+        if name not in shipped:
+            parser.error(f"--experiment {name[:80]!r} is not a shipped experiment; allowed: {', '.join(shipped)}")
+    if ns.sample < 1:
+        parser.error(f"--sample {ns.sample} is not allowed; allowed: an integer >= 1")
+    names = ns.experiment or shipped
     print(
         f"{'experiment':<15} {'jobs':>6} {'sets':>5} {'fast ms/job':>12} {'fallbacks':>9}"
         f" {'hydra ms/job':>12} {'hydra s/grid':>12} {'ratio':>7}" + (f" {'mismatches':>10}" if ns.check_all else "")

@@ -43,6 +43,12 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--mb", type=float, default=64.0, help="size of the NPZ's main array, MB")
     parser.add_argument("--resolution", type=int, default=200, help="sphere theta/phi resolution of the mesh")
     ns = parser.parse_args(argv)
+    if ns.repeat < 1:  # a median of no repetition printed nan (issue 41)
+        parser.error(f"--repeat {ns.repeat} is not allowed; allowed: an integer >= 1")
+    if not (np.isfinite(ns.mb) and 0 < ns.mb <= 4096):
+        parser.error(f"--mb {ns.mb} is not allowed; allowed: a size in MB in (0, 4096]")
+    if ns.resolution < 3:
+        parser.error(f"--resolution {ns.resolution} is not allowed; allowed: an integer >= 3")
     rng = np.random.default_rng(0)
     with tempfile.TemporaryDirectory() as tmp:
         big = rng.integers(0, 2, size=int(ns.mb * 1e6 / 8)).astype(np.float64)  # 0/1 patterns
