@@ -128,6 +128,20 @@ def test_fog_attenuates_by_the_round_trip_transmittance():
     assert 0.95 < ratio / np.exp(-2 * 3.0 * 0.2) <= 1.0
 
 
+@pytest.mark.parametrize("extent_mm", [1e-9, 100.0, 200.0, 350.0, float("inf")])
+def test_derived_transmittance_follows_the_fog_path(extent_mm):
+    """derived.transmittance_roundtrip is Eq. (7) over the fog's path to the nominal distance,
+    min(distance, extent): a chamber shorter than the distance attenuates less (issue 40: it used
+    the distance alone, so a 1e-9 mm fog path reported 63 % of the light surviving)."""
+    scene = Plane(reflectance=0.5).render(Camera(8))  # 200 mm away
+    fog = MeasuredFog(beta_per_m=3.0, backscatter_gain=0.0, extent_mm=extent_mm)
+    acq = Simulator(forward_model(fog=fog)).acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+    path_m = min(0.2, extent_mm * 1e-3)
+    assert acq.derived["transmittance_roundtrip"] == pytest.approx(np.exp(-2 * 3.0 * path_m), rel=1e-12)
+    clear = Simulator().acquire(scene, np.arange(64), 8, np.random.default_rng(0))
+    assert clear.derived["transmittance_roundtrip"] == 1.0
+
+
 def test_static_background_cancels_and_drift_makes_the_order_matter(sphere16):
     n = 16
     order = np.arange(n * n)

@@ -40,6 +40,13 @@ __all__ = ["Simulator"]
 SNR_DB_LIMIT = 200.0
 
 
+def _fog_path_m(medium: Any, distance_m: float) -> float:
+    """Fog path to the nominal distance, m: ``min(distance, extent)`` (0 in clear air)."""
+    if medium is None:
+        return 0.0
+    return float(min(float(distance_m), float(medium.extent_m)))
+
+
 def _spawn(rng: np.random.Generator, k: int) -> list[np.random.Generator]:
     """``k`` independent child generators (one per random stream) without drawing from ``rng``,
     so an effect switched on does not change another's noise."""
@@ -146,7 +153,9 @@ class Simulator:
             "noise_sigma": 0.0,
             **output.derived,
             "beta_per_m": beta,
-            "transmittance_roundtrip": float(np.exp(-2.0 * beta * float(scene.distance_m))),
+            # Eq. (7) over the fog's path to the nominal distance: min(distance, extent), as the
+            # fog effect fills each ray (physics/effects.py); clear air has no medium
+            "transmittance_roundtrip": float(np.exp(-2.0 * beta * _fog_path_m(readings.medium, scene.distance_m))),
             "background_photons_per_pattern": readings.background_e,
             "signal_photons_per_pattern": signal_mean,
             "saturated_patterns": output.saturated,
