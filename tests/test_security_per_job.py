@@ -574,3 +574,21 @@ def test_bench_arguments_are_checked_in_one_line(args: list[str], tmp_path: Path
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and "Traceback" not in res.stderr and "is not" in lines[-1], res.stderr[-2000:]
     assert not res.stdout.strip()
+
+
+def test_the_summary_says_what_was_measured_and_written(tmp_path: Path) -> None:
+    """``scan.ratio=1e-300`` measured one pattern: the head line says so (it printed
+    '1e-298 % of the patterns'); a summary.png left from an earlier run is not announced after
+    'summary.png not written'."""
+    from nirspi_pipe.summary import format_summary
+
+    record = {
+        "choices": {"scene": "sphere", "scan": "basic", "solver": "fwht"},
+        "config": {"camera": {"resolution": 8}, "scan": {"ratio": 1e-300}},
+        "meta": {"status": "ok", "seed": 0, "warnings": ["summary.png not written: disk full"]},
+        "info": {"source": {"patterns_measured": 1}},
+    }
+    (tmp_path / "summary.png").write_bytes(b"old")
+    text = format_summary(record, tmp_path)
+    assert "1 of 64 patterns (1.56 %)" in text.splitlines()[0] and "e-298" not in text
+    assert "summary.png: truth" not in text and "summary.png not written" in text

@@ -236,7 +236,13 @@ def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> st
     meta = record.get("meta", {}) or {}
     res = (cfg.get("camera") or {}).get("resolution")
     ratio = _num((cfg.get("scan") or {}).get("ratio", 1.0))
-    sampled = f", {100 * ratio:g} % of the patterns" if math.isfinite(ratio) and ratio < 1 else ""
+    sampled = ""
+    if math.isfinite(ratio) and ratio < 1:  # what was measured, not 100 * ratio (1e-300 measured 1 pattern)
+        measured = ((record.get("info") or {}).get("source") or {}).get("patterns_measured")
+        if isinstance(measured, int) and not isinstance(measured, bool) and isinstance(res, int) and res > 0:
+            sampled = f", {measured} of {res * res} patterns ({100 * measured / (res * res):.3g} %)"
+        else:
+            sampled = f", scan.ratio={ratio:.3g}"
     head = (
         f"nirspi-run: scene={choices.get('scene')} scan={choices.get('scan')} "
         f"solver={choices.get('solver')} {res}x{res}{sampled} seed={meta.get('seed')}"
@@ -255,6 +261,11 @@ def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> st
         if not _LEFT_OUT.search(w):  # shown on the metric's own line
             lines.append(f"  warning: {w}")
     if out_dir is not None:
-        pic = "  (summary.png: truth, reconstruction, error)" if (Path(out_dir) / "summary.png").exists() else ""
+        unwritten = any(w.startswith("summary.png not written") for w in warned)  # an older file may be there
+        pic = (
+            "  (summary.png: truth, reconstruction, error)"
+            if (Path(out_dir) / "summary.png").exists() and not unwritten
+            else ""
+        )
         lines.append(f"  -> {out_dir}{pic}")
     return "\n".join(lines)
