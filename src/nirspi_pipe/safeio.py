@@ -57,7 +57,8 @@ class UnsafeInputError(NirspiError, ValueError):
 
 def open_regular(path: str | Path, where: str | None = None) -> Any:
     """``path`` opened for binary reading when it is a regular file; :class:`UnsafeInputError`
-    (one line naming it) for a FIFO, a device, a socket or a folder, without blocking: it is
+    (one line naming it) for a FIFO, a device, a socket or a folder (``FileNotFoundError``, as
+    raised, when there is nothing), without blocking: it is
     opened with ``O_NONBLOCK`` (a FIFO with no writer would block a plain ``open``), checked with
     ``fstat`` + ``S_ISREG`` on the open descriptor (no swap between check and read), and only
     then switched back to blocking reads."""
@@ -66,7 +67,7 @@ def open_regular(path: str | Path, where: str | None = None) -> Any:
     try:
         fd = os.open(path, flags)
     except FileNotFoundError:
-        raise UnsafeInputError(f"{where}: file does not exist") from None
+        raise  # as it is: callers tell a missing file (a job not run) from a bad one
     except OSError as exc:
         raise UnsafeInputError(f"{where}: cannot open ({exc.strerror or exc})") from None
     try:
@@ -262,7 +263,10 @@ def read_npz(
     path = Path(path)
     where = where or f"{path}"
     limit = read_budget(budget)
-    fh = open_regular(path, where)  # a regular file (never a FIFO or device); closed by `with fh` below
+    try:
+        fh = open_regular(path, where)  # a regular file (never a FIFO or device); closed by `with fh` below
+    except FileNotFoundError:
+        raise UnsafeInputError(f"{where}: file does not exist") from None
     file_len = os.fstat(fh.fileno()).st_size
     out: dict[str, np.ndarray] = {}
     with fh:
