@@ -117,6 +117,9 @@ def test_spot_missing_object_warns_and_sigma_inf():
         s = ContinuousWave4(spot_angle_deg=6.0).measure(scene, _acq(), np.random.default_rng(0))
     assert np.all(np.isinf(s.sigma_m)) and np.all(np.isfinite(s.points_m))
     assert s.info["valid_spots"] == 0
+    # no valid return: no sigma to record (absent, never inf in the record)
+    assert "sigma_mean_m" not in s.info
+    assert all(np.isfinite(v) for v in s.info.values() if isinstance(v, float))
 
 
 def test_spot_outside_view_is_config_error(sphere):

@@ -435,7 +435,10 @@ class ContinuousWave4:
             "valid_spots": int(np.isfinite(sigma).sum()),
             "signal_electrons_mean": float(np.mean(sig_e)),
             "background_electrons_mean": float(np.mean(bg_e)),
-            "sigma_shot_max_m": float(np.max(sig_shot)),
-            "sigma_mean_m": float(np.mean(sigma[np.isfinite(sigma)])) if np.isfinite(sigma).any() else float("inf"),
         }
+        # only finite numbers go into the record: a spot without a valid return has no sigma
+        if np.isfinite(sig_shot).any():
+            info["sigma_shot_max_m"] = float(np.max(sig_shot[np.isfinite(sig_shot)]))
+        if np.isfinite(sigma).any():
+            info["sigma_mean_m"] = float(np.mean(sigma[np.isfinite(sigma)]))
         return ItofSample(points_m=points, sigma_m=sigma, info=info)
