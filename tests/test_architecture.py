@@ -51,6 +51,7 @@ TOOLS = (
     "nirspi_pipe.benchmarks",
     "nirspi_pipe.bench",
     "nirspi_pipe.readme_numbers",
+    "nirspi_pipe.hardcases",
     "nirspi_pipe.reproduce",
     "nirspi_pipe.experiments",
 )
