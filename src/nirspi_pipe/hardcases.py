@@ -553,8 +553,8 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
         "",
         f"{stamp}",
         "",
-        f"**{len(outcomes)} cases; {n_ok} hold; {len(outcomes) - n_ok} do not** "
-        f"({len(pending)} marked pending: someone is fixing them; the suite expects them to fail until then).",
+        f"**{len(outcomes)} cases; {n_ok} hold; {len(outcomes) - n_ok} {'does' if len(outcomes) - n_ok == 1 else 'do'} not** "
+        f"({len(pending)} marked pending: a fix is being made; the suite expects each to fail until then).",
         "",
         "What every case checks besides its own bounds: a case that should succeed raises no",
         "`RuntimeWarning`, leaves no value out of its record unless it names it, and has finite metrics,",
