@@ -18,8 +18,8 @@ The cases live in one data file, ``nirspi_pipe/data/hardcases.yaml`` (issue 40).
   (``max_abs_diff``); ``abs``, ``min`` and ``max`` may be used. The measured value is the LHS;
 * ``left_out``: record values the case allows :func:`nirspi_pipe.finite.drop_nonfinite` to
   remove (default none);
-* ``pending``: who is fixing what makes the case fail (the test suite expects it to fail:
-  ``xfail(strict=True)``), or ``note``: why a bound is what it is.
+* ``pending``: why the case's ideal bound does not hold, with what was measured (the test suite
+  expects it to fail: ``xfail(strict=True)``), or ``note``: why a bound is what it is.
 
 Every ``run`` case that should succeed is also checked for: no ``RuntimeWarning``; nothing left
 out of the record unless ``left_out`` names it; every metric finite; every SSIM in [-1, 1];
@@ -554,14 +554,15 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
         f"{stamp}",
         "",
         f"**{len(outcomes)} cases; {n_ok} hold; {len(outcomes) - n_ok} {'does' if len(outcomes) - n_ok == 1 else 'do'} not** "
-        f"({len(pending)} marked pending: a fix is being made; the suite expects each to fail until then).",
+        f"({len(pending)} marked pending: the ideal bound is not met; each says why and what was measured, and the "
+        "suite expects it to fail, so a fix shows as a test to unmark).",
         "",
         "What every case checks besides its own bounds: a case that should succeed raises no",
         "`RuntimeWarning`, leaves no value out of its record unless it names it, and has finite metrics,",
         "every SSIM in [−1, 1] and every RMSE ≥ 0; a case that should be refused gets exactly one line that",
         "starts with the key the user set (`expect: refused KEY`); a stage called on input it cannot use",
         "fails with one line saying why (`expect: fails`). Status: **holds** (every check and bound met),",
-        "**pending** (does not hold yet; the owner of the fix is named), **FAILS** (does not hold).",
+        "**pending** (does not hold; the case says why, with the measured value), **FAILS** (does not hold).",
         "",
         "Time: the cases run in one process, after the default suite's earlier files; the 3D cases need the",
         "compiled mesh kernels (`nirspi_pipe.mesh.crustfaces`, `nirspi_pipe.mesh.isotropic`), which",
@@ -571,7 +572,7 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
         "",
     ]
     if pending:
-        lines += ["## Pending: cases that do not hold yet", ""]
+        lines += ["## Pending: ideal bounds that do not hold", ""]
         for o in pending:
             now = "holds now: unmark it" if o.holds else "; ".join(o.problems)[:240]
             lines.append(f"- `{o.case.id}`: {_cell(str(o.case.pending))}. Now: {_cell(now)}")
