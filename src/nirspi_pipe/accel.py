@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.records import dumps_strict
 
 __all__ = [
     "DEVICE_KEYWORDS",
@@ -207,6 +208,6 @@ def write_table(rows: dict[str, dict[str, dict[int, str]]], path: Path | None = 
         for stage, sizes in stages.items():
             devices.setdefault(name, {}).setdefault(stage, {}).update({str(k): v for k, v in sizes.items()})
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    path.write_text(dumps_strict(data, indent=1, sort_keys=True) + "\n")
     load_table.cache_clear()
     return path

@@ -41,6 +41,7 @@ from nirspi_pipe.records import (
     OutputError,
     atomic_write,
     code_identity,
+    dumps_strict,
     new_record,
     provenance,
     read_record,
@@ -100,7 +101,7 @@ def _bump_attempts(folder: Path) -> int:
     n = attempts_with_this_code(folder) + 1
     atomic_write(
         Path(folder) / ATTEMPTS_NAME,
-        json.dumps(
+        dumps_strict(
             {
                 "attempts": n,
                 "source_hash": code_identity()["source_hash"],

@@ -37,6 +37,7 @@ from nirspi_pipe.records import (
     atomic_write,
     decode_nonfinite,
     drop_links,
+    dumps_strict,
     read_record,
     refuse_link,
 )
@@ -243,7 +244,7 @@ def read_objective(sweep: Path) -> tuple[list[str], list[str]] | None:
 
 
 def write_objective(sweep: Path, names: list[str], directions: list[str]) -> None:
-    atomic_write(Path(sweep) / OBJECTIVE_FILE, json.dumps({"objective": names, "direction": directions}))
+    atomic_write(Path(sweep) / OBJECTIVE_FILE, dumps_strict({"objective": names, "direction": directions}))
 
 
 def mark_pareto(frame: pd.DataFrame, names: list[str], directions: list[str]) -> pd.DataFrame:

@@ -64,6 +64,7 @@ from nirspi_pipe.records import (
     OutputError,
     atomic_write,
     config_hash,
+    dumps_strict,
     job_key_of,
     provenance,
     read_record,
@@ -668,7 +669,7 @@ class NirspiSweeperBase(Sweeper):
             "jobs": jobs,
         }
         sweep_file = sweep_dir / SWEEP_FILE
-        atomic_write(sweep_file, json.dumps(info, indent=1))
+        atomic_write(sweep_file, dumps_strict(info, indent=1))
         self._announce(sweep_dir, jobs, len(to_launch), n_bad, n_links, keying_s)
         returns: list[Sequence[Any]] = []
         if not to_launch:

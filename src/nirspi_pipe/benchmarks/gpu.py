@@ -50,6 +50,7 @@ import numpy as np
 from nirspi_pipe.accel import write_table
 from nirspi_pipe.benchmarks import mesh3d
 from nirspi_pipe.patterns.orders import Zigzag
+from nirspi_pipe.records import dumps_strict
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.omp_opencl import opencl_context
 from nirspi_pipe.types import Camera
@@ -73,7 +74,7 @@ def best_ms(fn: Any, repeat: int) -> float:
 
 def _save(ns: argparse.Namespace, part: str, result: dict[str, Any]) -> None:
     """Write a part's result so far (a step cut by its time limit keeps the rows it finished)."""
-    (Path(ns.out) / f"{part}.json").write_text(json.dumps(result, indent=1))
+    (Path(ns.out) / f"{part}.json").write_text(dumps_strict(result, indent=1))
 
 
 def _opencl_devices() -> list[dict[str, Any]]:
@@ -415,11 +416,11 @@ def _summary_md(res: dict[str, Any], head: list[str]) -> str:
         out.append("")
     fs = res.get("fsrcnn", {})
     if "numpy_ms" in fs:
-        body = json.dumps({k: v for k, v in fs.items() if k != "rc"}, indent=1)
+        body = dumps_strict({k: v for k, v in fs.items() if k != "rc"}, indent=1)
         out += ["## FSRCNN 64² → 256² (×4), ms and max |diff| against numpy", "", "```", body, "```", ""]
     m3 = res.get("mesh3d", {})
     if any(k in m3 for k in ("numpy", "opencl")):
-        body = json.dumps({k: v for k, v in m3.items() if k != "rc"}, indent=1)
+        body = dumps_strict({k: v for k, v in m3.items() if k != "rc"}, indent=1)
         out += ["## 3D path at 64², second-order SFS (median ms per stage)", "", "```", body, "```", ""]
     par = res.get("parity", {})
     if "summary" in par:
@@ -461,7 +462,7 @@ def main(argv: list[str]) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if ns.part:  # a child: one part, its result as JSON
         result = PARTS[ns.part](ns)
-        (out / f"{ns.part}.json").write_text(json.dumps(result, indent=1))
+        (out / f"{ns.part}.json").write_text(dumps_strict(result, indent=1))
         return 0
 
     run = Run(out, ns.budget)
@@ -526,7 +527,7 @@ def main(argv: list[str]) -> int:
     run.say(f"done in {time.monotonic() - run.t0:.0f} s (budget {ns.budget:.0f} s)")
     rows = table_rows(run.results, gpu["name"] if gpu else None)
     summary = {"head": run.lines, "gpu": gpu, "cpu_device": cpu, "results": run.results, "table_rows": rows}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(dumps_strict(summary, indent=1))
     (out / "summary.md").write_text(_summary_md(run.results, [f"    {ln}" for ln in run.lines]))
     if ns.write_table:
         if rows:
