@@ -31,7 +31,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import platform
 import re
+import subprocess
 import sys
 import time
 import warnings
@@ -45,8 +47,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+import nirspi_pipe
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.finite import drop_nonfinite
+from nirspi_pipe.readme_numbers import find_clone
+from nirspi_pipe.types import Camera, Image2D, PointCloud
 
 __all__ = ["Case", "Outcome", "PROBES", "load_cases", "main", "render", "run_case"]
 
@@ -233,7 +238,6 @@ def _caught() -> Iterator[list[warnings.WarningMessage]]:
 
 
 def _run(overrides: list[str]) -> Any:
-    import nirspi_pipe  # start-up: loads the API (hydra on first run)
 
     return nirspi_pipe.run(overrides)
 
@@ -392,7 +396,6 @@ def _probe_power_crust(args: Mapping[str, Any]) -> dict[str, Any]:
     """:class:`~nirspi_pipe.mesh.powercrust.PowerCrust` (defaults, ``args.params`` over them) on
     a named point cloud (:func:`_degenerate_cloud`)."""
     from nirspi_pipe.mesh.powercrust import PowerCrust  # start-up: loads scipy, numba
-    from nirspi_pipe.types import PointCloud
 
     cloud = _degenerate_cloud(str(args["cloud"]))
     mesh = PowerCrust(**dict(args.get("params") or {})).reconstruct(PointCloud(points_m=cloud))
@@ -440,7 +443,6 @@ def _sfs_model(name: str) -> Any:
 def _probe_sfs(args: Mapping[str, Any]) -> dict[str, Any]:
     """An SFS model (numpy back end) on a named image (:func:`_sfs_image`, 32²); with
     ``compare: IMAGE`` also the largest depth change against that image's solve (pixel pitches)."""
-    from nirspi_pipe.types import Camera, Image2D
 
     model, camera = _sfs_model(str(args["model"])), Camera(resolution=32)
     depth = model.solve(Image2D(_sfs_image(str(args["image"]))), camera)
@@ -637,8 +639,6 @@ def render(outcomes: list[Outcome], stamp: str) -> str:
 
 
 def _stamp() -> str:
-    import platform
-    import subprocess
 
     try:
         commit = subprocess.run(
@@ -662,8 +662,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{_PROG}: --write-docs runs every case; give no ids", file=sys.stderr)
         return 2
     if ns.write_docs and ns.out is None:
-        from nirspi_pipe.readme_numbers import find_clone  # the clone holding this module, or the cwd's
-
         clone = find_clone()
         if clone is None:
             print(f"{_PROG}: not in a clone of nirspi-pipe; give --out FILE", file=sys.stderr)

@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two
+from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.stages import Products
 
 __all__ = [
@@ -380,9 +382,6 @@ def measured_view(acquisition: Any, reference: np.ndarray) -> np.ndarray | None:
     onto the measured patterns (the zero-filled inverse of its measured coefficients,
     :func:`nirspi_pipe.solvers.fwht.zero_filled_inverse`). None when every pattern was measured
     (then it is the reference), for explicit pattern matrices, or when the shapes differ."""
-    from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two
-    from nirspi_pipe.solvers.fwht import zero_filled_inverse
-
     ref = np.asarray(reference, dtype=np.float64)
     n = int(getattr(acquisition, "n", 0) or 0)
     indices = getattr(acquisition, "indices", None)
