@@ -1052,17 +1052,9 @@ def _resolved_hydra(cfg: Any) -> dict[str, Any]:
 
 def _check_output_paths(cfg: Any) -> None:
     """The job folders after resolution: ``hydra.sweep.subdir`` and ``hydra.output_subdir``
-    relative and without ``..``, so nothing is written above the run or sweep folder."""
-    for key in ("sweep.subdir", "output_subdir", "job.name"):
-        try:
-            value = OmegaConf.select(cfg, f"hydra.{key}", throw_on_missing=True)
-        except Exception:  # noqa: BLE001 - job.num exists only in a running sweep: checked unresolved
-            continue
-        if value is None:
-            continue
-        text = str(value)
-        if text.startswith("/") or ".." in Path(text).parts or "\\" in text:
-            raise Refused(f"hydra.{key}={text!r} is not allowed; allowed: a relative folder without '..'")
+    relative and without ``..``, so nothing is written above the run or sweep folder (the check
+    a job's own node gets, :func:`_check_node_paths`)."""
+    _check_node_paths(cfg.hydra)
 
 
 def _check_sweeps(
