@@ -42,7 +42,6 @@ from hydra.plugins.launcher import Launcher
 from omegaconf import open_dict
 from threadpoolctl import threadpool_limits
 
-from nirspi_pipe.app.entry import refuse_job
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import objective_values
 from nirspi_pipe.app.sweeper import ComposedJob, composed_job, format_progress
@@ -102,6 +101,11 @@ class NirspiLauncherBase(Launcher):
             with open_dict(cfg):
                 cfg.hydra.job.num = initial_job_idx + idx
                 cfg.hydra.job.id = f"{cfg.hydra.job.name}_{initial_job_idx + idx}"
+            # entry loads app.configs, whose import runs Hydra's plugin scan, which imports
+            # hydra_plugins.nirspi_pipe_sweeper and so this module: a circle at module level wherever
+            # start-up: hydra_plugins is installed as a package (a non-editable install; tests/test_install_plugins.py)
+            from nirspi_pipe.app.entry import refuse_job
+
             refuse_job(cfg)  # the node this job would run with (issue 41), before anything of it runs
             out_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)
             items.append((out_dir, initial_job_idx + idx, composed_job(cfg)))

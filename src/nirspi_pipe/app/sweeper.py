@@ -56,7 +56,6 @@ from hydra.plugins.sweeper import Sweeper
 from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
-from nirspi_pipe.app.entry import refuse_job
 from nirspi_pipe.records import (
     RECORD_NAME,
     RECORD_READ_LIMIT,
@@ -484,6 +483,11 @@ class NirspiSweeperBase(Sweeper):
         (``config_loader.load_sweep_config``), its Hydra node checked as the job's own
         (:func:`nirspi_pipe.app.entry.refuse_job`: a refusal stops the sweep, exit 2)."""
         cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
+        # entry loads app.configs, whose import runs Hydra's plugin scan, which imports
+        # hydra_plugins.nirspi_pipe_sweeper and so this module: a circle at module level wherever
+        # start-up: hydra_plugins is installed as a package (a non-editable install; tests/test_install_plugins.py)
+        from nirspi_pipe.app.entry import refuse_job
+
         refuse_job(cfg)
         return cfg
 
