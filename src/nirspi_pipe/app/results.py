@@ -50,6 +50,9 @@ __all__ = ["find_records", "records_to_frame", "collect", "CollectResults", "ove
 log = logging.getLogger(__name__)
 
 _SKIP_PREFIXES = ("hydra.", "hydra/")
+#: Columns every row has (records_to_frame): an override of the same key (``seed=3``, ``tables=[]``)
+#: is already one of them and must not replace it with the config's text (``"[]"`` is no table name).
+_IDENTITY = ("job", "status", "error", "config_hash", "seed", "git_sha", "code", "tables")
 
 
 def find_records(sweep_dir: Path) -> list[Path]:
@@ -121,6 +124,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
             if k not in params and k not in groups:
                 params.append(k)
     rows = []
+    params = [p for p in params if p not in _IDENTITY]  # `tables=[]`, `seed=3`: their own columns
     for job, rec in records:
         meta = rec.get("meta", {})
         row: dict[str, Any] = {
@@ -138,8 +142,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
             row[g] = choices.get(g)
         config = rec.get("config", {})
         for p in params:
-            if p != "seed":
-                row[p] = decode_nonfinite(_lookup(config, p))  # ".inf" in a record is inf (records.py)
+            row[p] = decode_nonfinite(_lookup(config, p))  # ".inf" in a record is inf (records.py)
         _flatten("metrics", rec.get("metrics"), row)
         _flatten("timings_ms", rec.get("timings_ms"), row)
         _flatten("derived", rec.get("derived"), row)
