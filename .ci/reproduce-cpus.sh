@@ -24,16 +24,7 @@ blas_core() {  # the kernel set OpenBLAS really uses for OPENBLAS_CORETYPE=$1 (e
   sed -n 's/^Core: //p' <<< "$o" | head -1
 }
 
-failed=() ; seen=" " ; differ=()
-# Kernel sets whose tables are KNOWN to differ (reported loudly, not failing CI). Since the fusion's
-# anchor fit became scipy.optimize.least_squares (issue 40, commit 0f8d652) its result differs in the
-# last bits between LAPACK kernel sets, and the cloud's discrete steps (voxel binning, k-NN graph,
-# Qhull) turn that into another mesh for one paper_ci job under the SSE-class kernels (Sandybridge,
-# Prescott/Katmai): Tables 5/7, Spiral, final-mesh skewness 0.171164 against 0.169178. The detected
-# kernels, Haswell and the numpy baseline reproduce exactly and still fail CI on any difference.
-# Open work: a fit without LAPACK (or a fusion whose discrete steps tolerate 1e-12 changes), then
-# empty this list. NIRSPI_CI_KNOWN_DIFFERENT overrides it.
-known_different=" ${NIRSPI_CI_KNOWN_DIFFERENT-openblas-Sandybridge openblas-Katmai} "
+failed=() ; seen=" "
 check_one() {  # name, then env assignments
   local name=$1; shift
   echo "== reproduction under $name ($*)"
@@ -42,10 +33,7 @@ check_one() {  # name, then env assignments
     failed+=("$name"); return
   fi
   if ! env "$@" python -m nirspi_pipe.reproduce check "$out/$name" "${ref_args[@]}"; then
-    case "$known_different" in
-      *" $name "*) echo "!!! KNOWN DIFFERENCE under $name (see known_different in .ci/reproduce-cpus.sh): reported, not failing"; differ+=("$name");;
-      *) failed+=("$name");;
-    esac
+    failed+=("$name")
   fi
 }
 
@@ -78,8 +66,5 @@ fi
 
 if [ ${#failed[@]} -gt 0 ]; then
   echo "!!! reproduction check FAILED under: ${failed[*]} (sweeps in $out)"; exit 1
-fi
-if [ ${#differ[@]} -gt 0 ]; then
-  echo "!!! reproduction differs (known, not failing) under: ${differ[*]} (sweeps in $out)"
 fi
 echo "reproduction check passed under every other kernel set that runs here (sweeps in $out)"

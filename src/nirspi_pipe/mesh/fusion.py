@@ -52,13 +52,13 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
-from scipy.optimize import least_squares
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
@@ -212,9 +212,76 @@ class AnchorFit:
         pred = self.scale * zr + self.offset_m
         # gradient of pred = c + e^u·s_ref(c)·b in (u, ln c): s·b, and c + s·b (s_ref = c/f) or c (1)
         dv = self.placement_m + (self.scale * b if focal_px is not None else np.zeros_like(b))
-        g = np.stack([self.scale * b, dv], axis=-1)
-        var = np.einsum("...i,ij,...j->...", g, self.cov, g)
+        g0, g1 = self.scale * b, dv  # written out: no BLAS kernel may change its bits
+        var = g0 * g0 * self.cov[0, 0] + 2.0 * g0 * g1 * self.cov[0, 1] + g1 * g1 * self.cov[1, 1]
         return pred, np.maximum(var, 0.0)
+
+
+def _inv_sym2(a: float, b: float, d: float) -> np.ndarray:
+    """The (pseudo-)inverse of the symmetric 2×2 matrix ``[[a, b], [b, d]]``, in closed form
+    (no LAPACK: its result must not depend on the BLAS kernels, see docs/sweeps.md)."""
+    tr, det = a + d, a * d - b * b
+    if not tr > 0:
+        return np.zeros((2, 2))
+    big = 0.5 * (tr + math.hypot(a - d, 2.0 * b))  # the larger eigenvalue; the smaller is det/big
+    if det > 1e-15 * big * big:  # numpy.linalg.pinv's default cut-off (rcond=1e-15)
+        return np.array([[d / det, -b / det], [-b / det, a / det]])
+    # rank 1 within that cut-off: the pseudo-inverse v·vᵀ/λ of the one eigenpair, λ ≈ tr
+    return np.array([[a, b], [b, d]]) / tr**2
+
+
+def _levenberg_marquardt(
+    fun: Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    x0: tuple[float, float],
+    u_bound: float,
+    v_max: float,
+    max_iter: int = 200,
+) -> tuple[float, float]:
+    """Minimise ``Σ r²`` over two parameters ``(u, v)``, ``|u| ≤ u_bound``, ``v ≤ v_max``, by
+    Levenberg–Marquardt with Marquardt's diagonal scaling (Nocedal & Wright, *Numerical
+    Optimization*, 2nd ed., §10.3), steps projected onto the bounds. ``fun`` returns the
+    residuals and their derivatives in ``u`` and ``v``.
+
+    Written out with elementwise numpy and sums only, so that the fit gives the same bits under
+    every OpenBLAS/LAPACK kernel set (``scipy.optimize.least_squares`` did not: its last bits
+    moved the fused cloud of one CI job, docs/sweeps.md)."""
+
+    def clip(u: float, v: float) -> tuple[float, float]:
+        return min(max(u, -u_bound), u_bound), min(v, v_max)
+
+    x = clip(*x0)
+    r, ju, jv = fun(x)
+    cost = float(np.sum(r * r))
+    lam = 1e-3
+    for _ in range(max_iter):
+        a, b, d = float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv))
+        gu, gv = float(np.sum(ju * r)), float(np.sum(jv * r))
+        if not (math.isfinite(cost) and math.isfinite(a + b + d + gu + gv)):
+            break
+        if abs(gu) + abs(gv) <= 1e-15 * max(cost, 1e-300) ** 0.5 * (math.sqrt(a) + math.sqrt(d) + 1e-300):
+            break
+        improved = False
+        while lam < 1e16:
+            a2, d2 = a + lam * max(a, 1e-300), d + lam * max(d, 1e-300)
+            det = a2 * d2 - b * b
+            if not det > 0:
+                lam *= 10.0
+                continue
+            du, dv = (-d2 * gu + b * gv) / det, (b * gu - a2 * gv) / det
+            x_new = clip(x[0] + du, x[1] + dv)
+            r_new, ju_new, jv_new = fun(x_new)
+            cost_new = float(np.sum(r_new * r_new))
+            if math.isfinite(cost_new) and cost_new <= cost:
+                step = abs(x_new[0] - x[0]) + abs(x_new[1] - x[1])
+                gain = cost - cost_new
+                x, r, ju, jv, cost = x_new, r_new, ju_new, jv_new, cost_new
+                lam = max(lam / 10.0, 1e-12)
+                improved = step > 1e-14 * (1.0 + abs(x[0]) + abs(x[1])) and gain > 1e-15 * max(cost, 1e-300)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    return x
 
 
 def fit_anchors(
@@ -233,8 +300,8 @@ def fit_anchors(
     The unknowns are the placement ``c`` (metric depth at the SFS depth ``ref_zr``) and the
     log scale ratio ``u``: ``s = e^u · s_ref``, ``s_ref = c / focal_px`` (one relative SFS unit
     is a pixel pitch at the object's depth; ``focal_px=None``: metric SFS depth, ``s_ref = 1``),
-    ``t = c − s·ref_zr``. Minimised (:func:`scipy.optimize.least_squares`, ``u`` bounded to
-    a factor 1e6):
+    ``t = c − s·ref_zr``. Minimised (Levenberg–Marquardt, :func:`_levenberg_marquardt`, ``u``
+    bounded to a factor 1e6):
 
         Σ_i ((ẑ_i − z_i)/σ_i)² + ((e^u − 1) / scale_prior_rel)² + ((c − prior_m)/prior_sigma_m)²
 
@@ -275,15 +342,24 @@ def fit_anchors(
     rel = focal_px is not None
     f_px = float(focal_px) if focal_px is not None else 1.0
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        c = np.exp(x[1])
-        s = np.exp(x[0]) * (c / f_px if rel else 1.0)
-        out = [(c + s * b - z) / sig]
-        if scale_prior_rel is not None:
-            out.append(np.array([np.expm1(x[0]) / scale_prior_rel]))  # ratio e^u ~ N(1, rel), > 0
+    sp = None if scale_prior_rel is None else float(scale_prior_rel)
+    pm = float(prior_m) if has_prior else 0.0  # type: ignore[arg-type]
+    ps = float(prior_sigma_m) if has_prior else 1.0  # type: ignore[arg-type]
+
+    def residuals(x: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals and their derivatives in ``u`` and ``ln c`` (analytic)."""
+        eu, c = math.exp(x[0]), math.exp(x[1])
+        s = eu * (c / f_px if rel else 1.0)
+        r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
+        if sp is not None:  # ratio e^u ~ N(1, rel), > 0
+            r.append(np.array([math.expm1(x[0]) / sp]))
+            du.append(np.array([eu / sp]))
+            dv.append(np.zeros(1))
         if has_prior:
-            out.append(np.array([(c - float(prior_m)) / float(prior_sigma_m)]))  # type: ignore[arg-type]
-        return np.concatenate(out)
+            r.append(np.array([(c - pm) / ps]))
+            du.append(np.zeros(1))
+            dv.append(np.array([c / ps]))
+        return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
 
     # start: u = 0 and the weighted least-squares placement at that scale (closed form)
     w = 1.0 / sig**2
@@ -292,27 +368,18 @@ def fit_anchors(
     num = float(np.sum(w * a * (z - shift)))
     den = float(np.sum(w * a * a))
     if has_prior:
-        num += float(prior_m) / float(prior_sigma_m) ** 2  # type: ignore[arg-type]
-        den += 1.0 / float(prior_sigma_m) ** 2  # type: ignore[arg-type]
+        num += pm / ps**2
+        den += 1.0 / ps**2
     c0 = num / den if den > 0 and np.isfinite(num / den) else float(np.median(z))
     c0 = max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-        sol = least_squares(
-            residuals,
-            np.array([0.0, np.log(c0)]),
-            bounds=([-_LOG_RATIO_BOUND, -np.inf], [_LOG_RATIO_BOUND, np.log(1e12)]),
-            x_scale="jac",
-            xtol=1e-12,
-            ftol=1e-12,
-            gtol=1e-12,
-        )
-    u, v = (float(x) for x in sol.x)
-    c = float(np.exp(v))
+        x = _levenberg_marquardt(residuals, (0.0, math.log(c0)), _LOG_RATIO_BOUND, math.log(1e12))
+        res, ju, jv = residuals(x)
+        cov = _inv_sym2(float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv)))
+    u, v = x
+    c = math.exp(v) if v < 709.0 else math.inf
     s_ref = c / f_px if rel else 1.0
-    s = float(np.exp(u) * s_ref)
-    res = residuals(sol.x)
-    jac = np.asarray(sol.jac, dtype=np.float64)
-    cov = np.linalg.pinv(jac.T @ jac)
+    s = math.exp(u) * s_ref
     if not (np.isfinite(s) and np.isfinite(c) and np.all(np.isfinite(res)) and np.all(np.isfinite(cov))):
         raise NirspiError("fusion: the anchors' fit of the depth scale and offset did not converge to finite values")
     return AnchorFit(
@@ -851,7 +918,7 @@ class ItofFusion:
             row_a, col_a = project_px(pts[used], camera)
             rows, cols = np.mgrid[0:n, 0:n]
             w = anchor_weights(rows, cols, np.stack([row_a, col_a], axis=1), self.blend_px)
-            z_m = z_m + w @ delta[used]
+            z_m = z_m + np.sum(w * delta[used], axis=-1)  # not `@`: BLAS-free bits
         valid &= np.isfinite(z_m) & (z_m > 0)
         if not valid.any():
             raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
