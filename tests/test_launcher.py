@@ -67,18 +67,14 @@ def _hanging_execute(config, out_dir, choices, overrides, job_num, attempt=None)
 def test_a_hanging_job_is_killed_at_its_deadline(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A job still running ``timeout_s`` after it was sent is killed with its runner: a failed
     record naming the deadline (``JobTimeout``); the jobs after it run on a fresh runner, and the
-    sweep ends soon after the deadline rather than after the hang."""
-    import time
-
+    sweep ends at the deadline rather than after the hang (the hanging job, left alone, would
+    finish after 600 s with an ok record; a failed record killed by signal 9 shows it was cut)."""
     import nirspi_pipe.app.launcher as launcher
 
     monkeypatch.setattr(launcher, "_execute", _hanging_execute)
     hows = ["ok", "hang", "ok", "ok", "ok"]
     items = [(tmp_path / f"job{i}", i, ComposedJob({"how": how}, {}, [f"how={how}"])) for i, how in enumerate(hows)]
-    t0 = time.perf_counter()
     returns = launcher.NirspiLauncherBase(n_jobs=1, timeout_s=2)._run(items, tmp_path, None, False)
-    elapsed = time.perf_counter() - t0
-    assert 2 <= elapsed < 60, elapsed  # the hang would have taken 600 s
     metas = [read_record(out_dir / RECORD_NAME)["meta"] for out_dir, _num, _job in items]
     assert [r.return_value["meta"] for r in returns] == metas
     assert [m["status"] for m in metas] == ["ok", "failed", "ok", "ok", "ok"]
@@ -95,7 +91,6 @@ def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pyte
     """A job whose folder another process holds is run after the others, once the lock is free."""
     import subprocess
     import sys
-    import time
 
     import nirspi_pipe.app.launcher as launcher
 
@@ -114,9 +109,8 @@ def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pyte
     )
     try:
         assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
-        t0 = time.perf_counter()
         launcher.NirspiLauncherBase(n_jobs=2)._run(items, tmp_path, None, False)
-        assert time.perf_counter() - t0 < 30
+        assert holder.poll() is not None  # job1 ran after the holder let go, not beside it
     finally:
         holder.wait(timeout=30)
     for out_dir, _num, _job in items:
@@ -260,13 +254,15 @@ def test_warm_up_is_called_per_distinct_target_and_reports_failures() -> None:
 
 
 _RUNNER_FIRST_SOLVE = r"""
-import json, os, signal, time, warnings
+import json, os, signal, warnings
+from pathlib import Path
 warnings.simplefilter("ignore")
 from nirspi_pipe.execute import warm_up
 from nirspi_pipe.sfs import opencl as ocl
 
 warm_up([{"sfs": {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "auto"}}])
 contexts = ocl._context.cache_info().currsize
+cache = Path(os.environ["POCL_CACHE_DIR"])
 r, w = os.pipe()
 pid = os.fork()
 if pid == 0:  # a runner: builds its job's stages, then runs them
@@ -279,12 +275,14 @@ if pid == 0:  # a runner: builds its job's stages, then runs them
     img = Image2D(Sphere().render(cam).radiance)
     LaxFriedrichsSFS(backend="numpy").solve(img, cam)  # first calls outside OpenCL
     stage = LaxFriedrichsSFS(backend="auto")
-    ms = []
+    cached = sorted(str(p.relative_to(cache)) for p in cache.rglob("*") if p.is_file())
+    built = ocl._program.cache_info().misses
     for _ in range(2):
-        t = time.perf_counter()
         out = stage.solve(img, cam)
-        ms.append((time.perf_counter() - t) * 1e3)
-    os.write(w, json.dumps({"backend": out.info["backend"], "ms": ms}).encode())
+    new = sorted(set(str(p.relative_to(cache)) for p in cache.rglob("*.so")) - set(cached))
+    report = {"backend": out.info["backend"], "cached": len(cached), "new": new,
+              "builds": ocl._program.cache_info().misses - built}
+    os.write(w, json.dumps(report).encode())
     os._exit(0)
 os.close(w)
 child = os.read(r, 4096).decode()
@@ -297,8 +295,10 @@ def test_runner_warms_opencl_up_after_the_fork(tmp_path: Path) -> None:
     """The warm-up makes no OpenCL context in the sweeping process: one made before ``fork``
     leaves the child's first launch hanging (PoCL's worker threads are not forked; measured:
     killed by the 20 s alarm, whether the parent had only built the kernel or launched it too).
-    So each runner warms up when it builds its first job's stages, and that job's SFS time holds
-    no compilation (empty kernel caches: old code 315 ms then 2 ms in the table 6 sweep)."""
+    So each runner warms up when it builds its first job's stages, and that job's SFS solves
+    compile nothing (empty kernel caches: the old code's first solve took 315 ms then 2 ms in the
+    table 6 sweep). Counted, not timed: no program build and no new PoCL work-group function
+    (``.so`` in ``POCL_CACHE_DIR``) during the runner's solves."""
     import subprocess
     import sys
 
@@ -312,6 +312,8 @@ def test_runner_warms_opencl_up_after_the_fork(tmp_path: Path) -> None:
     )
     got = json.loads(run.stdout.strip().splitlines()[-1])
     assert got["contexts"] == 0 and got["status"] == 0, got
-    assert got["child"]["backend"] == "opencl", got
-    first, second = got["child"]["ms"]
-    assert first <= 5 * second + 5, f"the runner's first SFS solve compiled: {first:.1f} ms then {second:.1f} ms"
+    child = got["child"]
+    assert child["backend"] == "opencl", got
+    if not child["cached"]:
+        pytest.skip("the OpenCL platform here is not PoCL with its kernel cache: its compilations cannot be counted")
+    assert child["builds"] == 0 and child["new"] == [], f"the runner's first SFS solves compiled: {child}"
