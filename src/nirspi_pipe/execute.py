@@ -127,7 +127,11 @@ def _write_products(cfg: Mapping[str, Any], out_dir: Path, output: RunOutput) ->
         "y_neg": p.acquisition.y_neg,
         "depth_m": p.depth.depth_m if p.depth is not None else None,
     }
-    images = {"reconstruction": p.image.data, "truth": truth.radiance if truth is not None else None}
+    images = {
+        "reconstruction": p.image.data,
+        "upscaled": p.upscaled.data if p.upscaled is not None else None,
+        "truth": truth.radiance if truth is not None else None,
+    }
     write_arrays(
         out_dir,
         arrays if out_cfg.get("arrays", True) else {},

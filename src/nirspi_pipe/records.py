@@ -49,7 +49,14 @@ import numpy as np
 
 from nirspi_pipe import __version__
 from nirspi_pipe.errors import NirspiError
-from nirspi_pipe.safeio import read_regular, sanitize_text
+from nirspi_pipe.safeio import (
+    DEFAULT_BUDGET_BYTES,
+    UnsafeInputError,
+    open_regular,
+    read_budget,
+    read_regular,
+    sanitize_text,
+)
 
 __all__ = [
     "RECORD_NAME",
@@ -70,6 +77,7 @@ __all__ = [
     "read_record",
     "source_hash",
     "write_arrays",
+    "pixel_blocks",
     "write_record",
 ]
 
@@ -336,20 +344,46 @@ def input_files(config: Mapping[str, Any], base: Path | None = None) -> dict[str
 class InputHasher:
     """SHA-256 of input files, cached by ``(path, size, mtime_ns, inode)`` so that a sweep of
     hundreds of jobs naming the same recording reads it once, and a file replaced in place (new
-    size or mtime) is read again."""
+    size or mtime) is read again.
 
-    def __init__(self) -> None:
+    Bounded (issue 41): a file is opened with :func:`nirspi_pipe.safeio.open_regular` (a FIFO or a
+    device swapped in is refused without blocking) and hashed only when its size is within the
+    read budget (:func:`nirspi_pipe.safeio.read_budget`: 1 GiB, or ``NIRSPI_READ_BUDGET_MB``),
+    the bound every reader of the project applies to what it loads; a larger file (a sparse 16 GB
+    file) is not read at all: its entry says so and gives its size, so the time spent hashing is
+    at most that of reading the budget once per file. :attr:`bytes_read` counts what was read."""
+
+    def __init__(self, budget: int | None = None) -> None:
         self._cache: dict[tuple[str, int, int, int], str] = {}
+        self.budget = budget
+        self.bytes_read = 0
 
     def digest(self, path: Path) -> str:
-        st = os.stat(path)
-        stamp = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
-        if stamp not in self._cache:
-            h = hashlib.sha256()
-            with open(path, "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            self._cache[stamp] = h.hexdigest()
+        """The file's SHA-256 (hex), or ``"not hashed: …"`` naming its size when it is over the
+        read budget; :class:`~nirspi_pipe.safeio.UnsafeInputError` when it is not a regular file."""
+        with open_regular(path) as fh:
+            st = os.fstat(fh.fileno())
+            stamp = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+            if stamp not in self._cache:
+                try:
+                    limit = read_budget(self.budget)
+                except UnsafeInputError:  # a bad NIRSPI_READ_BUDGET_MB: the readers say so in one line
+                    limit = DEFAULT_BUDGET_BYTES
+                if st.st_size > limit:
+                    self._cache[stamp] = (
+                        f"not hashed: {st.st_size} bytes, over the read budget of {limit} bytes (NIRSPI_READ_BUDGET_MB)"
+                    )
+                else:
+                    h = hashlib.sha256()
+                    left = limit + 1  # a file growing meanwhile is read no further than the budget
+                    while left > 0:
+                        block = fh.read(min(1 << 20, left))
+                        if not block:
+                            break
+                        h.update(block)
+                        self.bytes_read += len(block)
+                        left -= len(block)
+                    self._cache[stamp] = h.hexdigest()
         return self._cache[stamp]
 
     def hashes(self, config: Mapping[str, Any], base: Path | None = None) -> dict[str, str]:
@@ -360,6 +394,8 @@ class InputHasher:
                 out[key] = self.digest(path)
             except OSError as exc:  # unreadable: the job will say so; key it by the reason
                 out[key] = f"unreadable: {exc.strerror or exc}"
+            except UnsafeInputError:  # swapped for a FIFO or a device since input_files looked
+                out[key] = "unreadable: not a regular file"
         return out
 
 
@@ -621,11 +657,28 @@ def read_record(path: Path) -> dict[str, Any]:
     return data
 
 
+#: The shortest side a written PNG is blown up to, in screen pixels (assumed: 256 px, a size an
+#: image viewer shows at 100 % without squinting; an 8 × 8 image becomes 256 × 256).
+PNG_MIN_SIDE = 256
+
+
+def pixel_blocks(image: np.ndarray, min_side: int = PNG_MIN_SIDE) -> np.ndarray:
+    """``image`` (2-D) with each pixel repeated into a k × k block, k the smallest integer that
+    makes the shorter side at least ``min_side`` (1 for images that large already): the pixel
+    grid drawn as it is, nearest neighbour, no interpolation. Values are not changed."""
+    a = np.asarray(image)
+    short = min(a.shape[:2]) if a.ndim >= 2 and a.size else 0
+    k = max(1, -(-int(min_side) // short)) if short else 1
+    return np.repeat(np.repeat(a, k, axis=0), k, axis=1) if k > 1 else a
+
+
 def write_arrays(
     folder: Path, arrays: Mapping[str, np.ndarray | None], images: Mapping[str, np.ndarray | None]
 ) -> None:
     """Write ``arrays.npz`` (skipping None entries) and 8-bit grayscale PNGs of ``images``, each
-    atomically (:func:`atomic_write`); :class:`OutputError` when a file cannot be written."""
+    atomically (:func:`atomic_write`); :class:`OutputError` when a file cannot be written. A PNG
+    shows each pixel as a square block (:func:`pixel_blocks`: nearest neighbour, no smoothing), so
+    that the device's 8 × 8 image is readable; ``arrays.npz`` keeps the arrays themselves."""
     present = {k: np.asarray(v) for k, v in arrays.items() if v is not None}
     if present:
         buf = io.BytesIO()
@@ -639,7 +692,7 @@ def write_arrays(
                 continue
             a = np.nan_to_num(np.asarray(img, dtype=np.float64), nan=0.0, posinf=1.0, neginf=0.0)
             buf = io.BytesIO()
-            imsave(buf, np.clip(a, 0.0, 1.0), cmap="gray", vmin=0.0, vmax=1.0, format="png")
+            imsave(buf, pixel_blocks(np.clip(a, 0.0, 1.0)), cmap="gray", vmin=0.0, vmax=1.0, format="png")
             atomic_write(Path(folder) / f"{name}.png", buf.getvalue())
 
 
