@@ -1097,7 +1097,9 @@ def warm_up() -> bool:
     f = np.vstack([np.column_stack([a, b, d]), np.column_stack([a, d, c])])
     f = f[np.all(f != idx[2, 2], axis=1)]  # a hole around one vertex
     try:  # a cache that does not load is rebuilt once, with a warning naming it (jitcache)
-        out_v, out_f, _ = jitcache.rebuild_on_failure(lambda: clean_and_remesh_compiled(v, f, 1.0, 1, 0.8, 30, 1))
+        out_v, out_f, _ = jitcache.rebuild_on_failure(
+            lambda: clean_and_remesh_compiled(v, f, 1.0, 1, 0.8, 30, 1), what="the remesher", kernels=("isotropic",)
+        )
     except Exception:  # noqa: BLE001 - any failure means "not available": the caller falls back
         return False
     return len(out_f) > 0

@@ -14,20 +14,33 @@ new private temporary folder instead, with a warning.
 A cache that does not load (a truncated or garbled index: numba raises while unpickling it) is
 rebuilt: :func:`rebuild_on_failure` removes the kernels' cache files, warns naming the folder,
 and compiles again once.
+
+Compiling the kernels takes a minute or two of CPU (90 s wall on 2 shared cores, measured on
+the first 3D run after an install); later runs load them from the cache in well under a second.
+So a warm-up that compiles says so on stderr (:func:`compile_report`): one line when numba
+starts compiling, a progress line every :data:`PROGRESS_EVERY_S` seconds, and one line when it
+is done. ``python -m nirspi_pipe.mesh.jitcache`` compiles them ahead of the first run.
 """
 
 from __future__ import annotations
 
 import os
 import stat
+import sys
 import tempfile
+import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import IO, Any, TypeVar
 
-__all__ = ["cache_folder", "prepare", "clear", "rebuild_on_failure"]
+__all__ = ["cache_folder", "compile_report", "prepare", "clear", "rebuild_on_failure"]
+
+#: Seconds between two progress lines while numba compiles (assumed: often enough to show the
+#: run is alive, rarely enough that a 90 s compilation prints about ten lines).
+PROGRESS_EVERY_S = 10.0
 
 T = TypeVar("T")
 
@@ -103,12 +116,72 @@ def clear(modules: tuple[str, ...] = KERNEL_MODULES) -> list[Path]:
     return removed
 
 
-def rebuild_on_failure(fn: Callable[[], T], modules: tuple[str, ...] = KERNEL_MODULES) -> T:
-    """``fn()`` (a warm-up that compiles or loads the kernels); when it raises, the cache is taken
+@contextmanager
+def compile_report(
+    what: str, modules: tuple[str, ...] = KERNEL_MODULES, stream: IO[str] | None = None
+) -> Iterator[None]:
+    """While the body runs, say on ``stream`` (default: stderr) when numba compiles one of this
+    project's kernels (a cache miss; loading from the cache is silent): a line when the first
+    starts, then how many are done every :data:`PROGRESS_EVERY_S` s, and the count and seconds
+    at the end. Only kernels defined in ``modules`` (last name of their module) count; one kernel
+    compiled for two argument types counts twice (numba compiles each: no total is known ahead)."""
+    try:
+        # start-up: numba's event API, loaded with numba (jitcache.prepare)
+        from numba.core import event
+    except ImportError:  # pragma: no cover - numba ships with miepython
+        yield
+        return
+    out = stream if stream is not None else sys.stderr
+    state = {"started": 0.0, "last": 0.0, "done": 0}
+
+    def say(line: str) -> None:
+        try:
+            print(f"numba: {line}", file=out, flush=True)
+        except (OSError, ValueError):  # a closed or broken stderr must not fail the run
+            pass
+
+    def ours(ev: Any) -> bool:
+        module = getattr(getattr(ev.data["dispatcher"], "py_func", None), "__module__", None) or ""
+        return module.rsplit(".", 1)[-1] in modules
+
+    class _Report(event.Listener):
+        def on_start(self, ev: Any) -> None:
+            if ours(ev) and not state["started"]:
+                state["started"] = state["last"] = time.monotonic()
+                say(
+                    f"compiling {what} (not in its cache yet: the first run after an install or upgrade; "
+                    f"a minute or two, once: cached in {prepare()}, later runs load them) ..."
+                )
+
+        def on_end(self, ev: Any) -> None:
+            if not ours(ev):
+                return
+            state["done"] += 1
+            now = time.monotonic()
+            if now - state["last"] >= PROGRESS_EVERY_S:
+                state["last"] = now
+                say(f"{what}: {state['done']} kernels compiled, {now - state['started']:.0f} s")
+
+    with event.install_listener("numba:compile", _Report()):
+        yield
+    if state["started"]:
+        say(f"{what}: {state['done']} kernels compiled in {time.monotonic() - state['started']:.1f} s")
+
+
+def rebuild_on_failure(
+    fn: Callable[[], T],
+    modules: tuple[str, ...] = KERNEL_MODULES,
+    what: str = "the mesh kernels",
+    kernels: tuple[str, ...] | None = None,
+) -> T:
+    """``fn()`` (a warm-up that compiles or loads the kernels), with numba's compilations of the
+    kernels of ``kernels`` (default: ``modules``) reported on stderr (:func:`compile_report`,
+    ``what`` names them); when it raises, the cache of ``modules`` is taken
     to be corrupt: its files are removed, a warning names the folder, and ``fn()`` runs once more
     (compiling afresh). A second failure propagates."""
     try:
-        return fn()
+        with compile_report(what, kernels or modules):
+            return fn()
     except Exception as exc:  # numba raises whatever unpickling a bad index raises
         removed = clear(modules)
         if not removed:
@@ -118,7 +191,8 @@ def rebuild_on_failure(fn: Callable[[], T], modules: tuple[str, ...] = KERNEL_MO
             f"removed {len(removed)} cache files and compiled the kernels again",
             stacklevel=2,
         )
-        return fn()
+        with compile_report(what, kernels or modules):
+            return fn()
 
 
 def jit(fn: Any, **options: Any) -> Any:
@@ -129,3 +203,22 @@ def jit(fn: Any, **options: Any) -> Any:
     from numba import njit  # start-up: loads scipy and numba (1147 ms here)
 
     return njit(cache=True, nogil=True, **options)(fn)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m nirspi_pipe.mesh.jitcache``: compile (or load) every mesh kernel now, with
+    progress, so that the first 3D run does not; exit status 1 when numba cannot compile them."""
+    if argv:
+        print(f"usage: python -m nirspi_pipe.mesh.jitcache (no arguments; got {' '.join(argv)})", file=sys.stderr)
+        return 2
+    # start-up: the kernels' modules (numba, scipy), loaded only by this command
+    from nirspi_pipe.mesh import powercrust, remesh
+
+    ok = remesh.resolve_remesher("auto") == "compiled" and powercrust.warm_up()
+    where = prepare()
+    print(f"mesh kernels {'ready' if ok else 'NOT compiled (the pymeshlab remesher will be used)'}; cache: {where}")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

@@ -348,7 +348,7 @@ def warm_up() -> bool:
     pts += rng.normal(0.0, 1e-3, pts.shape)
 
     try:  # a numba cache that does not load is rebuilt once, with a warning naming it
-        rebuild_on_failure(lambda: power_crust(pts, "view"))
+        rebuild_on_failure(lambda: power_crust(pts, "view"), what="the power crust", kernels=("crustfaces",))
     except NirspiError:
         return False
     return True
