@@ -21,7 +21,7 @@ from nirspi_pipe.errors import ConfigError, NirspiError, NumericalError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
 from nirspi_pipe.records import config_hash
 from nirspi_pipe.scene.render import forget_renders
-from nirspi_pipe.stages import Aimable, Itof, Products, ReadsScanOptions, ScanIndices, check_stage
+from nirspi_pipe.stages import Aimable, Itof, NeedsScene, Products, ReadsScanOptions, ScanIndices, check_stage
 from nirspi_pipe.types import Acquisition, Camera, Image2D, Mesh, PointCloud
 
 __all__ = [
@@ -192,6 +192,20 @@ def _measure_itof(stage: Itof, image: Any, grid: Camera, truth: Any, acq: Any, r
     return stage.measure(truth, acq, rng)
 
 
+def _solve_from_scene(stage: Any, scene_model: Any, truth: Any, image: Any, grid: Camera) -> Any:
+    """An SFS stage that reads the scene (the oracle ``sfs=truth``): the truth rendered for the
+    SFS grid (the camera's, or the upscaled image's)."""
+    if truth is not None and truth.depth_m.shape == (grid.resolution, grid.resolution):
+        scene = truth
+    elif scene_model is not None and truth is not None:
+        scene = scene_model.render(grid)
+    else:
+        raise ConfigError(
+            "sfs", "truth", "an SFS model (sfs=truth reads the simulated scene's depth; this source has none)"
+        )
+    return stage.solve(image, grid, scene)
+
+
 @contextmanager
 def _recorded_warnings() -> Iterator[list[warnings.WarningMessage]]:
     """Record every warning; an exception leaving the block carries them as ``nirspi_warnings``
@@ -277,7 +291,9 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
         # 3D stages work on the finest image; their camera is that image's grid.
         shaded = upscaled if upscaled is not None else image
         grid = camera if shaded.data.shape[0] == n else camera.resampled(shaded.data.shape[0])
-        if "sfs" in stages:
+        if "sfs" in stages and isinstance(stages["sfs"], NeedsScene) and stages["sfs"].needs_scene:
+            depth = clock.call("sfs", _solve_from_scene, stages["sfs"], stages.get("scene"), truth, shaded, grid)
+        elif "sfs" in stages:
             depth = clock.call("sfs", stages["sfs"].solve, shaded, grid)
         if "itof" in stages:
             itof = clock.call("itof", _measure_itof, stages["itof"], shaded, grid, truth, acq, rngs["itof"])

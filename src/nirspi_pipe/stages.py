@@ -66,6 +66,7 @@ __all__ = [
     "Solver",
     "Upscaler",
     "ShapeFromShading",
+    "NeedsScene",
     "Itof",
     "Fusion",
     "Surface",
@@ -162,6 +163,15 @@ class ShapeFromShading(Protocol):
     """Recovers depth from a shaded image."""
 
     def solve(self, image: Image2D, camera: Camera) -> DepthMap: ...
+
+
+@runtime_checkable
+class NeedsScene(Protocol):
+    """Optional part of the SFS protocol: a stage that reads the rendered scene itself (the
+    oracle ``sfs=truth``, :class:`~nirspi_pipe.sfs.oracle.TruthDepth`): the runner passes it the
+    scene rendered for the SFS grid as ``solve(image, camera, scene)``."""
+
+    needs_scene: bool
 
 
 @runtime_checkable

@@ -102,6 +102,7 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         "nirspi_pipe.sfs.models.OrenNayarSFS",
         "nirspi_pipe.sfs.models.PerspectiveSFS",
         "nirspi_pipe.sfs.models.PhongSFS",
+        "nirspi_pipe.sfs.oracle.TruthDepth",
         "nirspi_pipe.itof.cw4.ContinuousWave4",
         "nirspi_pipe.mesh.fusion.ItofFusion",
         "nirspi_pipe.mesh.powercrust.PowerCrust",
