@@ -82,7 +82,7 @@ def test_a_good_scripted_device_is_accepted() -> None:
 
 def test_trickling_device_hits_the_total_deadline() -> None:
     # one byte every 20 ms: each read succeeds quickly, but the whole acquisition cannot. The
-    # client gives up while the device is still sending (the reply takes >= 14 s to trickle out).
+    # client gives up while the device is still sending (669 bytes: >= 13.4 s to trickle out).
     reply = header(16) + frames(16) + encode_end(16)
     dev = Device(reply, piece=1, gap_s=0.02, max_s=5)
     with pytest.raises(StreamError, match="timed out"):
