@@ -18,7 +18,8 @@ import nirspi_pipe
 from nirspi_pipe.app.results import records_to_frame, tables_by_experiment
 from nirspi_pipe.records import PNG_MIN_SIDE, pixel_blocks
 from nirspi_pipe.summary import format_summary
-from nirspi_pipe.tables import scan_order
+from nirspi_pipe.tables import scan_order, table2
+from nirspi_pipe.tables._common import bar_figure
 
 
 def _record(tables: list[str], overrides: list[str], seed: int = 0) -> dict[str, Any]:
@@ -160,3 +161,47 @@ def test_the_ms_line_shows_a_long_build() -> None:
     record["timings_ms"] = {"build": 3426.6, "scene": 1.3, "surface": 49.7, "total": 51.0}
     ms = [line for line in format_summary(record).splitlines() if "ms:" in line]
     assert ms == ["  ms: scene 1.3 | surface 49.7 | total 51.0"]
+
+
+def test_figure6_visibility_labels_cross_no_curve() -> None:
+    """Each "visibility … m" label's box holds no point of any drawn line (the curves densified to
+    ~1 px steps, the threshold and the visibility lines): the chamber's label crossed the other
+    curve when it stood along its line at mid height."""
+    import matplotlib.pyplot as plt
+
+    fig = table2.contrast_figure(None)
+    try:
+        fig.canvas.draw()
+        ax = fig.axes[0]
+        renderer = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+        labels = [t for t in ax.texts if t.get_text().startswith("visibility")]
+        assert len(labels) == 2
+        for text in labels:
+            box = text.get_window_extent(renderer).expanded(1.0, 1.0)
+            for line in ax.get_lines():
+                xy = line.get_transform().transform(line.get_xydata())  # display pixels
+                steps = np.linspace(0.0, 1.0, 50)[:, None]
+                dense = np.concatenate([a + steps * (b - a) for a, b in zip(xy[:-1], xy[1:], strict=True)])
+                x, y = dense[:, 0], dense[:, 1]
+                inside = (x >= box.x0) & (x <= box.x1) & (y >= box.y0) & (y <= box.y1)
+                assert not inside.any(), (text.get_text(), line.get_label())
+    finally:
+        plt.close(fig)
+
+
+def test_bar_plot_tells_the_paper_series_apart() -> None:
+    """Two paper series (Table 4's/6's two columns, Table 3's two kLux levels): each legend entry
+    its own hatching, outlined in the colour of our series of that name."""
+    import matplotlib.pyplot as plt
+
+    series = {"SFS": ([1.0, 2.0], [0.1, 0.1]), "3D mesh": ([3.0, 4.0], [0.2, 0.2])}
+    fig = bar_figure("t", ["Basic", "Hilbert"], series, {"SFS": [1.5, 2.5], "3D mesh": [3.5, 4.5]}, "ms", "e")
+    try:
+        legend = fig.axes[0].get_legend()
+        handles = dict(zip([t.get_text() for t in legend.get_texts()], legend.legend_handles, strict=True))
+        paper = [handles["paper: SFS"], handles["paper: 3D mesh"]]
+        assert paper[0].get_hatch() != paper[1].get_hatch()
+        for name in ("SFS", "3D mesh"):
+            assert handles[f"paper: {name}"].get_edgecolor() == handles[f"ours: {name}"].get_facecolor()
+    finally:
+        plt.close(fig)

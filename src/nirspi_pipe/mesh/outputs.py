@@ -88,7 +88,7 @@ def render_meshes(path: Path, mesh: Mesh, truth: Mesh | None, size: tuple[int, i
                     pointa=(x0 + SCALE_BAR_MM, y0, float(centre[2])),
                     pointb=(x0, y0, float(centre[2])),
                     title=f"{SCALE_BAR_MM:g} mm",
-                    number_labels=3,
+                    number_labels=2,  # 0 and 20: a middle "10" lay under the centred title "20 mm"
                     label_format="%.0f",
                     font_size_factor=0.8,
                     label_color="black",

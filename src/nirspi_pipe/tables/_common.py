@@ -19,6 +19,7 @@ import re
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -37,6 +38,7 @@ __all__ = [
     "signif",
     "failures_note",
     "conditions_note",
+    "bar_figure",
     "bar_plot",
     "cell",
     "ranking",
@@ -308,6 +310,10 @@ def count_range(n: pd.Series) -> str:
     return f"{lo}" if lo == hi else f"{lo}–{hi}"
 
 
+#: Hatchings of the paper's bars in :func:`bar_plot`, one per paper series (in order).
+PAPER_HATCHES = ("//", "\\\\", "xx", "..", "--")
+
+
 def bar_plot(
     path: Path,
     title: str,
@@ -320,6 +326,24 @@ def bar_plot(
     """Grouped bars (one group per scan method): ours (mean, error bars) and the paper's values
     (hatched), written as a PNG. ``errbars`` says what the error bars are; it is printed under
     the plot. The legend sits right of the axes, where it covers no bar (issue 34)."""
+    import matplotlib.pyplot as plt  # start-up: loads matplotlib, PIL, cycler (267 ms here)
+
+    fig = bar_figure(title, groups, series, paper, ylabel, errbars)
+    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
+    plt.close(fig)
+
+
+def bar_figure(
+    title: str,
+    groups: list[str],
+    series: dict[str, tuple[list[float], list[float]]],
+    paper: dict[str, list[float]] | None,
+    ylabel: str,
+    errbars: str,
+) -> Any:
+    """:func:`bar_plot`'s matplotlib figure (the caller closes it). Each paper series is hatched
+    in its own pattern (:data:`PAPER_HATCHES`) and outlined in the colour of our series of the
+    same name."""
     import matplotlib  # start-up: loads matplotlib, PIL, cycler (76 ms here)
 
     matplotlib.use("Agg")
@@ -331,12 +355,20 @@ def bar_plot(
     x = np.arange(len(groups))
     fig, ax = plt.subplots(figsize=(8, 4.2), layout="constrained")
     i = 0
+    colours: dict[str, Any] = {}
     for name in names:
         mean, err = series[name]
-        ax.bar(x + (i - (k - 1) / 2) * width, mean, width, yerr=err, capsize=3, label=f"ours: {name}")
+        bars = ax.bar(x + (i - (k - 1) / 2) * width, mean, width, yerr=err, capsize=3, label=f"ours: {name}")
+        colours[name] = bars.patches[0].get_facecolor() if bars.patches else None
         i += 1
-    for name, vals in (paper or {}).items():
-        ax.bar(x + (i - (k - 1) / 2) * width, vals, width, fill=False, hatch="//", label=f"paper: {name}")
+    for j, (name, vals) in enumerate((paper or {}).items()):
+        # each paper series its own hatching, outlined in the colour of our series of that name:
+        # two paper entries with one hatching could not be told apart in the legend (issue 43)
+        edge = colours.get(name) or "black"
+        hatch = PAPER_HATCHES[j % len(PAPER_HATCHES)]
+        ax.bar(
+            x + (i - (k - 1) / 2) * width, vals, width, fill=False, hatch=hatch, edgecolor=edge, label=f"paper: {name}"
+        )
         i += 1
     ax.set_xticks(x)
     ax.set_xticklabels(groups)
@@ -344,5 +376,4 @@ def bar_plot(
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     fig.text(0.01, 0.0, errbars, fontsize=7, ha="left", va="top", wrap=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
-    plt.close(fig)
+    return fig

@@ -30,6 +30,7 @@ Eq. 8, with the visibility of Eq. 9).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -37,7 +38,7 @@ import pandas as pd
 from nirspi_pipe.physics.fog import MieFog, koschmieder_contrast, visibility_m
 from nirspi_pipe.physics.range_model import CALIBRATION_CELLS, bisect, paper_table2
 
-__all__ = ["build", "lsm_max_distance"]
+__all__ = ["build", "contrast_figure", "lsm_max_distance"]
 
 ROWS = {
     "theory_no_fog": "Theory, no fog (Alg. A1)",
@@ -274,8 +275,18 @@ def _plot_fits(fits: dict, path: Path) -> None:
 
 
 def _plot_contrast(beta: float | None, path: Path) -> None:
+    """Figure 6 (:func:`contrast_figure`) written to ``path`` as a PNG."""
+    import matplotlib.pyplot as plt  # start-up: loads matplotlib, PIL, cycler (298 ms here)
+
+    fig = contrast_figure(beta)
+    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
+    plt.close(fig)
+
+
+def contrast_figure(beta: float | None) -> Any:
     """Figure 6: Koschmieder contrast ``C/C₀ = e^{−βz}`` (Eq. 8) vs distance, with the visibility
-    ``−ln(0.05)/β`` (Eq. 9), for the chamber's β and for β with Table 1's Q_ext = 0.8."""
+    ``−ln(0.05)/β`` (Eq. 9), for the chamber's β and for β with Table 1's Q_ext = 0.8; the
+    matplotlib figure (the caller closes it)."""
     import matplotlib  # start-up: loads matplotlib, PIL, cycler (78 ms here)
 
     matplotlib.use("Agg")
@@ -295,12 +306,22 @@ def _plot_contrast(beta: float | None, path: Path) -> None:
         line = ax.plot(z, koschmieder_contrast(1.0, b, z), label=label)[0]
         v = visibility_m(b)
         ax.axvline(v, color=line.get_color(), ls=":")
-        ax.annotate(f"visibility {v:.2f} m", (v, 0.5), rotation=90, color=line.get_color(), ha="right")
+        # across the top beside its line, away from the middle of the plot: along its line at mid
+        # height the chamber's label crossed the other curve (issue 43)
+        right = v < 0.5 * zmax
+        ax.annotate(
+            f"visibility {v:.2f} m",
+            (v, 0.92),
+            xytext=(4 if right else -4, 0),
+            textcoords="offset points",
+            color=line.get_color(),
+            ha="left" if right else "right",
+            va="center",
+        )
     ax.axhline(0.05, color="gray", lw=0.8, label="5 % contrast: the visibility's threshold")
     ax.set_xlabel("distance z (m)")
     ax.set_ylabel("contrast C / C₀")
     ax.set_title("Figure 6: contrast vs distance in fog (Eq. 8)")
     # below the axes: inside, it lay over the visibility lines (issue 34: legends never cover data)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=1, frameon=False)
-    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
-    plt.close(fig)
+    return fig
