@@ -170,3 +170,35 @@ def test_power_crust_is_bit_identical_across_openblas_kernel_sets() -> None:
         assert run.returncode == 0, run.stderr[-2000:]
         digests[core or "detected"] = run.stdout.strip()
     assert len(digests) >= 2 and len(set(digests.values())) == 1, digests
+
+
+def test_cloud_coverage_counts_the_points_the_mesh_lies_near():
+    """Issue 44: the crust says when it loses most of a shape. The coverage of a cloud by a
+    mesh is 1 for the cap's own crust, the kept share plus a band along the cut when half the
+    faces are dropped from one side, and 0 for a mesh far from the cloud."""
+    from nirspi_pipe.mesh.powercrust import cloud_coverage
+    from nirspi_pipe.mesh.remesh import sample_spacing
+
+    s = fibonacci_sphere(800)
+    cap = s[s[:, 2] < CENTRE[2] - 0.005]
+    mesh = PowerCrust().reconstruct(PointCloud(cap))
+    assert mesh.info["cloud_covered_fraction"] == 1.0
+    spacing = sample_spacing(cap)
+    v, f = mesh.vertices_m, mesh.faces
+    left = f[v[f].mean(axis=1)[:, 0] < CENTRE[0]]  # the faces on one side of the cap
+    half = cloud_coverage(v, left, cap, spacing)
+    share = float(np.mean(cap[:, 0] < CENTRE[0]))
+    # a band of about two spacings plus half an edge beyond the cut still counts as covered
+    assert share <= half < 0.8
+    assert cloud_coverage(v + np.array([0.0, 0.0, 1.0]), f, cap, spacing) == 0.0
+
+
+def test_a_crust_that_loses_most_of_the_cloud_warns(monkeypatch):
+    import nirspi_pipe.mesh.powercrust as pc
+
+    s = fibonacci_sphere(800)
+    cap = s[s[:, 2] < CENTRE[2] - 0.005]
+    monkeypatch.setattr(pc, "cloud_coverage", lambda *a: 0.3)
+    with pytest.warns(UserWarning, match="lost most of the shape"):
+        mesh = PowerCrust().reconstruct(PointCloud(cap))
+    assert mesh.info["cloud_covered_fraction"] == 0.3

@@ -36,6 +36,7 @@ object, so the mesh is the visible sheet; ``closed: true`` keeps the whole power
 from __future__ import annotations
 
 import heapq
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -56,6 +57,32 @@ from nirspi_pipe.types import Mesh, PointCloud
 #: measured between OpenBLAS kernel sets in the fused cloud (2e-16 m), so the combinatorial steps
 #: see the same input on every CPU (issue 12) while the geometry does not move measurably.
 CLOUD_QUANTUM_M = 1e-8
+
+#: A cloud point counts as covered by the mesh when a point of the mesh (a vertex, an edge midpoint
+#: or a face centroid) lies within this many sample spacings of it, plus half the face's longest
+#: edge. Assumed: 2, the trim's own scale (``trim_factor`` defaults to 2 spacings), so a point the
+#: trim would keep a face for counts as covered.
+COVERAGE_SPACINGS = 2.0
+#: Below this covered fraction the crust "lost most of the shape" (issue 44's wording): a warning.
+MIN_COVERED_FRACTION = 0.5
+
+
+def cloud_coverage(verts: np.ndarray, faces: np.ndarray, pts: np.ndarray, spacing: float) -> float:
+    """The fraction of the cloud points ``pts`` that the mesh ``(verts, faces)`` lies near: within
+    :data:`COVERAGE_SPACINGS` × ``spacing`` plus half the longest edge of the mesh's faces of a
+    vertex, edge midpoint or face centroid (metres in, a fraction in [0, 1] out)."""
+    if len(pts) == 0:
+        return 1.0
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return 0.0
+    tri = np.asarray(verts, dtype=np.float64)[f]
+    mids = 0.5 * (tri + np.roll(tri, -1, axis=1))
+    samples = np.concatenate([tri.reshape(-1, 3), mids.reshape(-1, 3), tri.mean(axis=1)])
+    edge = float(np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=-1).max())
+    dist, _ = cKDTree(samples).query(pts, k=1)
+    return float(np.mean(dist <= COVERAGE_SPACINGS * spacing + 0.5 * edge))
+
 
 #: A cloud whose second singular value is below this fraction of its first lies on a line (assumed:
 #: 1e-5, a 5 cm strip 0.5 µm wide, far below any surface the camera samples at ~1 mm; a line of 50
@@ -470,4 +497,13 @@ class PowerCrust:
         info.update(rinfo)
         info["faces"] = int(len(faces))
         info["remesher"] = remesher
+        covered = cloud_coverage(verts, faces, pts, spacing)
+        info["cloud_covered_fraction"] = covered
+        if covered < MIN_COVERED_FRACTION:
+            warnings.warn(
+                f"power crust: the mesh lies near only {covered:.0%} of the {len(pts)} cloud points (within "
+                f"{COVERAGE_SPACINGS:g} sample spacings): it lost most of the shape (issue 44; "
+                "info.surface.cloud_covered_fraction)",
+                stacklevel=3,
+            )
         return Mesh(vertices_m=verts, faces=faces.astype(np.int64), info=info)
