@@ -25,6 +25,7 @@ Refusals raise :class:`Refused` (one line; ``nirspi-run`` prints it with exit 2,
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import re
@@ -1073,7 +1074,9 @@ def _check_sweeps(
     if experiments and user_paths:
         sweep_texts += _experiment_sweeps(experiments, fixed, config_name, flags)
     groups = all_groups()
-    for ov in _parse(sweep_texts):
+    grid: list[list[str]] = []  # each swept group's key elements and values, as the jobs will set them
+    n_own = len(sweeps) + len((hydra_node.get("sweeper") or {}).get("params") or {})
+    for i, ov in enumerate(_parse(sweep_texts)):
         key = ov.key_or_group  # Hydra's parse: no package, no +/~ prefix
         if _is_hydra_key(key):
             raise Refused(f"{ov.input_line}: sweeping Hydra's own settings is not allowed")
@@ -1086,6 +1089,54 @@ def _check_sweeps(
                 _check_group_value(ov, key, value, fixed, config_name, user_paths, flags)
             else:
                 _check_key_value(job, key, value)
+        if is_group and i < n_own:
+            grid.append([f"{ov.get_key_element()}={'null' if v is None else v}" for v in values])
+    if user_paths and len(grid) > 1:
+        _check_group_combinations(grid, fixed, config_name, hydra_node, flags)
+
+
+#: At most this many combinations of swept config groups are composed before a sweep with a user's
+#: config folder and Hydra's own sweeper and launcher (assumed: 256 compositions take about 25 s
+#: at ~0.1 s each, ``nirspi-bench compose``; beyond that the nirspi launcher checks job by job).
+MAX_CHECKED_COMBINATIONS = 256
+
+#: Sweepers and launchers that compose each job and pass its Hydra node through :func:`check_job`
+#: before anything of the job runs (the nirspi sweeper's :meth:`compose`, the nirspi launcher's
+#: ``launch``); with Hydra's own (basic, joblib, submitit, Optuna's) the job gate in the task
+#: function comes after Hydra configured the job's logging and wrote ``.hydra/``.
+GATED_BEFORE_LAUNCH = frozenset(
+    {
+        "hydra_plugins.nirspi_pipe_sweeper.NirspiSweeper",
+        "hydra_plugins.nirspi_pipe_sweeper.NirspiOptunaSweeper",
+        "hydra_plugins.nirspi_pipe_sweeper.NirspiLauncher",
+    }
+)
+
+
+def _check_group_combinations(
+    grid: list[list[str]], fixed: list[str], config_name: str, hydra_node: dict[str, Any], flags: dict[str, str | None]
+) -> None:
+    """With a user's config folder, two swept groups can make together what neither makes alone:
+    an option file's defaults list may pick an option by interpolation (``override
+    /hydra/job_logging: ${metrics}``), so ``+experiment=a metrics=x`` chooses a logging config
+    that ``+experiment=a`` and ``metrics=x`` each leave alone. Every combination is composed as
+    the launcher will compose the job (``load_sweep_config``: Hydra's overrides, then the job's)
+    and checked whole. Beyond :data:`MAX_CHECKED_COMBINATIONS`, a sweeper or launcher of
+    :data:`GATED_BEFORE_LAUNCH` checks each job before it runs; with Hydra's own pair the sweep is
+    refused."""
+    count = math.prod(len(values) for values in grid)
+    if count > MAX_CHECKED_COMBINATIONS:
+        targets = {str((hydra_node.get(k) or {}).get("_target_")) for k in ("sweeper", "launcher")}
+        if targets & GATED_BEFORE_LAUNCH:
+            return
+        raise Refused(
+            f"a sweep of {count} combinations of config groups with a config folder of yours is checked "
+            f"combination by combination before Hydra's launchers run it, at most {MAX_CHECKED_COMBINATIONS}; "
+            "allowed: fewer combinations, or the nirspi sweeper or launcher (the defaults), which check each job "
+            "before it starts"
+        )
+    for combination in itertools.product(*grid):
+        _check_composed(_compose(config_name, [*fixed, *combination]), flags)
 
 
 def _experiment_sweeps(

@@ -209,6 +209,13 @@ def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
     return job_key_of(resolved, (hasher or InputHasher()).hashes(resolved))
 
 
+class JobRefused(ValueError):
+    """A job whose composed Hydra node the job gate refuses (:func:`nirspi_pipe.app.entry.check_job`);
+    one line. Raised, not recorded: every job of the sweep would receive the same node, so the sweep
+    stops (exit 2). Picklable, so that a forked keying worker hands it back to the sweeping process
+    instead of dying with ``SystemExit`` (the pool then waited forever for the lost task)."""
+
+
 class ComposeFailure(Exception):
     """Why a job did not compose, as a keying worker process reports it (picklable, whatever
     the original exception): ``type_name`` is the original exception's class name."""
@@ -481,14 +488,18 @@ class NirspiSweeperBase(Sweeper):
     def compose(self, overrides: list[str]) -> Any:
         """A job's config exactly as Hydra composes it for the launcher
         (``config_loader.load_sweep_config``), its Hydra node checked as the job's own
-        (:func:`nirspi_pipe.app.entry.refuse_job`: a refusal stops the sweep, exit 2)."""
+        (:func:`nirspi_pipe.app.entry.check_job`): :class:`JobRefused` otherwise, which
+        :meth:`prepare` turns into one line and exit 2 (the sweep stops before any job runs)."""
         cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
         # entry loads app.configs, whose import runs Hydra's plugin scan, which imports
         # hydra_plugins.nirspi_pipe_sweeper and so this module: a circle at module level wherever
         # start-up: hydra_plugins is installed as a package (a non-editable install; tests/test_install_plugins.py)
-        from nirspi_pipe.app.entry import refuse_job
+        from nirspi_pipe.app.entry import Refused, check_job
 
-        refuse_job(cfg)
+        try:
+            check_job(cfg.hydra, cfg)
+        except Refused as exc:
+            raise JobRefused(str(exc)) from None
         return cfg
 
     def _composed(self, overrides: list[str]) -> ComposedJob:
@@ -589,14 +600,18 @@ class NirspiSweeperBase(Sweeper):
         its sets: composition is pure Python and the sets are independent (the paper sweep's
         keying went from 18 s to 12 s on 2 cores, ``nirspi-bench paper --experiment paper``)."""
         workers = workers or os.cpu_count() or 1
-        if fast and workers > 1 and len(jobs) > 1 and hasattr(os, "fork"):
-            groups: dict[tuple[str, ...], list[int]] = {}
-            for i, overrides in enumerate(jobs):
-                split = self._split(overrides)
-                groups.setdefault(split[0] if split is not None else ("#unparsable", str(i)), []).append(i)
-            if len(groups) > 1:
-                return self._prepare_parallel(jobs, list(groups.values()), workers)
-        return self._prepare_serial(jobs, fast)
+        try:
+            if fast and workers > 1 and len(jobs) > 1 and hasattr(os, "fork"):
+                groups: dict[tuple[str, ...], list[int]] = {}
+                for i, overrides in enumerate(jobs):
+                    split = self._split(overrides)
+                    groups.setdefault(split[0] if split is not None else ("#unparsable", str(i)), []).append(i)
+                if len(groups) > 1:
+                    return self._prepare_parallel(jobs, list(groups.values()), workers)
+            return self._prepare_serial(jobs, fast)
+        except JobRefused as exc:  # raised in a keying worker too (pickled back by the pool): one line
+            print(f"nirspi-run: error: job refused: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(2) from None
 
     def _prepare_serial(self, jobs: list[list[str]], fast: bool) -> list[tuple[str | Exception, ComposedJob | None]]:
         bases: dict[tuple[str, ...], Any] = {}
@@ -606,6 +621,8 @@ class NirspiSweeperBase(Sweeper):
             try:
                 job = self._compose(overrides, bases) if fast else self._composed(overrides)
                 out.append((job_key_of(job.config, hasher.hashes(job.config)), job))
+            except JobRefused:  # not a failed row: the sweep stops (prepare)
+                raise
             except Exception as exc:  # noqa: BLE001 - a failed row, the sweep goes on
                 out.append((exc, None))
         return out

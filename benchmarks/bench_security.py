@@ -1,0 +1,110 @@
+"""What the security check costs (issue 41: at most 10 % of a default run and of a paper sweep).
+
+Runs the same ``nirspi-run`` command with and without the check, alternating, in one session, and
+prints each wall time, the medians and their ratio:
+
+* **with**: ``nirspi-run ARGS`` as installed: layer 1 (``entry.check_invocation``: the composed
+  configuration, Hydra's node included, checked before Hydra; the links among Hydra's files
+  removed) and layer 2 (``entry.check_job``: the job's Hydra node in the task function, on every
+  set the nirspi sweeper composes, in the nirspi launcher);
+* **without**: the same command in a child whose ``cli.check_invocation`` only parses the flags
+  (no composition, no check), and whose ``check_job`` and link cleanup do nothing. Hydra then gets
+  the same arguments.
+
+Each call gets a new output folder (a sweep would otherwise resume from the previous one's
+records). Usage::
+
+    python benchmarks/bench_security.py run --repeat 5
+    python benchmarks/bench_security.py sweep --repeat 1 -- +experiment=paper 'seed=range(0,2)'
+
+``run`` times ``nirspi-run hydra.run.dir=…`` (the default run); ``sweep`` times ``nirspi-run -m
+ARGS hydra.sweep.dir=…``. The numbers in docs/hostile.md come from these two commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+_WITHOUT = """
+import sys
+from nirspi_pipe.app import cli, entry
+
+def unchecked(args, *, api=False):
+    flags, overrides = entry.parse_args(list(args))
+    return entry.Invocation(
+        flags=flags,
+        overrides=tuple(overrides),
+        hydra_argv=(*entry._hydra_flags(flags), *overrides),
+        config_name=flags.get("--config-name") or entry.CONFIG_NAME,
+        config=None,
+    )
+
+cli.check_invocation = unchecked
+cli.check_job = lambda *a, **k: None
+entry.check_job = lambda *a, **k: None
+cli._hydra_files_without_links = lambda *a, **k: None
+cli.run(sys.argv[1:])
+"""
+
+_WITH = "import sys\nfrom nirspi_pipe.app import cli\ncli.run(sys.argv[1:])\n"
+
+
+def _one(code: str, args: list[str], env: dict[str, str]) -> float:
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        raise SystemExit(f"bench_security: {' '.join(args)} exited {res.returncode}: {res.stderr.strip()[-500:]}")
+    return wall
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("what", choices=("run", "sweep"))
+    parser.add_argument("--repeat", type=int, default=3, help="calls of each variant (alternating)")
+    parser.add_argument("--dir", default=None, help="where the output folders go (default: a temporary folder)")
+    parser.add_argument("args", nargs="*", help="nirspi-run overrides (after --)")
+    opts = parser.parse_args(argv)
+    if opts.repeat < 1:
+        parser.error("--repeat must be >= 1")
+    root = Path(opts.dir or tempfile.mkdtemp(prefix="bench_security_"))
+    env = {**os.environ, "MPLBACKEND": "Agg"}
+    times: dict[str, list[float]] = {"with": [], "without": []}
+    for i in range(opts.repeat):
+        for name, code in (
+            (("with", _WITH), ("without", _WITHOUT))
+            if i % 2 == 0
+            else (
+                ("without", _WITHOUT),
+                ("with", _WITH),
+            )
+        ):
+            out = root / f"{name}_{i}"
+            if opts.what == "run":
+                args = [*opts.args, f"hydra.run.dir={out}"]
+            else:
+                args = ["-m", *opts.args, f"hydra.sweep.dir={out}"]
+            wall = _one(code, args, env)
+            times[name].append(wall)
+            print(f"{name:8s} {wall:8.2f} s  nirspi-run {' '.join(args)}", flush=True)
+            shutil.rmtree(out, ignore_errors=True)
+    with_s, without_s = statistics.median(times["with"]), statistics.median(times["without"])
+    print(
+        f"median with the check {with_s:.2f} s, without {without_s:.2f} s: "
+        f"ratio {with_s / without_s:.3f} ({100 * (with_s / without_s - 1):+.1f} %), "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
+    if opts.dir is None:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
