@@ -205,3 +205,22 @@ def test_bar_plot_tells_the_paper_series_apart() -> None:
             assert handles[f"paper: {name}"].get_edgecolor() == handles[f"ours: {name}"].get_facecolor()
     finally:
         plt.close(fig)
+
+
+def test_readme_quotes_docs_readme_numbers() -> None:
+    """README's figures are those of the file it cites (docs/readme_numbers.md, written by
+    `python -m nirspi_pipe.readme_numbers --install --paper`): the default run's transcript, the
+    install's seconds and megabytes, the sweep example's PSNR per kLux, the paper sweep's wall time."""
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    numbers = (root / "docs" / "readme_numbers.md").read_text()
+    flat = " ".join(readme.split())
+    block = re.search(r"```text\n(.*?)```", numbers, re.S)
+    assert block is not None and block.group(1) in readme  # the transcript, ms: line included
+    install = re.search(r"`pip install \.` into a fresh venv: (\d+) s, (\d+) MB", numbers)
+    assert install is not None and f"took {install[1]} s and left {install[2]} MB" in flat
+    rows = re.findall(r"^\| (\d+) \| (\d+\.\d\d ± \d+\.\d\d) \|", numbers, re.M)
+    assert len(rows) == 3
+    assert all(f"{psnr} dB at {klux}" in flat for klux, psnr in rows), rows
+    paper = re.search(r"\| `nirspi-run -m \+experiment=paper` \((\d+) jobs\) \| (\d+\.\d) s \|", numbers)
+    assert paper is not None and f"({paper[1]} distinct jobs" in flat and f"{paper[2]} s on this 2-core" in flat
