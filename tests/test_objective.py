@@ -117,3 +117,24 @@ def test_pareto_column_only_on_ok_rows() -> None:
     )
     marked = mark_pareto(frame, ["metrics.psnr", "timings_ms.solver"], ["maximize", "minimize"])
     assert marked["pareto"].tolist() == [True, True, False, False]
+
+
+def test_repeats_of_a_configuration_are_on_the_front_by_their_median() -> None:
+    # config a repeated three times: one lucky timing (1 ms) among slow ones (20, 21 ms); config b
+    # once at 10 ms with the same PSNR. Row by row the lucky repeat would win; by medians b does.
+    frame = pd.DataFrame(
+        {
+            "job": ["a0", "a1", "a2", "b0", "c0"],
+            "status": ["ok", "ok", "ok", "ok", "failed"],
+            "config_hash": ["a", "a", "a", "b", "c"],
+            "metrics.psnr": [30.0, 30.0, 30.0, 30.0, np.nan],
+            "timings_ms.solver": [1.0, 20.0, 21.0, 10.0, np.nan],
+        }
+    )
+    marked = mark_pareto(frame, ["metrics.psnr", "timings_ms.solver"], ["maximize", "minimize"])
+    assert marked["pareto"].tolist() == [False, False, False, True, False]
+    # each row its own configuration (no config_hash): the lucky row wins
+    alone = mark_pareto(
+        frame.drop(columns="config_hash"), ["metrics.psnr", "timings_ms.solver"], ["maximize", "minimize"]
+    )
+    assert alone["pareto"].tolist() == [True, False, False, False, False]

@@ -189,8 +189,8 @@ def test_documented_invocations_pass(args: list[str]) -> None:
 
 
 def test_the_sweeper_and_optuna_options_are_data() -> None:
-    """Optuna's sampler targets only from optuna.samplers and only with its sweeper; storage only
-    null; the sampler's callables refused."""
+    """Optuna's sampler targets only from optuna.samplers and only with its sweeper; storage by
+    scheme or inside the sweep folder; the sampler's callables refused."""
     optuna = {"sweeper": {"_target_": allowlist.OPTUNA_SWEEPER}}
     nirspi = {"sweeper": {"_target_": "hydra_plugins.nirspi_pipe_sweeper.NirspiSweeper"}}
     key = "sweeper.sampler._target_"
@@ -198,7 +198,14 @@ def test_the_sweeper_and_optuna_options_are_data() -> None:
     assert _check_kind("optuna_target", key, "optuna.samplers.TPESampler", nirspi) is not None
     assert _check_kind("optuna_target", key, "os.system", optuna) is not None
     assert _check_kind("optuna_target", key, "optuna.samplers.x.y", optuna) is not None
-    assert _check_kind("null", "sweeper.storage", "sqlite:////tmp/x.db", optuna) is not None
+    # storage: a database server by scheme, or SQLite inside the sweep folder (nirspi_pipe.app.study)
+    assert _check_kind("storage", "sweeper.storage", "redis://127.0.0.1/0", optuna) is not None
+    assert _check_kind("storage", "sweeper.storage", "sqlite:////tmp/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
+    assert (
+        _check_kind("storage", "sweeper.storage", "sqlite:////srv/s/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
+        is None
+    )
+    assert _check_kind("storage", "sweeper.storage", "postgresql://db.lab/studies", optuna) is None
     assert _check_kind("scalar", "sweeper.sampler.constraints_func", "os.system", optuna) is not None
     assert _check_kind("scalar", "sweeper.sampler.seed", 3, optuna) is None
     assert _check_kind("direction", "sweeper.direction", ["minimize", "maximize"], optuna) is None

@@ -5,6 +5,7 @@ The implementations live in :mod:`nirspi_pipe.app.sweeper` and :mod:`nirspi_pipe
 """
 
 from nirspi_pipe.app.launcher import NirspiLauncherBase
+from nirspi_pipe.app.study import StudySweeperBase, register_config
 from nirspi_pipe.app.sweeper import NirspiSweeperBase
 
 
@@ -12,8 +13,14 @@ class NirspiSweeper(NirspiSweeperBase):
     """Config-hash keyed, resumable grid sweeper with progress (``hydra/sweeper=nirspi``)."""
 
 
+class NirspiOptunaSweeper(StudySweeperBase):
+    """An Optuna study in a database over keyed job folders (``hydra/sweeper=optuna``)."""
+
+
 class NirspiLauncher(NirspiLauncherBase):
     """Sweep jobs as forked children of the sweeping process (``hydra/launcher=nirspi``)."""
 
 
-__all__ = ["NirspiLauncher", "NirspiSweeper"]
+register_config()  # hydra/sweeper=optuna: nirspi_pipe.app.study's sweeper over the plugin's
+
+__all__ = ["NirspiLauncher", "NirspiOptunaSweeper", "NirspiSweeper"]

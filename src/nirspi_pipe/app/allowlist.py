@@ -73,7 +73,8 @@ IGNORED_KEYS: tuple[str, ...] = ("runtime.**", "overrides.**", "job.config_name"
 #:   ``tag(…)``) for the key it names, checked value by value like a command-line sweep;
 #: * ``experiments``: a list of options of the ``experiment`` group;
 #: * ``direction``: ``minimize``/``maximize`` or a list of them;
-#: * ``null``: only null (Optuna's ``storage``: a URL would write a database anywhere);
+#: * ``storage``: null, a ``postgresql``/``mysql`` URL, or ``sqlite:///`` on a file inside the sweep
+#:   folder (no ``..``, no query, no link; :func:`nirspi_pipe.app.study.check_storage`);
 #: * ``optuna_target``: a class of ``optuna.samplers``/``optuna.pruners``, only with the Optuna
 #:   sweeper chosen;
 #: * ``searchpath``: the default entries and ``file://`` folders that exist.
@@ -122,7 +123,10 @@ HYDRA_KEYS: dict[str, str] = {
     "sweeper.n_jobs": "int",
     "sweeper.direction": "direction",
     "sweeper.study_name": "name_or_null",
-    "sweeper.storage": "null",
+    # nirspi's Optuna sweeper (hydra/sweeper=optuna, nirspi_pipe.app.study): a database
+    # URL by scheme (postgresql, mysql) or SQLite inside the sweep folder; jobs per trial
+    "sweeper.storage": "storage",
+    "sweeper.repeats": "int",
     # the share of failed trials Optuna's sweeper, and the results callback's exit code, accept:
     # a number in [0, 1] (the plugin asserts it, with a traceback, issue 41)
     "sweeper.max_failure_rate": "fraction",
@@ -133,7 +137,7 @@ HYDRA_KEYS: dict[str, str] = {
 }
 
 #: The Optuna sweeper's class: ``sweeper.sampler``/``sweeper.pruner`` targets only with it.
-OPTUNA_SWEEPER = "hydra_plugins.hydra_optuna_sweeper.optuna_sweeper.OptunaSweeper"
+OPTUNA_SWEEPER = "hydra_plugins.nirspi_pipe_sweeper.NirspiOptunaSweeper"
 #: Where an Optuna sampler's or pruner's ``_target_`` may point.
 OPTUNA_TARGET_PREFIXES = {"sweeper.sampler._target_": "optuna.samplers.", "sweeper.pruner._target_": "optuna.pruners."}
 #: Sampler options that name a callable or a nested object: refused even under ``sweeper.sampler.*``.

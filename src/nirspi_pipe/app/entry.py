@@ -453,8 +453,19 @@ def _kind_direction(key: str, value: Any, hydra_node: dict[str, Any]) -> str | N
     return None if ok else "minimize, maximize or a list of them"
 
 
-def _kind_null(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
-    return None if value is None else "null only (a storage URL would write a database outside the output folder)"
+def _kind_storage(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
+    # start-up: the Optuna sweeper's module, only when a storage is named
+    from nirspi_pipe.app.study import check_storage
+
+    sweep_dir = (hydra_node.get("sweep") or {}).get("dir")
+    resolved = sweep_dir if isinstance(sweep_dir, str) and "${" not in sweep_dir else None
+    why = check_storage(value, resolved)
+    if why is None:
+        return None
+    return (
+        f"null (SQLite in the sweep folder), sqlite:///<a file inside the sweep folder>, postgresql://… or "
+        f"mysql://… ({why})"
+    )
 
 
 def _kind_optuna_target(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
@@ -505,7 +516,7 @@ _KIND_CHECKS: dict[str, Callable[[str, Any, dict[str, Any]], str | None]] = {
     "scalar": _kind_scalar,
     "joblib_backend": _kind_joblib_backend,
     "direction": _kind_direction,
-    "null": _kind_null,
+    "storage": _kind_storage,
     "optuna_target": _kind_optuna_target,
     "experiments": _kind_experiments,
     "searchpath": _kind_searchpath,

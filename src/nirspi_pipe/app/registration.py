@@ -23,7 +23,8 @@ def register_hydra_plugins() -> None:
 
     with trusted_import_path():  # never a hydra_plugins module of the working directory
         # trusted path: imported only inside trusted_import_path(), so never from the working directory
-        from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiSweeper
+        from hydra_plugins.nirspi_pipe_sweeper import NirspiLauncher, NirspiOptunaSweeper, NirspiSweeper
 
     Plugins.instance().register(NirspiSweeper)
+    Plugins.instance().register(NirspiOptunaSweeper)
     Plugins.instance().register(NirspiLauncher)

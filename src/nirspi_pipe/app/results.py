@@ -250,18 +250,43 @@ def write_objective(sweep: Path, names: list[str], directions: list[str]) -> Non
     atomic_write(Path(sweep) / OBJECTIVE_FILE, dumps_strict({"objective": names, "direction": directions}))
 
 
+def config_medians(frame: pd.DataFrame, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The ``ok`` rows' objective values aggregated per configuration: ``(values, group)`` where
+    ``values`` holds each configuration's median of each objective (rows × objectives) and
+    ``group[i]`` is row ``i``'s configuration (-1 for a row that is not ``ok``). Rows with the same
+    ``config_hash`` are repeats of one configuration (``hydra.sweeper.repeats``); without that
+    column each row is its own."""
+    ok = (frame["status"] == "ok").to_numpy()
+    values = np.column_stack([pd.to_numeric(frame[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    if "config_hash" in frame.columns:
+        keys = frame["config_hash"].astype(str).where(frame["config_hash"].notna(), frame["job"].astype(str))
+    else:
+        keys = pd.Series(np.arange(len(frame)).astype(str))
+    group = np.full(len(frame), -1)
+    codes, uniques = pd.factorize(keys[ok])
+    group[ok] = codes
+    medians = np.full((len(uniques), len(names)), np.nan)
+    for g in range(len(uniques)):
+        with np.errstate(all="ignore"):
+            rows = values[group == g]
+            # a configuration with a non-finite value in any repeat has no aggregate (never on the front)
+            medians[g] = np.median(rows, axis=0) if np.isfinite(rows).all() else np.nan
+    return medians, group
+
+
 def mark_pareto(frame: pd.DataFrame, names: list[str], directions: list[str]) -> pd.DataFrame:
-    """``frame`` with a boolean column ``pareto``: the ``ok`` rows that no other ``ok`` row beats
-    in every objective (:func:`nirspi_pipe.app.objective.pareto_mask`); rows without a value of
-    each objective are False."""
+    """``frame`` with a boolean column ``pareto``: the ``ok`` rows of the configurations that no
+    other configuration beats in every objective (:func:`nirspi_pipe.app.objective.pareto_mask`),
+    each configuration by its median over repeated rows (:func:`config_medians`; one row: its
+    value); rows without a value of each objective are False."""
     out = frame.copy()
     out["pareto"] = False
     if not len(out) or any(n not in out.columns for n in names):
         return out
-    ok = (out["status"] == "ok").to_numpy()
-    values = np.column_stack([pd.to_numeric(out[n], errors="coerce").to_numpy(dtype=float) for n in names])
+    medians, group = config_medians(out, names)
+    on_front = pareto_mask(medians, directions) if len(medians) else np.zeros(0, dtype=bool)
     mask = np.zeros(len(out), dtype=bool)
-    mask[ok] = pareto_mask(values[ok], directions)
+    mask[group >= 0] = on_front[group[group >= 0]]
     out["pareto"] = mask
     return out
 
@@ -275,8 +300,8 @@ def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], pat
     ok = frame[frame["status"] == "ok"] if len(frame) else frame
     if not len(ok) or x_name not in ok.columns or y_name not in ok.columns:
         return None
-    x = pd.to_numeric(ok[x_name], errors="coerce").to_numpy(dtype=float)
-    y = pd.to_numeric(ok[y_name], errors="coerce").to_numpy(dtype=float)
+    medians, _group = config_medians(frame, [x_name, y_name])  # one point per configuration
+    x, y = medians[:, 0], medians[:, 1]
     keep = np.isfinite(x) & np.isfinite(y)
     if not keep.any():
         return None
@@ -290,7 +315,7 @@ def plot_front(frame: pd.DataFrame, names: list[str], directions: list[str], pat
 
         fig, ax = plt.subplots(figsize=(7.6, 4.4))
         xs, ys = x[keep], y[keep]
-        ax.scatter(xs[~front], ys[~front], s=14, color="0.6", label=f"dominated jobs ({(~front).sum()})")
+        ax.scatter(xs[~front], ys[~front], s=14, color="0.6", label=f"dominated configurations ({(~front).sum()})")
         order = np.argsort(xs[front])
         ax.plot(xs[front][order], ys[front][order], "o-", color="C3", ms=5, lw=1, label=f"Pareto front ({front.sum()})")
         if x_name.startswith("timings_ms") and (xs > 0).all():
@@ -448,7 +473,7 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
     line when the optimising sweeper has none, or the directions do not fit (before any job runs)."""
     sweeper = config.hydra.sweeper
     optimises = "n_trials" in sweeper  # Optuna's (and any sweeper that asks for trials)
-    if optimises and "nirspi" in str(sweeper.get("_target_", "")):
+    if optimises and str(sweeper.get("_target_", "")).endswith(".NirspiSweeper"):  # the grid, not NirspiOptunaSweeper
         print(
             "nirspi-run: error: hydra.sweeper.n_trials is set (an Optuna experiment?) but the sweeper is the nirspi "
             "grid; allowed: hydra/sweeper=optuna on the command line (Hydra ignores an experiment's sweeper choice)",
@@ -483,7 +508,7 @@ def sweep_objective(config: Any) -> tuple[list[str], list[str]] | None:
 
 def _sweeper_name(sweeper: Any) -> str:
     target = str(sweeper.get("_target_", ""))
-    return "optuna" if "optuna" in target else target.rsplit(".", 1)[-1]
+    return "optuna" if "optuna" in target.lower() else target.rsplit(".", 1)[-1]
 
 
 def _plain_value(value: Any) -> Any:

@@ -1,0 +1,702 @@
+"""Optuna studies that last: ``hydra/sweeper=optuna`` driven through Optuna's public API.
+
+The sweeper (:class:`StudySweeperBase`, ``conf/hydra/sweeper/optuna.yaml``) is the ``nirspi``
+grid sweeper's machinery (job folders keyed by config hash, a record per job, crash isolation,
+``sweep.json``, the results callback) with Optuna choosing the jobs:
+
+* **A study in a database.** ``hydra.sweeper.storage: null`` (the default) keeps the study in
+  SQLite inside the sweep folder, ``<sweep>/<study_name>.db``; ``study_name: null`` names it after
+  the sweep folder. ``create_study(load_if_exists=True)`` continues it: rerunning the same command
+  (the same ``hydra.sweep.dir``) runs only the trials that ``n_trials`` (the study's total) still
+  asks for, so a finished study runs none and a larger ``n_trials`` adds the difference. A trial's
+  job lands in its keyed folder, so a configuration Optuna asks for again reuses its record
+  instead of being timed again. A database URL may be named for a study shared between machines
+  (:func:`check_storage`: ``postgresql``/``mysql`` schemes, or ``sqlite`` on a file inside the sweep
+  folder; anything else is refused in one line).
+* **Objectives checked before the first trial.** Before the study asks for a trial, one job (the
+  search space's first configuration, in its keyed folder, so its record is reused when a trial
+  asks for it) shows which record keys this experiment writes; an ``objective`` naming a key that
+  record lacks is refused in one line (exit 2) naming the nearest keys, and no trial is run.
+* **Failed trials.** A job that failed, or whose record lacks a value of the objective, is a
+  ``FAIL`` trial; the results callback exits 1 when more than ``max_failure_rate`` of the trials
+  did not finish ok.
+* **Repeats.** ``repeats: k`` runs each trial's configuration ``k`` times (folders keyed by the
+  config hash and the repeat) and tells Optuna the median of each objective over the repeats
+  (:func:`median_values`); the results' ``pareto`` column marks configurations on the front of
+  those medians (:func:`nirspi_pipe.app.results.mark_pareto`).
+* **Ctrl-C** ends the sweep with one line: how many trials finished, where the study is, and the
+  command that resumes it; the results table is written for what finished.
+* **Several workers** (e.g. SLURM jobs each running the same command on one database) share one
+  study: each asks for trials until the study holds ``n_trials`` (finished or running).
+
+Only Optuna's public API is used (``create_study``, ``ask``, ``tell``, ``get_trials``,
+``Trial.suggest_*``), which Optuna 2.10 and later versions share.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+import math
+import os
+import re
+import shlex
+import socket
+import sys
+import time
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from omegaconf import OmegaConf
+
+from nirspi_pipe.app.objective import SECTIONS, directions_of, objective_names
+from nirspi_pipe.app.sweeper import NirspiSweeperBase
+from nirspi_pipe.records import (
+    RECORD_NAME,
+    OutputError,
+    atomic_write,
+    config_hash,
+    dumps_strict,
+    read_record,
+)
+
+__all__ = [
+    "ALLOWED_SCHEMES",
+    "Dimension",
+    "StorageError",
+    "StudySweeperBase",
+    "check_storage",
+    "check_objective_keys",
+    "dimension_of",
+    "median_values",
+    "record_keys",
+    "register_config",
+    "repeat_key",
+    "storage_url",
+]
+
+#: Database URL schemes a study may live in (SQLAlchemy's names, with a driver after ``+``):
+#: servers a user names for a shared study, and SQLite inside the sweep folder.
+ALLOWED_SCHEMES = ("postgresql", "mysql", "sqlite")
+_SCHEME = re.compile(r"^([a-z]+)(\+[a-z0-9_]+)?://")
+_STUDY_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.=,+-]{0,99}$")
+_STORAGE_ALLOWED = (
+    "null (SQLite in the sweep folder), sqlite:///<a file inside the sweep folder>, "
+    "postgresql://... or mysql://... (a database server)"
+)
+
+
+class StorageError(ValueError):
+    """``hydra.sweeper.storage`` (or ``study_name``) is not allowed: one line naming the key."""
+
+
+def _bad_storage(value: Any, why: str) -> StorageError:
+    return StorageError(f"hydra.sweeper.storage={value!r} is not allowed ({why}); allowed: {_STORAGE_ALLOWED}")
+
+
+def check_storage(value: Any, sweep_dir: str | Path | None = None) -> str | None:
+    """Why ``hydra.sweeper.storage`` is refused, or None when it is allowed: null; a
+    ``postgresql``/``mysql`` URL; a ``sqlite:///`` file inside ``sweep_dir`` (no ``..``, no
+    query, no symbolic link on the way; checked against ``sweep_dir`` when it is given, i.e.
+    resolved, by the sweeper). Pure: nothing is opened or created."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or any(ord(c) < 32 for c in value):
+        return "not a URL"
+    m = _SCHEME.match(value)
+    if not m or m.group(1) not in ALLOWED_SCHEMES:
+        return "its scheme is not one of " + ", ".join(ALLOWED_SCHEMES)
+    if m.group(1) != "sqlite":
+        return None
+    if not value.startswith("sqlite:///") or "?" in value or "#" in value:
+        return "a SQLite URL is sqlite:///<path>, without a query"
+    path = value[len("sqlite:///") :]
+    if not path or path.endswith("/") or ".." in Path(path).parts or path.startswith(":"):
+        return "a SQLite file needs a path without '..'"
+    if sweep_dir is None:
+        return None
+    root = Path(os.path.abspath(sweep_dir))
+    target = Path(os.path.abspath(path))
+    if target == root or root not in target.parents:
+        return f"a SQLite file must be inside the sweep folder {root}"
+    probe = target
+    while probe != root.parent:
+        if probe.is_symlink():
+            return f"{probe} is a symbolic link"
+        probe = probe.parent
+    return None
+
+
+def storage_url(value: Any, sweep_dir: str | Path, study_name: str) -> str:
+    """The database URL of the study: ``value`` checked (:func:`check_storage`), or for null
+    ``sqlite:///<absolute sweep folder>/<study_name>.db``. Raises :class:`StorageError`."""
+    if not isinstance(study_name, str) or not _STUDY_NAME.match(study_name):
+        raise StorageError(
+            f"hydra.sweeper.study_name={study_name!r} is not allowed; allowed: letters, digits and _ . = , + - "
+            "(at most 100, not starting with '.' or '-'; null: the sweep folder's name)"
+        )
+    if value is None:
+        value = f"sqlite:///{Path(os.path.abspath(sweep_dir)) / (study_name + '.db')}"
+    why = check_storage(value, sweep_dir)
+    if why is not None:
+        raise _bad_storage(value, why)
+    return str(value)
+
+
+def shown_url(url: str) -> str:
+    """``url`` with its password hidden, for messages."""
+    return re.sub(r"(://[^:/@]+:)[^@/]*@", r"\1***@", url)
+
+
+#: ``hydra/sweeper=optuna``: this sweeper's config, registered over hydra-optuna-sweeper's node of
+#: that name (:func:`register_config`); the samplers are the plugin's ``hydra/sweeper/sampler`` options.
+SWEEPER_CONFIG: dict[str, Any] = {
+    "defaults": [{"sampler": "tpe"}],  # hydra/sweeper/sampler=tpe|random|cmaes|nsgaii|motpe
+    "_target_": "hydra_plugins.nirspi_pipe_sweeper.NirspiOptunaSweeper",
+    "direction": "minimize",  # one per objective key: minimize or maximize
+    "n_trials": 20,  # trials the study holds in all: a rerun runs only the ones still missing
+    "n_jobs": 2,  # trials asked of Optuna at once (the launcher runs their jobs together)
+    "storage": None,  # null: SQLite <sweep folder>/<study_name>.db; postgresql://... or mysql://...
+    "study_name": None,  # null: the sweep folder's name
+    "max_failure_rate": 0.0,  # share of failed trials that still exits 0
+    "repeats": 1,  # jobs per trial (same config, own folders); Optuna is told each objective's median
+    "max_attempts": 3,  # a job that failed this many times with the same code is not relaunched
+    "params": None,  # experiment files put their search space here: {key: "interval(0,1)"}
+}
+
+
+def register_config() -> None:
+    """Store :data:`SWEEPER_CONFIG` as ``hydra/sweeper=optuna`` in Hydra's ConfigStore, after the
+    Hydra plugin's own node of that name (imported first, so that ours is the one kept whichever
+    order Hydra's plugin scan imports the two packages in)."""
+    # start-up: Hydra's ConfigStore, at the plugin scan
+    from hydra.core.config_store import ConfigStore
+
+    try:
+        # start-up: hydra-optuna-sweeper's sampler configs (hydra/sweeper/sampler), when it is installed
+        import hydra_plugins.hydra_optuna_sweeper.config  # noqa: F401
+    except ImportError:
+        pass
+    ConfigStore.instance().store(group="hydra/sweeper", name="optuna", node=SWEEPER_CONFIG, provider="nirspi-pipe")
+
+
+# -- the search space ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Dimension:
+    """One swept key as Optuna samples it (Hydra's sweep syntax, as hydra-optuna-sweeper reads it):
+    ``choice(...)`` and a shuffled ``range`` are categorical; ``range(a,b,s)`` an integer (or a
+    float on a grid) from ``a`` up to below ``b``; ``interval(a,b)`` a float (an integer when both
+    ends are), log-uniform with ``tag(log, ...)``."""
+
+    name: str
+    kind: str  # "categorical", "int" or "float"
+    choices: tuple[Any, ...] = ()
+    low: float = 0.0
+    high: float = 0.0
+    step: float | None = None
+    log: bool = False
+
+    def suggest(self, trial: Any) -> Any:
+        """The trial's value (Optuna's ``Trial.suggest_*``)."""
+        if self.kind == "categorical":
+            return trial.suggest_categorical(self.name, list(self.choices))
+        if self.kind == "int":
+            return trial.suggest_int(self.name, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
+        return trial.suggest_float(self.name, self.low, self.high, step=self.step, log=self.log)
+
+    def first(self) -> Any:
+        """The space's first value: the first choice, or the low end."""
+        if self.kind == "categorical":
+            return self.choices[0]
+        return int(self.low) if self.kind == "int" else self.low
+
+
+def dimension_of(override: Any) -> Dimension | None:
+    """The :class:`Dimension` of a parsed Hydra override, or None when it is not a sweep.
+    Raises ``ValueError`` (one line) for a sweep Optuna cannot sample."""
+    # start-up: Hydra's override grammar, only for a sweep
+    from hydra.core.override_parser.types import Transformer
+
+    if not override.is_sweep_override():
+        return None
+    name = override.get_key_element()
+    value = override.value()
+    if override.is_choice_sweep() or (override.is_range_sweep() and value.shuffle):
+        choices = tuple(override.sweep_iterator(transformer=Transformer.encode))
+        for c in choices:
+            if not isinstance(c, (str, int, float, bool, type(None))):
+                raise ValueError(f"{name}: a choice of Optuna is a string, number, boolean or null, not {c!r}")
+        return Dimension(name, "categorical", choices=choices)
+    if override.is_range_sweep():
+        start, stop, step = value.start, value.stop, value.step
+        if any(isinstance(v, float) for v in (start, stop, step)):
+            n = math.ceil((stop - start) / step) - 1
+            if n < 0:
+                raise ValueError(f"{name}: range({start},{stop},{step}) is empty")
+            return Dimension(name, "float", low=float(start), high=float(start + n * step), step=float(step))
+        n = len(range(int(start), int(stop), int(step)))
+        if n == 0 or step < 0:
+            raise ValueError(f"{name}: range({start},{stop},{step}) is empty or descending")
+        return Dimension(name, "int", low=int(start), high=int(start + (n - 1) * step), step=int(step))
+    if override.is_interval_sweep():
+        log = "log" in value.tags
+        is_int = isinstance(value.start, int) and isinstance(value.end, int)
+        if not value.start < value.end or (log and value.start <= 0):
+            raise ValueError(
+                f"{name}: interval({value.start},{value.end}) is empty" + (" or not positive" if log else "")
+            )
+        return Dimension(name, "int" if is_int else "float", low=value.start, high=value.end, log=log)
+    raise ValueError(f"{name}: {override.input_line} is not a sweep Optuna samples (choice, range, interval)")
+
+
+def _as_override_value(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
+
+
+# -- objectives against records -----------------------------------------------------------------
+
+
+def record_keys(record: Mapping[str, Any], sections: Sequence[str]) -> list[str]:
+    """The dotted keys of a record's numeric leaves in ``sections`` (``metrics.psnr``, ...)."""
+    out: list[str] = []
+
+    def walk(prefix: str, node: Any) -> None:
+        if isinstance(node, Mapping):
+            for k, v in node.items():
+                walk(f"{prefix}.{k}", v)
+        elif isinstance(node, (int, float)) and not isinstance(node, bool):
+            out.append(prefix)
+
+    for section in sections:
+        walk(section, record.get(section))
+    return out
+
+
+def check_objective_keys(names: Sequence[str], record: Mapping[str, Any]) -> str | None:
+    """One line naming every objective key that ``record`` (an ``ok`` record of this sweep) lacks,
+    with the nearest keys it has, or None when it has them all."""
+    keys = record_keys(record, SECTIONS)
+    missing = [n for n in names if n not in keys]
+    if not missing:
+        return None
+    parts = []
+    for name in missing:
+        near = difflib.get_close_matches(name, keys, n=3, cutoff=0.6)
+        parts.append(f"{name!r}" + (f" (did you mean {', '.join(near)}?)" if near else ""))
+    section_keys = sorted({k for k in keys if k.split(".")[0] in {m.split(".")[0] for m in missing}})
+    shown = ", ".join(section_keys[:12]) + (", ..." if len(section_keys) > 12 else "")
+    return (
+        f"objective: {'; '.join(parts)} {'is' if len(missing) == 1 else 'are'} not a key of this sweep's records; "
+        f"allowed: {shown or 'keys of ' + ', '.join(SECTIONS)} (checked on one job's record before any trial)"
+    )
+
+
+def _value_of(record: Mapping[str, Any], name: str) -> float | None:
+    node: Any = record
+    for part in name.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    if isinstance(node, bool) or not isinstance(node, (int, float)) or not math.isfinite(node):
+        return None
+    return float(node)
+
+
+def median_values(records: Sequence[Mapping[str, Any] | None], names: Sequence[str]) -> list[float] | None:
+    """Each objective's median over a trial's repeats, or None (a failed trial) when any repeat
+    failed or lacks a finite value."""
+    rows = []
+    for rec in records:
+        if rec is None or (rec.get("meta") or {}).get("status") != "ok":
+            return None
+        row = [_value_of(rec, n) for n in names]
+        if any(v is None for v in row):
+            return None
+        rows.append(row)
+    if not rows:
+        return None
+    return [float(v) for v in np.median(np.asarray(rows, dtype=float), axis=0)]
+
+
+def repeat_key(key: str, repeat: int) -> str:
+    """The folder key of repeat ``repeat`` of the job keyed ``key`` (repeat 0 is ``key``)."""
+    return key if repeat == 0 else config_hash({"repeat_of": key, "repeat": repeat})
+
+
+def _read(folder: Path) -> dict[str, Any] | None:
+    try:
+        return read_record(folder / RECORD_NAME)
+    except (OSError, ValueError):
+        return None
+
+
+# -- the sweeper --------------------------------------------------------------------------------
+
+#: Trial states that count toward ``n_trials`` (finished, or running in a live worker).
+_HOST = socket.gethostname()
+
+
+def _alive(host: Any, pid: Any) -> bool:
+    """Whether the worker that owns a running trial may still be running: another host's, or a
+    live process of this host."""
+    if host != _HOST or not isinstance(pid, int):
+        return host != _HOST
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class StudySweeperBase(NirspiSweeperBase):
+    """``hydra/sweeper=optuna``: an Optuna study over keyed job folders (module docstring)."""
+
+    def __init__(
+        self,
+        sampler: Any = None,
+        direction: Any = "minimize",
+        storage: Any = None,
+        study_name: str | None = None,
+        n_trials: int = 20,
+        n_jobs: int = 2,
+        max_failure_rate: float = 0.0,
+        params: dict[str, str] | None = None,
+        repeats: int = 1,
+        max_attempts: int = 3,
+        pruner: Any = None,
+    ) -> None:
+        super().__init__(params=params, resume=True, max_attempts=max_attempts, direction=direction)
+        self.sampler = sampler
+        self.pruner = pruner
+        self.storage = storage
+        self.study_name = study_name
+        for key, value in (("n_trials", n_trials), ("n_jobs", n_jobs), ("repeats", repeats)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"hydra.sweeper.{key}={value!r} is not allowed; allowed: an integer >= 1")
+        self.n_trials, self.n_jobs, self.repeats = n_trials, n_jobs, repeats
+        self.max_failure_rate = max_failure_rate
+
+    # -- helpers --------------------------------------------------------------------------------
+
+    def _resume_command(self, sweep_dir: Path) -> str:
+        args = [a for a in sys.argv[1:]]
+        if not any(a.startswith("hydra.sweep.dir=") for a in args):
+            args.append(f"hydra.sweep.dir={sweep_dir}")
+        return shlex.join(["nirspi-run", *args])
+
+    def _run_jobs(
+        self, sweep_dir: Path, sweep_file: Path, jobs: list[tuple[str, list[str]]], composed: dict[str, Any]
+    ) -> None:
+        """Run ``(key, overrides)`` jobs into their keyed folders (an ``ok`` record is reused)."""
+        if not jobs:
+            return
+        run_composed = getattr(self.launcher, "run_composed", None)
+        if run_composed is not None and all(key in composed for key, _ in jobs):
+            run_composed([(key, ov, composed[key]) for key, ov in jobs], sweep_dir, sweep_file, True)
+            return
+        self._launch_with_retries(sweep_dir, sweep_file, jobs, [])
+
+    def _prepare_trials(
+        self, sweep_dir: Path, overrides: list[list[str]]
+    ) -> tuple[list[list[tuple[str, list[str]]]], dict[str, Any], list[str | None]]:
+        """Each trial's jobs ``(folder key, overrides)`` (``repeats`` of them), the composed
+        configs by key, and why a trial does not compose (None when it does)."""
+        # serially: a batch is a few trials, and forking a keying pool after the database is open
+        # hung (a lock held in the parent at fork)
+        prepared = self._prepare_serial(overrides, True)
+        jobs: list[list[tuple[str, list[str]]]] = []
+        composed: dict[str, Any] = {}
+        errors: list[str | None] = []
+        for ov, (key, job) in zip(overrides, prepared, strict=True):
+            if not isinstance(key, str) or job is None:
+                jobs.append([])
+                errors.append(self._compose_failure(ov, key if isinstance(key, Exception) else ValueError(str(key))))
+                continue
+            keys = [repeat_key(key, r) for r in range(self.repeats)]
+            for k in keys:
+                composed[k] = job
+            jobs.append([(k, ov) for k in keys])
+            errors.append(None)
+        return jobs, composed, errors
+
+    def _write_sweep_file(self, sweep_dir: Path, study: Any, started: float, url: str) -> None:
+        jobs: list[dict[str, Any]] = []
+        for t in study.get_trials(deepcopy=False):
+            for key in t.user_attrs.get("jobs", []) or []:
+                jobs.append(
+                    {
+                        "key": key,
+                        "overrides": list(t.user_attrs.get("overrides", [])),
+                        "trial": t.number,
+                        "skipped": False,
+                    }
+                )
+        info = {
+            "started": started,
+            "experiments": [],
+            "total": len(jobs),
+            "to_run": len(jobs),
+            "max_attempts": self.max_attempts,
+            "study": {"name": study.study_name, "storage": shown_url(url), "n_trials": self.n_trials},
+            "jobs": jobs,
+        }
+        atomic_write(sweep_dir / "sweep.json", dumps_strict(info, indent=1))
+
+    # -- the sweep ------------------------------------------------------------------------------
+
+    def sweep(self, arguments: list[str]) -> Any:
+        assert self.config is not None and self.launcher is not None
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        try:
+            return self._study(sweep_dir, arguments)
+        except (StorageError, OutputError) as exc:
+            print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
+            raise SystemExit(2 if isinstance(exc, StorageError) else 1) from None
+
+    def _study(self, sweep_dir: Path, arguments: list[str]) -> Any:
+        # optional dependency: pip install '.[optuna]'
+        import optuna
+
+        names = objective_names(self.config.get("objective"))
+        raw_direction = (
+            OmegaConf.to_container(self.direction) if OmegaConf.is_config(self.direction) else self.direction
+        )
+        directions = directions_of(raw_direction, len(names)) if names else []
+        if not names:  # the results callback refused it already (sweep_objective); kept for direct use
+            print("nirspi-run: error: hydra/sweeper=optuna needs objective=<record key>", file=sys.stderr)
+            raise SystemExit(2)
+        study_name = self.study_name if self.study_name is not None else sweep_dir.name
+        url = storage_url(self.storage, sweep_dir, study_name)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
+
+        params = [f"{k}={v}" for k, v in self.params.items()] + list(arguments)
+        dims: list[Dimension] = []
+        fixed: list[str] = []
+        try:
+            for text, parsed in zip(params, self._parser().parse_overrides(params), strict=True):
+                dim = dimension_of(parsed)
+                if dim is None:
+                    fixed.append(text)
+                else:
+                    dims = [d for d in dims if d.name != dim.name] + [dim]
+                    fixed = [f for f in fixed if self._parse_one(f).get_key_element() != dim.name]
+        except Exception as exc:  # noqa: BLE001 - a space that cannot be sampled: nothing runs
+            print(f"nirspi-run: error: the search space cannot be sampled: {str(exc).splitlines()[0]}", file=sys.stderr)
+            raise SystemExit(2) from None
+
+        optuna.logging.set_verbosity(optuna.logging.WARNING)
+        logging.getLogger("alembic").setLevel(logging.WARNING)  # "setup plugin ..." lines of a new database
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # ExperimentalWarning of multivariate TPE and the like
+            try:
+                study = optuna.create_study(
+                    study_name=study_name,
+                    storage=url,
+                    sampler=self.sampler,
+                    pruner=self.pruner,
+                    directions=directions,
+                    load_if_exists=True,
+                )
+            except Exception as exc:  # noqa: BLE001 - a database that cannot be opened: one line
+                why = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                raise StorageError(f"hydra.sweeper.storage: cannot open the study in {shown_url(url)}: {why}") from None
+            n_before = len(study.get_trials(deepcopy=False))
+            sampler = self._sampler_for_resume(n_before)
+            if sampler is not None:  # a seeded sampler would replay its first draws: seed + trials so far
+                study = optuna.load_study(study_name=study_name, storage=url, sampler=sampler, pruner=self.pruner)
+        told = [d.name.lower() for d in study.directions]
+        if told != directions:
+            raise StorageError(
+                f"hydra.sweeper.direction={directions} differs from the study {study_name!r} in {shown_url(url)} "
+                f"({told}); allowed: the study's directions, or another study_name / hydra.sweep.dir"
+            )
+        started = time.time()
+        self._check_objectives(sweep_dir, names, dims, fixed)
+        done_before = self._counted(study)
+        to_run = max(0, self.n_trials - done_before)
+        print(
+            f"nirspi-run: study {study_name!r} in {shown_url(url)}: {done_before} of {self.n_trials} trials "
+            f"finished or running, {to_run} to run"
+            + (f", {self.repeats} repeats each (median)" if self.repeats > 1 else ""),
+            flush=True,
+        )
+        sweep_file = sweep_dir / "sweep.json"
+        self._write_sweep_file(sweep_dir, study, started, url)
+        running: list[tuple[Any, list[tuple[str, list[str]]]]] = []
+        try:
+            while True:
+                room = self.n_trials - self._counted(study)
+                if room <= 0:
+                    break
+                running = []
+                trial_ov: list[list[str]] = []
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    for _ in range(min(self.n_jobs, room)):
+                        trial = study.ask()
+                        values = [d.suggest(trial) for d in dims]
+                        ov = [*fixed, *(f"{d.name}={_as_override_value(v)}" for d, v in zip(dims, values, strict=True))]
+                        trial.set_user_attr("overrides", ov)
+                        trial.set_user_attr("worker", [_HOST, os.getpid()])
+                        running.append((trial, []))
+                        trial_ov.append(ov)
+                jobs, composed, errors = self._prepare_trials(sweep_dir, trial_ov)
+                for i, (trial, _) in enumerate(running):
+                    trial.set_user_attr("jobs", [k for k, _ in jobs[i]])
+                    running[i] = (trial, jobs[i])
+                self._write_sweep_file(sweep_dir, study, started, url)
+                self._run_jobs(sweep_dir, sweep_file, [j for js in jobs for j in js], composed)
+                for (trial, trial_jobs), error in zip(running, errors, strict=True):
+                    self._tell(study, trial, trial_jobs, names, sweep_dir, error)
+                running = []
+        except KeyboardInterrupt:
+            self._interrupted(study, running, names, sweep_dir, url)
+        self._write_sweep_file(sweep_dir, study, started, url)
+        self._write_results(study, sweep_dir, len(names))
+        return []
+
+    def _sampler_for_resume(self, n_before: int) -> Any:
+        """For a study that already holds trials, the configured sampler with ``seed`` + the number
+        of those trials (reproducible, and not the first run's draws again); None when the study is
+        new or the sampler has no seed."""
+        # start-up: Hydra's instantiate, only to reseed a resumed study's sampler
+        from hydra.utils import instantiate
+
+        node = self.config.hydra.sweeper.get("sampler") if self.config is not None else None
+        seed = node.get("seed") if node is not None else None
+        if n_before == 0 or node is None or isinstance(seed, bool) or not isinstance(seed, int):
+            return None
+        return instantiate(node, seed=seed + n_before)
+
+    def _counted(self, study: Any) -> int:
+        """Trials toward ``n_trials``: finished (not interrupted), or running in a live worker."""
+        # optional dependency: pip install '.[optuna]'
+        from optuna.trial import TrialState
+
+        n = 0
+        for t in study.get_trials(deepcopy=False):
+            if t.state == TrialState.RUNNING:
+                host, pid = (t.user_attrs.get("worker") or [None, None])[:2]
+                n += _alive(host, pid)
+            elif t.state in (TrialState.COMPLETE, TrialState.PRUNED) or (
+                t.state == TrialState.FAIL and not t.user_attrs.get("interrupted")
+            ):
+                n += 1
+        return n
+
+    def _tell(
+        self,
+        study: Any,
+        trial: Any,
+        jobs: list[tuple[str, list[str]]],
+        names: list[str],
+        sweep_dir: Path,
+        error: str | None,
+    ) -> None:
+        # optional dependency: pip install '.[optuna]'
+        from optuna.trial import TrialState
+
+        records = [_read(sweep_dir / key) for key, _ in jobs]
+        values = None if error is not None else median_values(records, names)
+        if values is None:
+            reason = error or next(
+                (str((r or {}).get("meta", {}).get("error") or "") for r in records if r is not None), ""
+            )
+            trial.set_user_attr("failed", (reason or "a value of the objective is missing")[:300])
+            study.tell(trial, state=TrialState.FAIL)
+        else:
+            study.tell(trial, values if len(values) > 1 else values[0])
+
+    def _check_objectives(self, sweep_dir: Path, names: list[str], dims: list[Dimension], fixed: list[str]) -> None:
+        """Refuse (exit 2, one line) an objective the records of this sweep do not have, checked on
+        one job's record: the space's first configuration, run once into its keyed folder (a
+        trial that asks for it reuses that record). A failing probe job checks nothing."""
+        probe = [*fixed, *(f"{d.name}={_as_override_value(d.first())}" for d in dims)]
+        jobs, composed, errors = self._prepare_trials(sweep_dir, [probe])
+        if errors[0] is not None or not jobs[0]:
+            return
+        key, ov = jobs[0][0]
+        record = _read(sweep_dir / key)
+        if record is None or (record.get("meta") or {}).get("status") != "ok":
+            print("nirspi-run: checking objective on one job's record before the first trial", flush=True)
+            self._run_jobs(sweep_dir, sweep_dir / "sweep.json", [(key, ov)], composed)
+            record = _read(sweep_dir / key)
+        if record is None or (record.get("meta") or {}).get("status") != "ok":
+            return
+        problem = check_objective_keys(names, record)
+        if problem is not None:
+            print(f"nirspi-run: error: {problem}", file=sys.stderr, flush=True)
+            raise SystemExit(2)
+
+    def _interrupted(
+        self,
+        study: Any,
+        running: list[tuple[Any, list[tuple[str, list[str]]]]],
+        names: list[str],
+        sweep_dir: Path,
+        url: str,
+    ) -> None:
+        """Ctrl-C: tell Optuna the trials whose jobs finished, mark the rest interrupted (not
+        counted, so a rerun runs them again), write the results and say how to resume."""
+        # optional dependency: pip install '.[optuna]'
+        from optuna.trial import TrialState
+
+        for trial, jobs in running:
+            records = [_read(sweep_dir / key) for key, _ in jobs]
+            if jobs and all(r is not None for r in records):
+                self._tell(study, trial, jobs, names, sweep_dir, None)
+            else:
+                trial.set_user_attr("interrupted", True)
+                study.tell(trial, state=TrialState.FAIL)
+        trials = study.get_trials(deepcopy=False)
+        finished = sum(t.state == TrialState.COMPLETE for t in trials)
+        failed = sum(t.state == TrialState.FAIL and not t.user_attrs.get("interrupted") for t in trials)
+        self._write_sweep_file(sweep_dir, study, time.time(), url)
+        # start-up: pandas and the results module, only on Ctrl-C
+        from nirspi_pipe.app.results import collect
+
+        try:
+            collect(sweep_dir)
+        except Exception:  # noqa: BLE001 - the line below still says where the study is
+            pass
+        print(
+            f"nirspi-run: interrupted: {finished} trials finished ok and {failed} failed of {self.n_trials} "
+            f"(study {study.study_name!r} in {shown_url(url)}; results in {sweep_dir / 'results.parquet'}); "
+            f"resume: {self._resume_command(sweep_dir)}",
+            file=sys.stderr,
+            flush=True,
+        )
+        raise SystemExit(130)
+
+    def _write_results(self, study: Any, sweep_dir: Path, n_objectives: int) -> None:
+        """``optimization_results.yaml`` as hydra-optuna-sweeper writes it: the best trial's
+        params and value (one objective), or the Pareto solutions (several)."""
+        # optional dependency: pip install '.[optuna]'
+        from optuna.trial import TrialState
+
+        complete = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
+        if not complete:
+            return
+        out: dict[str, Any]
+        if n_objectives == 1:
+            best = study.best_trial
+            out = {"name": "optuna", "best_params": best.params, "best_value": best.value}
+        else:
+            out = {"name": "optuna", "solutions": [{"params": t.params, "values": t.values} for t in study.best_trials]}
+        atomic_write(sweep_dir / "optimization_results.yaml", yaml.safe_dump(out, sort_keys=False))
