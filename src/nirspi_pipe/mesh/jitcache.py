@@ -19,7 +19,7 @@ Compiling the kernels takes a minute or two of CPU (90 s wall on 2 shared cores,
 the first 3D run after an install); later runs load them from the cache in well under a second.
 So a warm-up that compiles says so on stderr (:func:`compile_report`): one line when numba
 starts compiling, a progress line every :data:`PROGRESS_EVERY_S` seconds, and one line when it
-is done. ``python -m nirspi_pipe.mesh.jitcache`` compiles them ahead of the first run.
+is done. ``python -m nirspi_pipe.mesh.warmup`` compiles them ahead of the first run.
 """
 
 from __future__ import annotations
@@ -203,22 +203,3 @@ def jit(fn: Any, **options: Any) -> Any:
     from numba import njit  # start-up: loads scipy and numba (1147 ms here)
 
     return njit(cache=True, nogil=True, **options)(fn)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m nirspi_pipe.mesh.jitcache``: compile (or load) every mesh kernel now, with
-    progress, so that the first 3D run does not; exit status 1 when numba cannot compile them."""
-    if argv:
-        print(f"usage: python -m nirspi_pipe.mesh.jitcache (no arguments; got {' '.join(argv)})", file=sys.stderr)
-        return 2
-    # start-up: the kernels' modules (numba, scipy), loaded only by this command
-    from nirspi_pipe.mesh import powercrust, remesh
-
-    ok = remesh.resolve_remesher("auto") == "compiled" and powercrust.warm_up()
-    where = prepare()
-    print(f"mesh kernels {'ready' if ok else 'NOT compiled (the pymeshlab remesher will be used)'}; cache: {where}")
-    return 0 if ok else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main(sys.argv[1:]))
