@@ -248,3 +248,24 @@ def test_a_storage_outside_the_sweep_folder_is_refused_in_one_line(cli) -> None:
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "hydra.sweeper.storage" in lines[0] and "inside the sweep folder" in lines[0]
     assert not (Path(cli.cwd) / "elsewhere.db").exists()
+
+
+@pytest.mark.slow
+def test_repeats_run_each_trial_k_times_and_optuna_is_told_the_median(cli) -> None:
+    import pandas as pd
+
+    res = cli(
+        "nirspi-run", "-m", *[a for a in STUDY if not a.startswith("scan.ratio")],
+        "objective=[metrics.psnr,timings_ms.solver]", "hydra.sweeper.n_trials=2", "hydra.sweeper.repeats=3",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "3 repeats each (median)" in res.stdout
+    sweep = Path(cli.cwd) / "sweep"
+    df = pd.read_parquet(sweep / "results.parquet")
+    study = optuna.load_study(study_name="sweep", storage=f"sqlite:///{sweep}/sweep.db")
+    for trial in study.trials:
+        rows = df[df["job"].isin(trial.user_attrs["jobs"])]
+        assert len(rows) == 3 and rows["config_hash"].nunique() == 1 and rows["job"].nunique() == 3
+        assert trial.values == pytest.approx([rows["metrics.psnr"].median(), rows["timings_ms.solver"].median()])
+    # the pareto column is per configuration: all its repeats or none
+    assert (df.groupby("config_hash")["pareto"].nunique() == 1).all() and df["pareto"].any()

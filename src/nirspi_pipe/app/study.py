@@ -183,6 +183,9 @@ def register_config() -> None:
     except ImportError:
         pass
     ConfigStore.instance().store(group="hydra/sweeper", name="optuna", node=SWEEPER_CONFIG, provider="nirspi-pipe")
+    # Hydra instantiates the sampler before the sweep: Optuna's "``multivariate`` option is an
+    # experimental feature" (pareto_search sets it) would be the sweep's first line
+    warnings.filterwarnings("ignore", message=r".*is an experimental feature", module=r"optuna\.")
 
 
 # -- the search space ---------------------------------------------------------------------------
@@ -548,7 +551,10 @@ class StudySweeperBase(NirspiSweeperBase):
                 trial_ov: list[list[str]] = []
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
-                    for _ in range(min(self.n_jobs, room)):
+                    for i in range(min(self.n_jobs, room)):
+                        # recounted before each ask: other workers on this study ask too
+                        if i and self._counted(study) >= self.n_trials:
+                            break
                         trial = study.ask()
                         values = [d.suggest(trial) for d in dims]
                         ov = [*fixed, *(f"{d.name}={_as_override_value(v)}" for d, v in zip(dims, values, strict=True))]
