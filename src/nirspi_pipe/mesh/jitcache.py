@@ -15,8 +15,8 @@ A cache that does not load (a truncated or garbled index: numba raises while unp
 rebuilt: :func:`rebuild_on_failure` removes the kernels' cache files, warns naming the folder,
 and compiles again once.
 
-Compiling the kernels takes a minute or two of CPU (90 s wall on 2 shared cores, measured on
-the first 3D run after an install); later runs load them from the cache in well under a second.
+Compiling the kernels takes a minute or two (90 s and 118 s of set-up in the first 3D run on a
+cold cache, 2 shared cores at load 4 and 8); later runs load them from the cache (0.6 s at load 8).
 So a warm-up that compiles says so on stderr (:func:`compile_report`): one line when numba
 starts compiling, a progress line every :data:`PROGRESS_EVERY_S` seconds, and one line when it
 is done. ``python -m nirspi_pipe.mesh.warmup`` compiles them ahead of the first run.
