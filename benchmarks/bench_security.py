@@ -1,7 +1,8 @@
 """What the security check costs (issue 41: at most 10 % of a default run and of a paper sweep).
 
 Runs the same ``nirspi-run`` command with and without the check, alternating, in one session, and
-prints each wall time, the medians and their ratio:
+prints each call's wall and CPU time (user + system of the child and of what it waited for), the
+medians and their ratios:
 
 * **with**: ``nirspi-run ARGS`` as installed: layer 1 (``entry.check_invocation``: the composed
   configuration, Hydra's node included, checked before Hydra; the links among Hydra's files
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -57,13 +59,19 @@ cli.run(sys.argv[1:])
 _WITH = "import sys\nfrom nirspi_pipe.app import cli\ncli.run(sys.argv[1:])\n"
 
 
-def _one(code: str, args: list[str], env: dict[str, str]) -> float:
-    t0 = time.perf_counter()
+def _cpu() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _one(code: str, args: list[str], env: dict[str, str]) -> tuple[float, float]:
+    """Wall and CPU seconds (user + system of the child and of the processes it waited for)."""
+    t0, c0 = time.perf_counter(), _cpu()
     res = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, _cpu() - c0
     if res.returncode != 0:
         raise SystemExit(f"bench_security: {' '.join(args)} exited {res.returncode}: {res.stderr.strip()[-500:]}")
-    return wall
+    return wall, cpu
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -78,6 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     root = Path(opts.dir or tempfile.mkdtemp(prefix="bench_security_"))
     env = {**os.environ, "MPLBACKEND": "Agg"}
     times: dict[str, list[float]] = {"with": [], "without": []}
+    cpus: dict[str, list[float]] = {"with": [], "without": []}
     for i in range(opts.repeat):
         for name, code in (
             (("with", _WITH), ("without", _WITHOUT))
@@ -92,16 +101,18 @@ def main(argv: list[str] | None = None) -> None:
                 args = [*opts.args, f"hydra.run.dir={out}"]
             else:
                 args = ["-m", *opts.args, f"hydra.sweep.dir={out}"]
-            wall = _one(code, args, env)
+            wall, cpu = _one(code, args, env)
             times[name].append(wall)
-            print(f"{name:8s} {wall:8.2f} s  nirspi-run {' '.join(args)}", flush=True)
+            cpus[name].append(cpu)
+            print(f"{name:8s} {wall:8.2f} s wall {cpu:8.2f} s CPU  nirspi-run {' '.join(args)}", flush=True)
             shutil.rmtree(out, ignore_errors=True)
-    with_s, without_s = statistics.median(times["with"]), statistics.median(times["without"])
-    print(
-        f"median with the check {with_s:.2f} s, without {without_s:.2f} s: "
-        f"ratio {with_s / without_s:.3f} ({100 * (with_s / without_s - 1):+.1f} %), "
-        f"load average {os.getloadavg()[0]:.1f}"
-    )
+    for label, values in (("wall", times), ("CPU", cpus)):
+        with_s, without_s = statistics.median(values["with"]), statistics.median(values["without"])
+        print(
+            f"median {label} with the check {with_s:.2f} s, without {without_s:.2f} s: "
+            f"ratio {with_s / without_s:.3f} ({100 * (with_s / without_s - 1):+.1f} %)"
+        )
+    print(f"load average {os.getloadavg()[0]:.1f}, {opts.repeat} calls of each")
     if opts.dir is None:
         shutil.rmtree(root, ignore_errors=True)
 

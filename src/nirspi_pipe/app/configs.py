@@ -338,16 +338,30 @@ def _loader() -> Iterator[Any]:
 
 @lru_cache(maxsize=1)
 def _catalogue() -> dict[str, tuple[str, ...]]:
-    """``{group: options}`` of every config group (nested ones as ``parent/child``), read once."""
+    """``{group: options}`` of every config group (nested ones as ``parent/child``), read once.
+
+    Read from the loader's config sources (``ConfigLoader.get_sources``, ``ConfigSource.list``:
+    Hydra's plugin interface), the union over sources as Hydra's ``get_group_options`` takes it;
+    that call deep-copies the whole config repository each time, and the catalogue's 49 calls
+    took 0.83 s of CPU against 0.05 s from the sources, the same ``{group: options}``, measured
+    in one process after a composition (issue 41: the check's cost in a default run)."""
     found: dict[str, tuple[str, ...]] = {}
     with _loader() as loader:
+        sources = loader.get_sources()
+
+        def options(group: str, kind: ObjectType) -> list[str]:
+            out: set[str] = set()
+            for source in sources:
+                if source.is_group(group):
+                    out.update(source.list(group, kind))
+            return sorted(out)
 
         def walk(parent: str) -> None:
-            for g in loader.get_group_options(parent, ObjectType.GROUP):
+            for g in options(parent, ObjectType.GROUP):
                 path = f"{parent}/{g}" if parent else g
                 if path in ("hydra", SCHEMA_GROUP):
                     continue
-                found[path] = tuple(sorted(loader.get_group_options(path, ObjectType.CONFIG)))
+                found[path] = tuple(options(path, ObjectType.CONFIG))
                 walk(path)
 
         walk("")
