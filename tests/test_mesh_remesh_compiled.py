@@ -157,10 +157,12 @@ def test_remesher_key_is_checked() -> None:
     assert resolve_remesher("pymeshlab") == "pymeshlab"
 
 
+@pytest.mark.slow
 def test_compiled_kernels_fuse_no_multiply_add(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """Same bits on CPUs with and without FMA: without fast-math, LLVM must not contract a*b + c
     into a fused multiply-add (the machine code of every compiled kernel is searched; the cache is
-    empty so numba compiles afresh and keeps the assembly)."""
+    empty so numba compiles afresh and keeps the assembly). Marked slow: compiling every kernel
+    from cold takes ~80 s of CPU (CI runs it in its ``pytest -m 'slow and not torch'`` step)."""
     import os
     import subprocess
     import sys
