@@ -567,7 +567,10 @@ class StudySweeperBase(NirspiSweeperBase):
                     trial.set_user_attr("jobs", [k for k, _ in jobs[i]])
                     running[i] = (trial, jobs[i])
                 self._write_sweep_file(sweep_dir, study, started, url)
-                self._run_jobs(sweep_dir, sweep_file, [j for js in jobs for j in js], composed)
+                # each folder once: trials asked together may share a configuration, and two runs of
+                # one folder at once clobber each other's record (the sweeping process holds both locks)
+                unique = list({key: (key, ov) for js in jobs for key, ov in js}.values())
+                self._run_jobs(sweep_dir, sweep_file, unique, composed)
                 for (trial, trial_jobs), error in zip(running, errors, strict=True):
                     self._tell(study, trial, trial_jobs, names, sweep_dir, error)
                 running = []
