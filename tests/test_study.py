@@ -197,6 +197,14 @@ def _trials(db: Path) -> list[tuple[int, str]]:
         return list(con.execute("select number, state from trials order by number"))
 
 
+def _complete(db: Path) -> int:
+    """Finished trials in a study being written (0 while Optuna creates its tables)."""
+    try:
+        return sum(s == "COMPLETE" for _, s in _trials(db)) if db.exists() else 0
+    except sqlite3.OperationalError:
+        return 0
+
+
 @pytest.mark.slow
 def test_the_same_command_continues_the_study(cli) -> None:
     import pandas as pd
@@ -293,3 +301,43 @@ def test_trials_asked_together_with_one_configuration_run_it_once(cli) -> None:
     record = json.loads((sweep / df["job"][0] / "record.json").read_text())
     assert record["meta"]["attempt"] == 1  # run once for the three trials
     assert [s for _, s in _trials(sweep / "sweep.db")] == ["COMPLETE"] * 3
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_what_finished_and_how_to_resume(cli) -> None:
+    import shlex
+    import signal
+    import subprocess
+    import time
+
+    import pandas as pd
+
+    from conftest import script
+
+    sweep = Path(cli.cwd) / "sweep"
+    args = [*STUDY, "objective=[metrics.psnr,timings_ms.solver]", "hydra.sweeper.n_trials=40", "hydra.sweeper.n_jobs=1"]
+    env = {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR", "NIRSPI_TRACEBACK")}
+    proc = subprocess.Popen(
+        [script("nirspi-run"), "-m", *args], cwd=cli.cwd, env=env, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 200
+    while time.monotonic() < deadline and proc.poll() is None:  # bounded: until two trials finished
+        if _complete(sweep / "sweep.db") >= 2:
+            break
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does: the whole foreground group
+    _out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    lines = [ln for ln in err.splitlines() if ln.startswith("nirspi-run: interrupted:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    finished = sum(s == "COMPLETE" for _, s in _trials(sweep / "sweep.db"))
+    assert f"{finished} trials finished ok" in lines[0] and "sweep.db" in lines[0]
+    df = pd.read_parquet(sweep / "results.parquet")
+    assert (df["status"] == "ok").sum() >= 2
+    resume = shlex.split(lines[0].split("resume: ", 1)[1])
+    assert resume[0] == "nirspi-run" and "hydra.sweeper.n_trials=40" in resume
+    more = [f"hydra.sweeper.n_trials={finished + 1}" if a == "hydra.sweeper.n_trials=40" else a for a in resume]
+    again = cli(*more)  # the command it printed, asking for one more trial than finished
+    assert again.returncode == 0, again.stderr
+    assert f"{finished} of {finished + 1} trials finished or running, 1 to run" in again.stdout
