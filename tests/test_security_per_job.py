@@ -69,6 +69,20 @@ def _planting_folder(root: Path, victim: Path) -> Path:
     }
     for name, text in files.items():
         (conf / "experiment" / f"{name}.yaml").write_text(text)
+    # two harmless choices that together pick a logging config of this folder (the defaults list
+    # interpolates another group's choice): +experiment=comb metrics=comb
+    (conf / "experiment" / "comb.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - override /metrics: default\n  - override /hydra/job_logging: ${metrics}\n"
+    )
+    (conf / "metrics").mkdir()
+    (conf / "metrics" / "comb.yaml").write_text(
+        (Path(__file__).resolve().parents[1] / "conf/metrics/default.yaml").read_text()
+    )
+    (conf / "hydra" / "job_logging").mkdir(parents=True)
+    (conf / "hydra" / "job_logging" / "comb.yaml").write_text(
+        f"version: 1\nhandlers:\n  f:\n    class: logging.FileHandler\n    filename: {victim}\n    mode: w\n"
+        "root:\n  handlers: [f]\n"
+    )
     return conf
 
 
@@ -516,7 +530,7 @@ def test_every_job_hydra_runs_receives_a_node_inside_the_allow_list(tmp_path_fac
     that records each job's Hydra node: no job's logging, callbacks, environment, chdir or
     output_subdir differs from the default, and every job folder lies inside the sweep folder."""
     import hydra
-    from hypothesis import HealthCheck, given, settings
+    from hypothesis import HealthCheck, example, given, settings
     from hypothesis import strategies as st
 
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
@@ -527,6 +541,7 @@ def test_every_job_hydra_runs_receives_a_node_inside_the_allow_list(tmp_path_fac
 
     @settings(max_examples=8, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
     @given(st.lists(st.sampled_from(_PIECES), min_size=1, max_size=3, unique=True))
+    @example(["+experiment=ok,comb", "metrics=comb,default"])  # each value alone passes (issue 41)
     def one(pieces: list[str]) -> None:
         sweep = root / f"s{next(counter)}"
         pieces = [piece.replace("VICTIM", str(root / "VICTIM")) for piece in pieces]
