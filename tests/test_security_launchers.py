@@ -240,3 +240,25 @@ def test_the_nirspi_sweepers_gate_stops_a_sweep_keyed_in_parallel(tmp_path: Path
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "job refused" in lines[0], res.stderr[-2000:]
     assert not (tmp_path / "escaped").exists() and not list(tmp_path.rglob("record.json"))
+
+
+@pytest.mark.parametrize("multirun", [False, True])
+def test_the_link_cleanup_makes_no_folder_named_by_the_clock(
+    multirun: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Hydra's default run and sweep folders are named by the clock when Hydra starts
+    (``${now:…}``): the cleanup before Hydra makes none (it made one, a second or more before
+    Hydra made the run's, and left it empty beside it); a folder given by name is made and
+    cleaned."""
+    from nirspi_pipe.app import cli
+
+    monkeypatch.chdir(tmp_path)
+    inv = check_invocation([*(["-m"] if multirun else []), "camera.resolution=8"])
+    cli._hydra_files_without_links(inv.config, multirun)
+    assert not list(tmp_path.iterdir())
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    inv = check_invocation([*(["-m"] if multirun else []), "camera.resolution=8", f"{key}=named"])
+    (tmp_path / "named" / ".hydra").mkdir(parents=True)
+    (tmp_path / "named" / ".hydra" / "config.yaml").symlink_to(tmp_path / "elsewhere")
+    cli._hydra_files_without_links(inv.config, multirun)
+    assert not (tmp_path / "named" / ".hydra" / "config.yaml").is_symlink()

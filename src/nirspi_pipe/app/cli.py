@@ -155,9 +155,13 @@ def _hydra_files_without_links(cfg: Any, multirun: bool) -> None:
     link, never its target), so Hydra writes new files there instead of writing through them.
     A link planted *during* the run is not defended (docs/hostile.md)."""
     key = "sweep.dir" if multirun else "run.dir"
+    node = OmegaConf.to_container(cfg.hydra, resolve=False)
+    raw = str(((node.get("sweep" if multirun else "run") if isinstance(node, dict) else None) or {}).get("dir"))
+    if "${now:" in raw:  # the default: named by the clock when Hydra starts, so a folder made now would be
+        return  # another one (an empty folder left beside the run's, issue 41); a new folder holds no link
     try:
         folder = Path(str(OmegaConf.select(cfg.hydra, key, throw_on_missing=True)))
-    except Exception:  # noqa: BLE001 - ${now:...} resolves only in Hydra: a new folder, nothing to clean
+    except Exception:  # noqa: BLE001 - a resolver only a running app has: a folder Hydra makes
         return
     refuse_link(folder, f"{'sweep' if multirun else 'output'} folder (hydra.{key})")
     try:  # Hydra creates it first thing, with a traceback when it cannot
