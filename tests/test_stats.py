@@ -101,6 +101,7 @@ def test_paired_difference_on_a_frame():
     assert 0 <= out["p"] <= 1
 
 
+@pytest.mark.slow  # 200 simulated sweeps: 25 s of CPU (pandas in nirspi_pipe.stats)
 def test_null_effect_not_claimed_at_more_than_the_nominal_rate():
     """No scan effect, a seed-shared term as large as the job noise: over 200 simulated sweeps of
     20 seeds, the clustered, Holm-corrected pairwise family rejects at most at the nominal 5 % (plus

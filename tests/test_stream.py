@@ -110,6 +110,7 @@ def test_refused_request_and_closed_port() -> None:
         Stream(port=1234, timeout_s=0)
 
 
+@pytest.mark.slow  # end-to-end through two installed console scripts (10 s of CPU)
 def test_emulator_console_script_and_nirspi_run(tmp_path: Path) -> None:
     bindir = Path(sys.executable).parent
     env = {**os.environ, "MPLBACKEND": "Agg"}

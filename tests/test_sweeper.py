@@ -54,6 +54,7 @@ def _sweeper_for(loader, experiment: str):  # type: ignore[no-untyped-def]
     return sweeper
 
 
+@pytest.mark.slow  # Hydra's full composition of 3 jobs of every shipped grid: 92 s of CPU
 def test_every_shipped_experiment_is_keyed_as_hydra_composes_it(hydra_loader) -> None:
     """The fast keying path (one composition per structural override set) gives the keys of
     Hydra's own composition (``load_sweep_config``) for every shipped experiment: the first, a
