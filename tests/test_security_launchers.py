@@ -67,6 +67,7 @@ def _hydra_pair(launcher: str = "basic") -> list[str]:
 # ------------------------------------------------------------------ layer 1: combinations of swept groups
 
 
+@pytest.mark.slow  # 11-20 s at load 4-6: each check composes every value and combination
 def test_swept_groups_are_checked_in_combination(tmp_path: Path) -> None:
     """Each value alone passes; the combination that picks the user's logging config is refused
     in one line, before Hydra; without the combination check it passed (it was the hole)."""
@@ -79,6 +80,7 @@ def test_swept_groups_are_checked_in_combination(tmp_path: Path) -> None:
     assert "hydra/job_logging=x" in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.slow  # 11-20 s at load 4-6: each check composes every value and combination
 def test_combinations_past_the_bound_are_refused_with_hydras_pair_only(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
