@@ -454,8 +454,8 @@ def _kind_direction(key: str, value: Any, hydra_node: dict[str, Any]) -> str | N
 
 
 def _kind_storage(key: str, value: Any, hydra_node: dict[str, Any]) -> str | None:
-    # start-up: the Optuna sweeper's module, only when a storage is named
-    from nirspi_pipe.app.study import check_storage
+    # start-up: the storage rule, only when a storage is named
+    from nirspi_pipe.app.storage import check_storage
 
     sweep_dir = (hydra_node.get("sweep") or {}).get("dir")
     resolved = sweep_dir if isinstance(sweep_dir, str) and "${" not in sweep_dir else None

@@ -39,7 +39,6 @@ import difflib
 import logging
 import math
 import os
-import re
 import shlex
 import socket
 import sys
@@ -55,6 +54,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from nirspi_pipe.app.objective import SECTIONS, directions_of, objective_names
+from nirspi_pipe.app.storage import ALLOWED_SCHEMES, StorageError, check_storage, shown_url, storage_url
 from nirspi_pipe.app.sweeper import NirspiSweeperBase
 from nirspi_pipe.records import (
     RECORD_NAME,
@@ -81,79 +81,6 @@ __all__ = [
     "repeat_key",
     "storage_url",
 ]
-
-#: Database URL schemes a study may live in (SQLAlchemy's names, with a driver after ``+``):
-#: servers a user names for a shared study, and SQLite inside the sweep folder.
-ALLOWED_SCHEMES = ("postgresql", "mysql", "sqlite")
-_SCHEME = re.compile(r"^([a-z]+)(\+[a-z0-9_]+)?://")
-_STUDY_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.=,+-]{0,99}$")
-_STORAGE_ALLOWED = (
-    "null (SQLite in the sweep folder), sqlite:///<a file inside the sweep folder>, "
-    "postgresql://... or mysql://... (a database server)"
-)
-
-
-class StorageError(ValueError):
-    """``hydra.sweeper.storage`` (or ``study_name``) is not allowed: one line naming the key."""
-
-
-def _bad_storage(value: Any, why: str) -> StorageError:
-    return StorageError(f"hydra.sweeper.storage={value!r} is not allowed ({why}); allowed: {_STORAGE_ALLOWED}")
-
-
-def check_storage(value: Any, sweep_dir: str | Path | None = None) -> str | None:
-    """Why ``hydra.sweeper.storage`` is refused, or None when it is allowed: null; a
-    ``postgresql``/``mysql`` URL; a ``sqlite:///`` file inside ``sweep_dir`` (no ``..``, no
-    query, no symbolic link on the way; checked against ``sweep_dir`` when it is given, i.e.
-    resolved, by the sweeper). Pure: nothing is opened or created."""
-    if value is None:
-        return None
-    if not isinstance(value, str) or any(ord(c) < 32 for c in value):
-        return "not a URL"
-    m = _SCHEME.match(value)
-    if not m or m.group(1) not in ALLOWED_SCHEMES:
-        return "its scheme is not one of " + ", ".join(ALLOWED_SCHEMES)
-    if m.group(1) != "sqlite":
-        return None
-    if not value.startswith("sqlite:///") or "?" in value or "#" in value:
-        return "a SQLite URL is sqlite:///<path>, without a query"
-    path = value[len("sqlite:///") :]
-    if not path or path.endswith("/") or ".." in Path(path).parts or path.startswith(":"):
-        return "a SQLite file needs a path without '..'"
-    if sweep_dir is None:
-        return None
-    root = Path(os.path.abspath(sweep_dir))
-    target = Path(os.path.abspath(path))
-    if target == root or root not in target.parents:
-        return f"a SQLite file must be inside the sweep folder {root}"
-    probe = target
-    while probe != root.parent:
-        if probe.is_symlink():
-            return f"{probe} is a symbolic link"
-        probe = probe.parent
-    return None
-
-
-def storage_url(value: Any, sweep_dir: str | Path, study_name: str) -> str:
-    """The database URL of the study: ``value`` checked (:func:`check_storage`), or for null
-    ``sqlite:///<absolute sweep folder>/<study_name>.db``. Raises :class:`StorageError`."""
-    if not isinstance(study_name, str) or not _STUDY_NAME.match(study_name):
-        raise StorageError(
-            f"hydra.sweeper.study_name={study_name!r} is not allowed; allowed: letters, digits and _ . = , + - "
-            "(at most 100, not starting with '.' or '-'; null: the sweep folder's name)"
-        )
-    if value is None:
-        value = f"sqlite:///{Path(os.path.abspath(sweep_dir)) / (study_name + '.db')}"
-    why = check_storage(value, sweep_dir)
-    if why is not None:
-        raise _bad_storage(value, why)
-    return str(value)
-
-
-def shown_url(url: str) -> str:
-    """``url`` with its password hidden, for messages."""
-    return re.sub(r"(://[^:/@]+:)[^@/]*@", r"\1***@", url)
-
 
 #: ``hydra/sweeper=optuna``: this sweeper's config, registered over hydra-optuna-sweeper's node of
 #: that name (:func:`register_config`); the samplers are the plugin's ``hydra/sweeper/sampler`` options.
@@ -188,6 +115,9 @@ def register_config() -> None:
     # Hydra instantiates the sampler before the sweep: Optuna's "``multivariate`` option is an
     # experimental feature" (pareto_search sets it) would be the sweep's first line
     warnings.filterwarnings("ignore", message=r".*is an experimental feature", module=r"optuna\.")
+
+
+log = logging.getLogger(__name__)
 
 
 # -- the search space ---------------------------------------------------------------------------
@@ -689,13 +619,7 @@ class StudySweeperBase(NirspiSweeperBase):
         finished = sum(t.state == TrialState.COMPLETE for t in trials)
         failed = sum(t.state == TrialState.FAIL and not t.user_attrs.get("interrupted") for t in trials)
         self._write_sweep_file(sweep_dir, study, time.time(), url)
-        # start-up: pandas and the results module, only on Ctrl-C
-        from nirspi_pipe.app.results import collect
-
-        try:
-            collect(sweep_dir)
-        except Exception:  # noqa: BLE001 - the line below still says where the study is
-            pass
+        self._end_as_hydra_does()
         print(
             f"nirspi-run: interrupted: {finished} trials finished ok and {failed} failed of {self.n_trials} "
             f"(study {study.study_name!r} in {shown_url(url)}; results in {sweep_dir / 'results.parquet'}); "
@@ -704,6 +628,23 @@ class StudySweeperBase(NirspiSweeperBase):
             flush=True,
         )
         raise SystemExit(130)
+
+    def _end_as_hydra_does(self) -> None:
+        """Run the sweep's callbacks' ``on_multirun_end`` (nirspi-pipe's ``collect``: results.parquet,
+        front.png, the status line), as Hydra does after a sweep that returns; its exit code is
+        dropped (the sweep exits 130). Instantiated from the config (``hydra.callbacks``, which the
+        allow-list keeps to nirspi-pipe's own): no import of the results module here, which imports
+        this one's plugin package."""
+        # start-up: Hydra's instantiate, only on Ctrl-C
+        from hydra.utils import instantiate
+
+        for node in (self.config.hydra.get("callbacks") or {}).values():
+            try:
+                instantiate(node).on_multirun_end(config=self.config)
+            except SystemExit:
+                pass
+            except Exception as exc:  # noqa: BLE001 - the interrupted line still says where the study is
+                log.warning("after Ctrl-C, a callback failed: %s", str(exc).splitlines()[0] if str(exc) else exc)
 
     def _write_results(self, study: Any, sweep_dir: Path, n_objectives: int) -> None:
         """``optimization_results.yaml`` as hydra-optuna-sweeper writes it: the best trial's
