@@ -74,7 +74,7 @@ IGNORED_KEYS: tuple[str, ...] = ("runtime.**", "overrides.**", "job.config_name"
 #: * ``experiments``: a list of options of the ``experiment`` group;
 #: * ``direction``: ``minimize``/``maximize`` or a list of them;
 #: * ``storage``: null, a ``postgresql``/``mysql`` URL, or ``sqlite:///`` on a file inside the sweep
-#:   folder (no ``..``, no query, no link; :func:`nirspi_pipe.app.study.check_storage`);
+#:   folder (no ``..``, no query, no link; :func:`nirspi_pipe.app.storage.check_storage`);
 #: * ``optuna_target``: a class of ``optuna.samplers``/``optuna.pruners``, only with the Optuna
 #:   sweeper chosen;
 #: * ``searchpath``: the default entries and ``file://`` folders that exist.
