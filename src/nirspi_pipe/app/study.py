@@ -414,8 +414,15 @@ class StudySweeperBase(NirspiSweeperBase):
             raise SystemExit(2 if isinstance(exc, StorageError) else 1) from None
 
     def _study(self, sweep_dir: Path, arguments: list[str]) -> Any:
-        # optional dependency: pip install '.[optuna]'
-        import optuna
+        try:
+            # optional dependency: pip install '.[optuna]'
+            import optuna
+        except ImportError as exc:
+            print(
+                f"nirspi-run: error: hydra/sweeper=optuna needs Optuna ({exc}); pip install '.[optuna]'",
+                file=sys.stderr,
+            )
+            raise SystemExit(2) from None
 
         names = objective_names(self.config.get("objective"))
         raw_direction = (
