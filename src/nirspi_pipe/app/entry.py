@@ -1132,14 +1132,14 @@ def _check_group_combinations(
     /hydra/job_logging: ${metrics}``), so ``+experiment=a metrics=x`` chooses a logging config
     that ``+experiment=a`` and ``metrics=x`` each leave alone. Every combination is composed as
     the launcher will compose the job (``load_sweep_config``: Hydra's overrides, then the job's)
-    and checked whole. Beyond :data:`MAX_CHECKED_COMBINATIONS`, a sweeper or launcher of
-    :data:`GATED_BEFORE_LAUNCH` checks each job before it runs; with Hydra's own pair the sweep is
-    refused."""
+    and checked whole, unless the sweeper or the launcher is one of :data:`GATED_BEFORE_LAUNCH`,
+    which composes and checks each job before it runs (the same compositions, done once). With
+    Hydra's own pair, beyond :data:`MAX_CHECKED_COMBINATIONS` the sweep is refused."""
+    targets = {str((hydra_node.get(k) or {}).get("_target_")) for k in ("sweeper", "launcher")}
+    if targets & GATED_BEFORE_LAUNCH:
+        return
     count = math.prod(len(values) for values in grid)
     if count > MAX_CHECKED_COMBINATIONS:
-        targets = {str((hydra_node.get(k) or {}).get("_target_")) for k in ("sweeper", "launcher")}
-        if targets & GATED_BEFORE_LAUNCH:
-            return
         raise Refused(
             f"a sweep of {count} combinations of config groups with a config folder of yours is checked "
             f"combination by combination before Hydra's launchers run it, at most {MAX_CHECKED_COMBINATIONS}; "
