@@ -193,6 +193,7 @@ def test_null_becomes_the_off_option_and_required_groups_refuse_it() -> None:
         assert _compose([f"{group}={OFF_OPTION}"]).get(group) is None
 
 
+@pytest.mark.slow  # five nirspi-run starts
 def test_stage_null_on_the_command_line_runs(cli) -> None:
     for args in (["sfs=null"], ["metrics=null"], ["fusion=null"]):
         res = cli("nirspi-run", *args, "camera.resolution=8", "output.quiet=true", "hydra.run.dir=out")

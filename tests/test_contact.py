@@ -41,6 +41,7 @@ def test_help_describes_the_composed_camera(cli, overrides: list[str]) -> None:
         assert "8x8 patterns (preset=device)" in head and "x4 to 32x32" in head
 
 
+@pytest.mark.slow  # a sweep through nirspi-run, then three nirspi-collect starts
 def test_collect_prints_a_summary_and_the_table_on_request(cli) -> None:
     args = ["-m", "seed=0,1", "preset=null", "camera.resolution=16", "output.images=false", "hydra.sweep.dir=sweep"]
     assert cli("nirspi-run", *args).returncode == 0

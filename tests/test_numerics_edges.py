@@ -272,6 +272,7 @@ def test_record_with_an_infinite_config_value_is_strict_json(tmp_path: Path) -> 
     assert decode_nonfinite(written["config"])["fog"]["extent_mm"] == math.inf
 
 
+@pytest.mark.slow  # a sweep through the installed nirspi-run
 def test_every_json_file_of_a_small_sweep_is_strict(tmp_path: Path) -> None:
     out = tmp_path / "sweep"
     args = [

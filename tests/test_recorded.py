@@ -333,6 +333,7 @@ def test_truncated_and_missing_files(tmp_path: Path) -> None:
         Recorded()
 
 
+@pytest.mark.slow  # nirspi-run on the file, twice
 def test_cli_on_a_file_from_another_tool(tmp_path: Path) -> None:
     """A file written with plain numpy (uint8 0/255 patterns, stacked +/− halves, sequency
     order), no ground truth: nirspi-run reconstructs it; a bad file fails with one line, exit 1."""

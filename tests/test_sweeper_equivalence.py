@@ -174,6 +174,7 @@ def _command_line(draw: st.DrawFn, grid: list[list[str]], config: dict[str, Any]
     return out
 
 
+@pytest.mark.slow  # 12 drawn grids, each composed by the sweeper and by Hydra: 22 s of CPU
 @seed(SEED)
 @settings(EQUIVALENCE, max_examples=12)
 @given(data=st.data())
