@@ -95,6 +95,7 @@ def test_first_and_last_job_compose_as_hydra_composes_them(sweeps: Sweeps, name:
         sweeps.check(name, job)
 
 
+@pytest.mark.slow  # two drawn jobs of each grid, composed by the sweeper and by Hydra: 31 s of CPU
 @pytest.mark.parametrize("name", EXPERIMENTS)
 @seed(SEED)
 @EQUIVALENCE
