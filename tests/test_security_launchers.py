@@ -188,6 +188,7 @@ def test_a_combination_of_swept_groups_is_refused_before_hydras_launchers(launch
         written = list(work.iterdir())
     lines = res.stderr.strip().splitlines()
     assert res.returncode == 2 and len(lines) == 1 and "hydra/job_logging=x" in lines[0], res.stderr[-2000:]
+    assert "allowed: default, disabled, none, stdout" in lines[0], lines[0]  # also from the job gate in an app
     assert victim.read_text() == VICTIM_TEXT and not written
 
 

@@ -301,12 +301,21 @@ def _default_choices() -> dict[str, str | None]:
 
 
 def _hydra_group_options(group: str) -> list[str]:
-    """Options of a Hydra group (``hydra/launcher``) on the default search path."""
+    """Options of a Hydra group (``hydra/launcher``) on the default search path; also inside a
+    running app (a job's gate), whose Hydra is set aside and restored as in :func:`_compose` (the
+    gate said "allowed: (none)" there)."""
+    running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
     try:
+        if running is not None:
+            GlobalHydra.instance().clear()
         with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
             return sorted(GlobalHydra.instance().config_loader().get_group_options(group, ObjectType.CONFIG))
     except Exception:  # noqa: BLE001 - only used to name the allowed options
         return []
+    finally:
+        if running is not None:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(running)
 
 
 def _primary_exists(name: str) -> bool:
