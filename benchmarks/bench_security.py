@@ -79,8 +79,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("what", choices=("run", "sweep"))
     parser.add_argument("--repeat", type=int, default=3, help="calls of each variant (alternating)")
     parser.add_argument("--dir", default=None, help="where the output folders go (default: a temporary folder)")
-    parser.add_argument("args", nargs="*", help="nirspi-run overrides (after --)")
-    opts = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
+    opts = parser.parse_args(argv[: argv.index("--")] if "--" in argv else argv)
+    opts.args = extra  # the nirspi-run overrides, after --
     if opts.repeat < 1:
         parser.error("--repeat must be >= 1")
     root = Path(opts.dir or tempfile.mkdtemp(prefix="bench_security_"))
