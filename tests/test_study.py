@@ -157,6 +157,46 @@ def test_repeats_have_their_own_keys() -> None:
     assert all(len(k) == 16 and int(k, 16) >= 0 for k in keys)
 
 
+def test_sweep_json_leaves_out_jobs_abandoned_without_a_record(tmp_path: Path) -> None:
+    """CI at aeae266: a Ctrl-C'd trial's job stayed listed in sweep.json, so the resumed study
+    counted its missing record as a failed job and exited 1."""
+    import json
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    from nirspi_pipe.app.study import _HOST, StudySweeperBase
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # a pid of this host that no longer runs (reuse within this test is unlikely)
+    study = optuna.create_study(directions=["maximize"])
+    states = {}
+    for name, attrs in {
+        "done": {},
+        "interrupted": {"interrupted": True},
+        "interrupted-with-record": {"interrupted": True},
+        "dead-worker": {"worker": [_HOST, gone.pid], "running": True},
+        "other-host": {"worker": ["another-host", 1], "running": True},
+    }.items():
+        trial = study.ask()
+        key = f"{trial.number:016x}"
+        trial.set_user_attr("jobs", [key])
+        for k, v in attrs.items():
+            if k != "running":
+                trial.set_user_attr(k, v)
+        if name in ("done", "interrupted-with-record"):
+            (tmp_path / key).mkdir()
+            (tmp_path / key / "record.json").write_text("{}")
+        if not attrs.get("running"):
+            study.tell(trial, 1.0) if name == "done" else study.tell(trial, state=optuna.trial.TrialState.FAIL)
+        states[key] = name
+    me = SimpleNamespace(max_attempts=1, n_trials=5)
+    StudySweeperBase._write_sweep_file(me, tmp_path, study, 0.0, "sqlite:///x.db")  # type: ignore[arg-type]
+    listed = {states[j["key"]] for j in json.loads((tmp_path / "sweep.json").read_text())["jobs"]}
+    # another host's running trial may be alive: it stays listed (its worker writes its record)
+    assert listed == {"done", "interrupted-with-record", "other-host"}
+
+
 def test_a_misspelled_objective_is_named_with_the_nearest_keys() -> None:
     rec = _rec(psnr=1.0, ssim=0.5)
     assert check_objective_keys(["metrics.psnr", "timings_ms.solver"], rec) is None

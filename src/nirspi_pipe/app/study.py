@@ -380,9 +380,21 @@ class StudySweeperBase(NirspiSweeperBase):
         return jobs, composed, errors
 
     def _write_sweep_file(self, sweep_dir: Path, study: Any, started: float, url: str) -> None:
+        """List the jobs of the study's trials in ``sweep.json``: the ones collected into
+        results.parquet. A trial interrupted by Ctrl-C, or left running by a worker that died, is
+        not listed unless its job wrote a record: a resumed study asks for a new trial in its place,
+        and its unwritten record is not a failed job of the study."""
+        # optional dependency: pip install '.[optuna]'
+        from optuna.trial import TrialState
+
         jobs: list[dict[str, Any]] = []
         for t in study.get_trials(deepcopy=False):
+            abandoned = t.user_attrs.get("interrupted") or (
+                t.state == TrialState.RUNNING and not _alive(*(t.user_attrs.get("worker") or [None, None])[:2])
+            )
             for key in t.user_attrs.get("jobs", []) or []:
+                if abandoned and not (sweep_dir / key / RECORD_NAME).is_file():
+                    continue
                 jobs.append(
                     {
                         "key": key,
