@@ -1,0 +1,134 @@
+"""experiments/shapes/front.py (issue 44, item 5): the Pareto front of the 3D accuracy–time
+sweep, its grid, and its table from a small hand-made results frame (no sweep runs here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def front():
+    path = ROOT / "experiments" / "shapes" / "front.py"
+    spec = importlib.util.spec_from_file_location("front_3d", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)
+
+
+def _dominates(a: np.ndarray, b: np.ndarray) -> bool:
+    return bool(np.all(a <= b) and np.any(a < b))
+
+
+# few distinct values, so that ties and duplicates are common
+values = st.sampled_from([0.0, 1.0, 2.0, 2.5, 7.0, math.inf, math.nan])
+
+
+@settings(max_examples=150, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(0, 12), st.integers(1, 3)), elements=values))
+def test_front_members_are_not_dominated_and_every_other_row_is(front, v):
+    mask = front.front_mask(v)
+    assert mask.shape == (len(v),)
+    finite = np.isfinite(v).all(axis=1)
+    assert not mask[~finite].any(), "a row with a non-finite value is on the front"
+    members = v[mask]
+    for i in np.flatnonzero(mask):
+        assert not any(_dominates(w, v[i]) for w in v[finite]), f"front row {i} is dominated"
+    for i in np.flatnonzero(finite & ~mask):
+        assert any(_dominates(w, v[i]) for w in members), f"row {i} off the front, dominated by no member"
+    if finite.any():
+        assert mask.any(), "finite rows but an empty front"
+
+
+def test_front_of_a_known_set(front):
+    # (error, time): the slow accurate and the fast coarse are both on the front, the slow coarse not
+    v = np.array([[1.0, 100.0], [3.0, 10.0], [3.0, 200.0], [2.0, 50.0]])
+    assert front.front_mask(v).tolist() == [True, True, False, True]
+
+
+def test_grid_builder(front):
+    g = front.DEFAULT
+    assert "truth" in g.sfs and g.resolution == (32, 64, 128)
+    points = front.grid_points(g)
+    assert len(points) == g.jobs() == len({tuple(sorted(p.items())) for p in points})
+    assert {p["condition"] for p in points} == set(front.CONDITIONS)
+    ov = front.sweep_overrides(g, "chamber")
+    assert "fog=chamber" in ov and "preset=null" in ov and "detector=ingaas" in ov
+    assert "camera.resolution=32,64,128" in ov and "sfs=second_order,perspective,truth" in ov
+    assert front.sweep_overrides(g, "noise_free")[:4] == list(front.FIXED)
+    # the job count of one condition's sweep is the product of its comma lists
+    n = 1
+    for o in ov:
+        if "," in o:
+            n *= len(o.split("=", 1)[1].split(","))
+    assert n * len(g.conditions) == g.jobs()
+    with pytest.raises(ValueError, match="sfs=truth"):
+        front.Grid((64,), ("second_order",), (0.5,), ("power_crust",), ("vase",), (0,))
+    with pytest.raises(ValueError, match="conditions"):
+        front.Grid((64,), ("truth",), (0.5,), ("power_crust",), ("vase",), (0,), conditions=("fogg",))
+    with pytest.raises(ValueError, match="allowed"):
+        front.sweep_overrides(g, "fogg")
+    assert front.FULL.jobs() > g.jobs()
+
+
+def _frame() -> pd.DataFrame:
+    """A results frame as load_results gives it, two shapes × two seeds per configuration."""
+    rows = []
+    for sfs, chamfer, depth, t in (("second_order", 3.0, 4.0, 200.0), ("truth", 1.0, 2.5, 150.0)):
+        for shape in ("vase", "bowl"):
+            for seed in (0, 1):
+                rows.append(
+                    {
+                        "condition": "noise_free",
+                        "camera.resolution": 64,
+                        "sfs": sfs,
+                        "itof.averaging_s": 0.5,
+                        "surface": "power_crust",
+                        "scene": shape,
+                        "seed": seed,
+                        "status": "ok",
+                        "metrics.chamfer_mm": chamfer + seed,
+                        "metrics.depth_rmse_fused_mm": depth + seed,
+                        "timings_ms.total": t + seed,
+                    }
+                )
+    return pd.DataFrame(rows)
+
+
+def test_summary_medians_split_and_front(front):
+    table = front.summarise(_frame())
+    so = table[table["sfs"] == "second_order"].iloc[0]
+    tr = table[table["sfs"] == "truth"].iloc[0]
+    assert so["chamfer_mm"] == 3.5 and so["chamfer_mm_min"] == 3.0 and so["chamfer_mm_max"] == 4.0
+    assert so["ok"] == so["jobs"] == 4
+    assert so["sfs_share_chamfer_mm"] == pytest.approx(2.0) and so["sfs_share_depth_mm"] == pytest.approx(1.5)
+    assert tr["anchoring_mm"] == 3.0 and tr["surface_mm"] == pytest.approx(1.5 - 3.0)
+    # truth is faster and better: alone on both fronts
+    assert bool(tr["front_chamfer"]) and bool(tr["front_depth"])
+    assert not so["front_chamfer"] and not so["front_depth"]
+    md = front.markdown(table)
+    assert "| 64 | truth |" in md and "C/D" in md
+
+
+def test_a_failed_job_keeps_its_configuration_off_the_front(front):
+    f = _frame()
+    f.loc[(f["sfs"] == "truth") & (f["seed"] == 1) & (f["scene"] == "vase"), "status"] = "failed"
+    table = front.summarise(f)
+    tr = table[table["sfs"] == "truth"].iloc[0]
+    assert tr["ok"] == 3 and tr["jobs"] == 4
+    assert math.isnan(tr["chamfer_mm"]) and not tr["front_chamfer"]
+    assert bool(table[table["sfs"] == "second_order"].iloc[0]["front_chamfer"])
