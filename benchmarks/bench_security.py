@@ -6,7 +6,7 @@ medians and their ratios:
 
 * **with**: ``nirspi-run ARGS`` as installed: layer 1 (``entry.check_invocation``: the composed
   configuration, Hydra's node included, checked before Hydra; the links among Hydra's files
-  removed) and layer 2 (``entry.check_job``: the job's Hydra node in the task function, on every
+  removed) and layer 2 (``hydranode.check_job``: the job's Hydra node in the task function, on every
   set the nirspi sweeper composes, in the nirspi launcher);
 * **without**: the same command in a child whose ``cli.check_invocation`` only parses the flags
   (no composition, no check), and whose ``check_job`` and link cleanup do nothing. Hydra then gets
@@ -37,21 +37,21 @@ from pathlib import Path
 
 _WITHOUT = """
 import sys
-from nirspi_pipe.app import cli, entry
+from nirspi_pipe.app import cli, entry, flags, hydranode
 
 def unchecked(args, *, api=False):
-    flags, overrides = entry.parse_args(list(args))
+    given, overrides = flags.parse_args(list(args))
     return entry.Invocation(
-        flags=flags,
+        flags=given,
         overrides=tuple(overrides),
-        hydra_argv=(*entry._hydra_flags(flags), *overrides),
-        config_name=flags.get("--config-name") or entry.CONFIG_NAME,
+        hydra_argv=(*flags.hydra_flags(given), *overrides),
+        config_name=given.get("--config-name") or entry.CONFIG_NAME,
         config=None,
     )
 
 cli.check_invocation = unchecked
 cli.check_job = lambda *a, **k: None
-entry.check_job = lambda *a, **k: None
+hydranode.check_job = lambda *a, **k: None
 cli._hydra_files_without_links = lambda *a, **k: None
 cli.run(sys.argv[1:])
 """

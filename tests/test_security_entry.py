@@ -18,7 +18,9 @@ from pathlib import Path
 import pytest
 
 from nirspi_pipe.app import allowlist
-from nirspi_pipe.app.entry import FLAGS, Refused, _check_kind, check_invocation, parse_args
+from nirspi_pipe.app.entry import check_invocation
+from nirspi_pipe.app.flags import FLAGS, Refused, parse_args
+from nirspi_pipe.app.hydranode import check_kind
 
 VICTIM_TEXT = "precious\n"
 
@@ -194,22 +196,22 @@ def test_the_sweeper_and_optuna_options_are_data() -> None:
     optuna = {"sweeper": {"_target_": allowlist.OPTUNA_SWEEPER}}
     nirspi = {"sweeper": {"_target_": "hydra_plugins.nirspi_pipe_sweeper.NirspiSweeper"}}
     key = "sweeper.sampler._target_"
-    assert _check_kind("optuna_target", key, "optuna.samplers.TPESampler", optuna) is None
-    assert _check_kind("optuna_target", key, "optuna.samplers.TPESampler", nirspi) is not None
-    assert _check_kind("optuna_target", key, "os.system", optuna) is not None
-    assert _check_kind("optuna_target", key, "optuna.samplers.x.y", optuna) is not None
+    assert check_kind("optuna_target", key, "optuna.samplers.TPESampler", optuna) is None
+    assert check_kind("optuna_target", key, "optuna.samplers.TPESampler", nirspi) is not None
+    assert check_kind("optuna_target", key, "os.system", optuna) is not None
+    assert check_kind("optuna_target", key, "optuna.samplers.x.y", optuna) is not None
     # storage: a database server by scheme, or SQLite inside the sweep folder (nirspi_pipe.app.study)
-    assert _check_kind("storage", "sweeper.storage", "redis://127.0.0.1/0", optuna) is not None
-    assert _check_kind("storage", "sweeper.storage", "sqlite:////tmp/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
+    assert check_kind("storage", "sweeper.storage", "redis://127.0.0.1/0", optuna) is not None
+    assert check_kind("storage", "sweeper.storage", "sqlite:////tmp/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
     assert (
-        _check_kind("storage", "sweeper.storage", "sqlite:////srv/s/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
+        check_kind("storage", "sweeper.storage", "sqlite:////srv/s/x.db", {**optuna, "sweep": {"dir": "/srv/s"}})
         is None
     )
-    assert _check_kind("storage", "sweeper.storage", "postgresql://db.lab/studies", optuna) is None
-    assert _check_kind("scalar", "sweeper.sampler.constraints_func", "os.system", optuna) is not None
-    assert _check_kind("scalar", "sweeper.sampler.seed", 3, optuna) is None
-    assert _check_kind("direction", "sweeper.direction", ["minimize", "maximize"], optuna) is None
-    assert _check_kind("direction", "sweeper.direction", "sideways", optuna) is not None
+    assert check_kind("storage", "sweeper.storage", "postgresql://db.lab/studies", optuna) is None
+    assert check_kind("scalar", "sweeper.sampler.constraints_func", "os.system", optuna) is not None
+    assert check_kind("scalar", "sweeper.sampler.seed", 3, optuna) is None
+    assert check_kind("direction", "sweeper.direction", ["minimize", "maximize"], optuna) is None
+    assert check_kind("direction", "sweeper.direction", "sideways", optuna) is not None
 
 
 def test_targets_logging_classes_only_at_logging_handler_keys() -> None:
@@ -516,7 +518,7 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
     import hydra
     from omegaconf import OmegaConf
 
-    from nirspi_pipe.app import entry
+    from nirspi_pipe.app import composition, hydranode
 
     calls: list[list[str]] = []
     real = hydra.compose
@@ -525,8 +527,8 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
         calls.append(list(overrides))
         return real(config_name, overrides, **kw)
 
-    monkeypatch.setattr(entry, "compose", counting)  # entry binds compose at import
-    entry._baseline.cache_clear()
+    monkeypatch.setattr(composition, "compose", counting)  # composition binds compose at import
+    composition.baseline.cache_clear()
     plain = [
         [],
         ["scene.distance_mm=300", "seed=2", "output.quiet=true"],
@@ -537,21 +539,21 @@ def test_the_check_composes_once_for_plain_overrides(monkeypatch: pytest.MonkeyP
         calls.clear()
         inv = check_invocation(args)
         assert len(calls) == 1, (args, calls)
-        assert entry._baseline.cache_info().currsize == 0  # no reference composed
+        assert composition.baseline.cache_info().currsize == 0  # no reference composed
         node = OmegaConf.to_container(inv.config.hydra, resolve=False)
-        user, ref = entry._leaves(node), entry._leaves(entry._baseline(()))
-        entry._baseline.cache_clear()
+        user, ref = hydranode.flat_leaves(node), hydranode.flat_leaves(composition.baseline(()))
+        composition.baseline.cache_clear()
         changed = {k for k in set(user) | set(ref) if user.get(k) != ref.get(k)}
-        changed = {k for k in changed if not any(entry._match(p, k) for p in allowlist.IGNORED_KEYS)}
+        changed = {k for k in changed if not any(hydranode.key_matches(p, k) for p in allowlist.IGNORED_KEYS)}
         set_keys = {a.split("=", 1)[0][len("hydra.") :] for a in args if a.startswith("hydra.")}
         assert changed <= set_keys, (args, changed)
     for args in (["scene=cube", "hydra.run.dir=/tmp/x"], ["-m", "+experiment=paper_ci", "hydra.launcher.n_jobs=2"]):
         calls.clear()
         check_invocation(args)  # job group choices: shipped option files (trusted), no reference
-        assert len(calls) == 1 and entry._baseline.cache_info().currsize == 0, (args, calls)
+        assert len(calls) == 1 and composition.baseline.cache_info().currsize == 0, (args, calls)
     calls.clear()
     check_invocation(["hydra/launcher=joblib", "hydra.run.dir=/tmp/x"])  # a hydra/ choice: the reference
-    assert len(calls) == 3 and entry._baseline.cache_info().currsize == 2  # the default's choices, then joblib's
+    assert len(calls) == 3 and composition.baseline.cache_info().currsize == 2  # the default's choices, then joblib's
     calls.clear()
     check_invocation(["hydra/launcher=joblib", "scene=torus"])
     assert len(calls) == 1  # the reference is cached per process and choices

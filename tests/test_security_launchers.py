@@ -26,7 +26,8 @@ from pathlib import Path
 import pytest
 
 from nirspi_pipe.app import entry
-from nirspi_pipe.app.entry import Refused, check_invocation
+from nirspi_pipe.app.entry import check_invocation
+from nirspi_pipe.app.flags import Refused
 
 VICTIM_TEXT = "precious\n"
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -94,8 +95,8 @@ def test_combinations_past_the_bound_are_refused_with_hydras_pair_only(
         check_invocation([*_hydra_pair(), "-cd", str(conf), *sweep])
     assert "4 combinations" in str(err.value) and "nirspi" in str(err.value)
     composed: list[list[str]] = []
-    real = entry._compose
-    monkeypatch.setattr(entry, "_compose", lambda name, ovs: composed.append(list(ovs)) or real(name, ovs))
+    real = entry.compose_config
+    monkeypatch.setattr(entry, "compose_config", lambda name, ovs: composed.append(list(ovs)) or real(name, ovs))
     check_invocation(["-m", "hydra/launcher=nirspi", "camera.resolution=8", "-cd", str(conf), *sweep])
     assert not any("+experiment=a" in ovs and "metrics=x" in ovs for ovs in composed)
 
@@ -215,9 +216,9 @@ def test_submitit_local_refuses_a_planted_override_and_runs_a_clean_sweep(tmp_pa
 _LAYER_TWO_ONLY = textwrap.dedent(
     """
     import sys
-    from nirspi_pipe.app import cli, entry
-    entry._check_override_places = lambda parsed: None      # layer 1 off: the job gate alone
-    entry.check_filled_by_hydra = lambda *a, **k: None
+    from nirspi_pipe.app import cli, composition, entry, hydranode
+    entry.check_override_places = hydranode.check_override_places = lambda parsed: None  # layer 1 off: the job gate alone
+    composition.check_filled_by_hydra = lambda *a, **k: None
     cli.run(sys.argv[1:])
     """
 )

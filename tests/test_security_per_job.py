@@ -7,7 +7,7 @@ tested on its own:
 * layer 1, before Hydra (:func:`nirspi_pipe.app.entry.check_invocation`): what Hydra fills itself
   (``hydra.overrides``, ``hydra.runtime``) must be exactly what it fills from the checked command
   line; no override sets it; no group is placed under ``hydra``;
-* layer 2, in the job (:func:`nirspi_pipe.app.entry.check_job`, called by the task function, the
+* layer 2, in the job (:func:`nirspi_pipe.app.hydranode.check_job`, called by the task function, the
   nirspi launcher and the nirspi sweeper): the Hydra node the job received, against the
   allow-list, with layer 1 switched off in a child process.
 """
@@ -24,8 +24,11 @@ import pytest
 from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf, open_dict
 
+from nirspi_pipe.app.composition import check_filled_by_hydra
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
-from nirspi_pipe.app.entry import Refused, check_filled_by_hydra, check_invocation, check_job
+from nirspi_pipe.app.entry import check_invocation
+from nirspi_pipe.app.flags import Refused
+from nirspi_pipe.app.hydranode import check_job
 
 VICTIM_TEXT = "precious\n"
 
@@ -263,9 +266,9 @@ def test_planted_overrides_are_refused_before_any_job(launcher: str, tmp_path: P
 _LAYER_TWO_ONLY = textwrap.dedent(
     """
     import sys
-    from nirspi_pipe.app import cli, entry
-    entry._check_override_places = lambda parsed: None      # layer 1 off: the job gate alone
-    entry.check_filled_by_hydra = lambda *a, **k: None
+    from nirspi_pipe.app import cli, composition, entry, hydranode
+    entry.check_override_places = hydranode.check_override_places = lambda parsed: None  # layer 1 off: the job gate alone
+    composition.check_filled_by_hydra = lambda *a, **k: None
     cli.run(sys.argv[1:])
     """
 )

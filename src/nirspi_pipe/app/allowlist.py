@@ -57,7 +57,7 @@ LOGGING_PRESETS_NOTE = "a preset among Hydra's and nirspi-pipe's (hydra/job_logg
 #: not compared.
 IGNORED_KEYS: tuple[str, ...] = ("runtime.**", "overrides.**", "job.config_name", "job.override_dirname")
 
-#: ``{pattern: kind}``; the kinds are checked in :mod:`nirspi_pipe.app.entry` (``_KIND_CHECKS``):
+#: ``{pattern: kind}``; the kinds are checked in :mod:`nirspi_pipe.app.hydranode` (``_KIND_CHECKS``):
 #:
 #: * ``dir``: an output folder, a non-empty string without control characters (absolute or
 #:   relative: it is where the user wants the output);

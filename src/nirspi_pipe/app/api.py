@@ -162,7 +162,8 @@ def compose(overrides: Sequence[str] = ()) -> tuple[Any, dict[str, str | None]]:
     from hydra.core.global_hydra import GlobalHydra  # start-up: loads hydra, omegaconf (148 ms here)
     from omegaconf import open_dict  # start-up: loads omegaconf, yaml (62 ms here)
 
-    from nirspi_pipe.app.entry import Refused, check_invocation  # start-up: loads hydra, hydra_plugins (290 ms here)
+    from nirspi_pipe.app.entry import check_invocation  # start-up: loads hydra, hydra_plugins (290 ms here)
+    from nirspi_pipe.app.flags import Refused  # start-up: with the entry check above
     from nirspi_pipe.app.plugins import activate  # start-up: loads hydra, omegaconf (142 ms here)
 
     overrides = _override_list(overrides)

@@ -27,8 +27,10 @@ from omegaconf import OmegaConf
 
 from nirspi_pipe import __version__
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME
-from nirspi_pipe.app.entry import Refused, check_invocation, check_job, parse_args
+from nirspi_pipe.app.entry import check_invocation
+from nirspi_pipe.app.flags import Refused, parse_args
 from nirspi_pipe.app.helptext import register_resolvers
+from nirspi_pipe.app.hydranode import check_job
 from nirspi_pipe.app.plugins import activate, discover, format_report
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import SWEEP_FILE, SweepFileError

@@ -101,10 +101,10 @@ class NirspiLauncherBase(Launcher):
             with open_dict(cfg):
                 cfg.hydra.job.num = initial_job_idx + idx
                 cfg.hydra.job.id = f"{cfg.hydra.job.name}_{initial_job_idx + idx}"
-            # entry loads app.configs, whose import runs Hydra's plugin scan, which imports
+            # hydranode loads app.configs, whose import runs Hydra's plugin scan, which imports
             # hydra_plugins.nirspi_pipe_sweeper and so this module: a circle at module level wherever
             # start-up: hydra_plugins is installed as a package (a non-editable install; tests/test_install_plugins.py)
-            from nirspi_pipe.app.entry import refuse_job
+            from nirspi_pipe.app.hydranode import refuse_job
 
             refuse_job(cfg)  # the node this job would run with (issue 41), before anything of it runs
             out_dir = Path(str(cfg.hydra.sweep.dir)) / str(cfg.hydra.sweep.subdir)

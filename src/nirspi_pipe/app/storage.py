@@ -1,7 +1,7 @@
 """Where an Optuna study may live: ``hydra.sweeper.storage`` checked (issue 43).
 
 A module of its own, of the standard library only, so that both the job gate
-(:mod:`nirspi_pipe.app.entry`, its allow-list kind ``storage``) and the study sweeper
+(:mod:`nirspi_pipe.app.hydranode`, its allow-list kind ``storage``) and the study sweeper
 (:mod:`nirspi_pipe.app.study`) use one rule without importing each other.
 """
 

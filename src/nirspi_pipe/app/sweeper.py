@@ -56,6 +56,7 @@ from hydra.plugins.sweeper import Sweeper
 from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
+from nirspi_pipe.app.flags import Refused
 from nirspi_pipe.records import (
     RECORD_NAME,
     RECORD_READ_LIMIT,
@@ -210,7 +211,7 @@ def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
 
 
 class JobRefused(ValueError):
-    """A job whose composed Hydra node the job gate refuses (:func:`nirspi_pipe.app.entry.check_job`);
+    """A job whose composed Hydra node the job gate refuses (:func:`nirspi_pipe.app.hydranode.check_job`);
     one line. Raised, not recorded: every job of the sweep would receive the same node, so the sweep
     stops (exit 2). Picklable, so that a forked keying worker hands it back to the sweeping process
     instead of dying with ``SystemExit`` (the pool then waited forever for the lost task)."""
@@ -488,13 +489,13 @@ class NirspiSweeperBase(Sweeper):
     def compose(self, overrides: list[str]) -> Any:
         """A job's config exactly as Hydra composes it for the launcher
         (``config_loader.load_sweep_config``), its Hydra node checked as the job's own
-        (:func:`nirspi_pipe.app.entry.check_job`): :class:`JobRefused` otherwise, which
+        (:func:`nirspi_pipe.app.hydranode.check_job`): :class:`JobRefused` otherwise, which
         :meth:`prepare` turns into one line and exit 2 (the sweep stops before any job runs)."""
         cfg = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
-        # entry loads app.configs, whose import runs Hydra's plugin scan, which imports
+        # hydranode loads app.configs, whose import runs Hydra's plugin scan, which imports
         # hydra_plugins.nirspi_pipe_sweeper and so this module: a circle at module level wherever
         # start-up: hydra_plugins is installed as a package (a non-editable install; tests/test_install_plugins.py)
-        from nirspi_pipe.app.entry import Refused, check_job
+        from nirspi_pipe.app.hydranode import check_job
 
         try:
             check_job(cfg.hydra, cfg)

@@ -26,6 +26,9 @@ from nirspi_pipe.targets import check_target, check_targets, find_targets, locat
 __all__ = [
     "check_config",
     "check_plain_keys",
+    "check_stage_nodes",
+    "check_sweep_settings",
+    "group_exists",
     "check_overrides",
     "rewrite_nulls",
     "hydra_floats",
@@ -60,7 +63,7 @@ _FLAGS_WITH_VALUE = {
 }
 
 
-def _group_exists(group: str) -> bool:
+def group_exists(group: str) -> bool:
     return group in all_groups()
 
 
@@ -69,7 +72,7 @@ def _group_of(arg: str) -> str | None:
     if "=" not in arg or arg.startswith("-"):
         return None
     key = arg.split("=", 1)[0].lstrip("+~").split("@", 1)[0]
-    return key if key and not key.startswith("hydra") and _group_exists(key) else None
+    return key if key and not key.startswith("hydra") and group_exists(key) else None
 
 
 #: YAML's spellings of the non-finite floats (what config files, records and error messages use:
@@ -162,7 +165,7 @@ def check_overrides(args: list[str], composed: Any = None) -> str | None:
     choices: list[str] = []
     for ov in parsed:
         group = ov.key_or_group.split("@", 1)[0]
-        if ov.is_delete() or group.startswith("hydra") or not _group_exists(group):
+        if ov.is_delete() or group.startswith("hydra") or not group_exists(group):
             continue
         try:
             values = list(ov.sweep_string_iterator()) if ov.is_sweep_override() else [ov.get_value_element_as_str()]
@@ -205,7 +208,7 @@ def _check_keys(parsed: list[Any], choices: list[str], composed: Any = None) -> 
         and not ov.is_delete()
         and not ov.is_force_add()
         and not ov.key_or_group.startswith("hydra")
-        and not _group_exists(ov.key_or_group)
+        and not group_exists(ov.key_or_group)
     ]
     keys = [ov.key_or_group for ov in values]
     if not keys:
@@ -392,8 +395,8 @@ def check_config(args: list[str]) -> str | None:
     multirun = any(a in ("-m", "--multirun") for a in args)
     return (
         check_plain_keys(job)
-        or _check_stage_nodes(job)
-        or (_check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
+        or check_stage_nodes(job)
+        or (check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
     )
 
 
@@ -484,7 +487,7 @@ def _check_sweep_keys(parsed: list[Any], plain: dict[str, Any]) -> str | None:
     return None
 
 
-def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
+def check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
     """The nirspi launcher's ``n_jobs``/``timeout_s`` (:mod:`nirspi_pipe.app.launchsettings`, the
     launcher's own check) and the sweeper's ``allow_failures``, as one line (Hydra would wrap
     them in its multi-line report)."""
@@ -501,7 +504,7 @@ def _check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
     return None
 
 
-def _check_stage_nodes(job: dict[str, Any]) -> str | None:
+def check_stage_nodes(job: dict[str, Any]) -> str | None:
     """Every node with a ``_target_`` in the stage groups (allowed: checked above) has only keys
     its class takes, with the annotated types: ``+scene.bogus=1`` stops before any job, not in
     every job. A class taking ``**kwargs`` accepts any key."""
