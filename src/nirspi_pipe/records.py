@@ -694,8 +694,3 @@ def write_arrays(
             buf = io.BytesIO()
             imsave(buf, pixel_blocks(np.clip(a, 0.0, 1.0)), cmap="gray", vmin=0.0, vmax=1.0, format="png")
             atomic_write(Path(folder) / f"{name}.png", buf.getvalue())
-
-
-def finite_or_none(x: float) -> float | None:
-    """``x`` if finite, else None (for text summaries)."""
-    return x if math.isfinite(x) else None

@@ -1,6 +1,6 @@
 """The nirspi launcher's settings and their checks, in a module of their own: the launcher uses
-them, and so does :func:`nirspi_pipe.app.validate.check_config` before a sweep starts (importing the
-launcher there would close an import circle through the CLI)."""
+them, and so does the entry check (:func:`nirspi_pipe.app.validate.check_sweep_settings`) before a
+sweep starts (importing the launcher there would close an import circle through the CLI)."""
 
 from __future__ import annotations
 

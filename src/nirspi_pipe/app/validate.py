@@ -7,7 +7,6 @@ import difflib
 import inspect
 import pkgutil
 import re
-from pathlib import Path
 from typing import Any
 
 from hydra import compose, initialize_config_module
@@ -18,13 +17,12 @@ from omegaconf import DictConfig, OmegaConf
 from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, config_groups, group_options
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import ObjectiveError, objective_names
-from nirspi_pipe.errors import ConfigError, yaml_problem
+from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import accepted_keys, user_key
 from nirspi_pipe.pipeline import MODEL_OF_NOTHING, STAGE_GROUPS, check_types
-from nirspi_pipe.targets import check_target, check_targets, find_targets, locate
+from nirspi_pipe.targets import find_targets, locate
 
 __all__ = [
-    "check_config",
     "check_plain_keys",
     "check_stage_nodes",
     "check_sweep_settings",
@@ -278,23 +276,6 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
 PLAIN_KEYS = ("camera", "seed", "tables", "output", "objective")
 #: ``output``'s keys, each true or false (conf/config.yaml).
 OUTPUT_KEYS = ("arrays", "images", "quiet")
-#: Hydra flags that load something other than configs: ``--experimental-rerun`` unpickles a file
-#: (code), ``--config-path`` replaces the primary config with one nothing here checks.
-_REFUSED_FLAGS = {
-    "--experimental-rerun": "it unpickles a file, and unpickling runs code",
-    "-cp": "use -cd/--config-dir (added to the search path) instead",
-    "--config-path": "use -cd/--config-dir (added to the search path) instead",
-}
-
-
-def _flag_values(args: list[str]) -> dict[str, str]:
-    """``{flag: value}`` of the Hydra flags that take one (``-cn NAME``, ``--config-dir=DIR``)."""
-    out: dict[str, str] = {}
-    for i, arg in enumerate(args):
-        flag, eq, value = arg.partition("=")
-        if flag in _FLAGS_WITH_VALUE:
-            out[flag] = value if eq else (args[i + 1] if i + 1 < len(args) else "")
-    return out
 
 
 def _table_names() -> tuple[str, ...]:
@@ -337,153 +318,6 @@ def check_plain_keys(config: Any, groups: frozenset[str] | None = None) -> str |
     for name in tables or []:
         if name not in names:
             return f"tables: {name!r} is not a table; allowed: {', '.join(names)}"
-    return None
-
-
-def _sweep_target_values(parsed: list[Any]) -> str | None:
-    """Overrides (sweeps included) that set a ``_target_`` or a node holding one, checked
-    against the allow-list without composing (a sweep's values are composed job by job)."""
-    for ov in parsed:
-        if ov.is_delete():
-            continue
-        key = ov.key_or_group.split("@", 1)[0]
-        values = list(ov.sweep_iterator()) if ov.is_sweep_override() else [ov.value()]
-        try:
-            for value in values:
-                if key == "_target_" or key.endswith("._target_"):
-                    check_target(value, key)
-                else:
-                    check_targets(value, key)
-        except ConfigError as exc:
-            return str(exc)
-    return None
-
-
-def check_config(args: list[str]) -> str | None:
-    """What ``nirspi-run ARGS`` would build, checked before Hydra builds anything (its callbacks,
-    launcher, sweeper, logging) and before any job: the whole config is composed as Hydra will
-    compose it (search path, ``-cd``, ``-cn`` and experiment files included; a sweep's lists
-    checked value by value) and every ``_target_`` in it must be on the allow-list
-    (:mod:`nirspi_pipe.targets`); top-level keys, ``output`` and ``tables`` must be known
-    (:func:`check_plain_keys`). Returns one line, or None. A config that does not compose is
-    left to Hydra (which then builds nothing), unless a config file in it is not plain YAML (a
-    ``!!python/...`` tag, a syntax error): that is one line naming the file.
-
-    The steps, each a helper: refused flags; the overrides parsed and their ``_target_`` values;
-    the config composed; its targets (and the sweeper's); each sweep value's keys; the job's keys
-    and stage nodes; with ``-m``, the launcher's and sweeper's settings."""
-    problem = _refused_flag(args)
-    if problem:
-        return problem
-    overrides = _override_args(args)
-    try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
-    except HydraException:
-        return None  # Hydra reports the syntax error
-    problem = _sweep_target_values(parsed)
-    if problem:
-        return problem
-    flags = _flag_values(args)
-    cfg, problem = _compose_as_hydra(flags, _fixed_overrides(overrides, parsed, flags))
-    if cfg is None:
-        return problem
-    plain = _plain_config(cfg)
-    problem = _check_composed_targets(plain) or _check_sweep_keys(parsed, plain)
-    if problem:
-        return problem
-    job = {k: v for k, v in plain.items() if k != "hydra"}
-    multirun = any(a in ("-m", "--multirun") for a in args)
-    return (
-        check_plain_keys(job)
-        or check_stage_nodes(job)
-        or (check_sweep_settings(plain.get("hydra") or {}) if multirun else None)
-    )
-
-
-def _refused_flag(args: list[str]) -> str | None:
-    """The first flag of ``args`` that is refused (:data:`_REFUSED_FLAGS`), as one line."""
-    for arg in args:
-        flag = arg.partition("=")[0]
-        if flag in _REFUSED_FLAGS:
-            return f"{flag} is not allowed: {_REFUSED_FLAGS[flag]}"
-    return None
-
-
-def _fixed_overrides(overrides: list[str], parsed: list[Any], flags: dict[str, str]) -> list[str]:
-    """The overrides that are not sweeps, as Hydra composes them: with ``-cd`` its folder is
-    appended to ``hydra.searchpath`` (the one given, else the primary config's)."""
-    fixed = [o for o, ov in zip(overrides, parsed, strict=True) if not ov.is_sweep_override()]
-    extra_dir = flags.get("-cd") or flags.get("--config-dir")
-    if extra_dir:
-        searchpath = [ov for ov in parsed if ov.key_or_group == "hydra.searchpath" and not ov.is_sweep_override()]
-        given = searchpath[-1].value() if searchpath else None
-        base = list(given) if isinstance(given, list) else _primary_searchpath()
-        fixed = [o for o in fixed if not o.startswith("hydra.searchpath=")]
-        fixed.append(f"hydra.searchpath=[{','.join([*map(str, base), Path(extra_dir).resolve().as_uri()])}]")
-    return fixed
-
-
-def _compose_as_hydra(flags: dict[str, str], fixed: list[str]) -> tuple[Any, str | None]:
-    """``(config, None)``: the config composed with Hydra's node (``-cn`` honoured); or
-    ``(None, problem)`` when it does not compose: a file that is not plain YAML named in one
-    line, else None (left to Hydra)."""
-    try:
-        with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
-            cfg = compose(
-                flags.get("-cn") or flags.get("--config-name") or CONFIG_NAME, fixed, return_hydra_config=True
-            )
-    except Exception as exc:  # noqa: BLE001 - a file that is not plain YAML is ours to name; the rest Hydra's
-        return None, yaml_problem(exc)
-    return cfg, None
-
-
-def _plain_config(cfg: Any) -> dict[str, Any]:
-    """The composed config as plain containers: the job's part resolved, Hydra's node resolved
-    where it can be (else unresolved)."""
-    plain: dict[str, Any] = {}
-    for part in (
-        OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k != "hydra"]),
-        OmegaConf.masked_copy(cfg, ["hydra"]),
-    ):
-        try:  # the job's part resolves; Hydra's may hold values only a running app has (job.num)
-            plain.update(OmegaConf.to_container(part, resolve=True))  # type: ignore[arg-type]
-        except Exception:  # noqa: BLE001 - then check it unresolved
-            plain.update(OmegaConf.to_container(part, resolve=False))  # type: ignore[arg-type]
-    return plain
-
-
-def _check_composed_targets(plain: dict[str, Any]) -> str | None:
-    """Every ``_target_`` of the composed config on the allow-list, and so every value of the
-    sweeper's ``params`` that sets a ``_target_``."""
-    try:
-        check_targets(plain)
-        params = (plain.get("hydra", {}).get("sweeper") or {}).get("params") or {}
-        return _sweep_target_values(
-            OverridesParser.create().parse_overrides(
-                [f"{k}={v}" for k, v in params.items() if str(k).endswith("_target_")]
-            )
-        )
-    except ConfigError as exc:
-        return str(exc)
-    except HydraException:
-        return None
-
-
-def _check_sweep_keys(parsed: list[Any], plain: dict[str, Any]) -> str | None:
-    """The job's keys with each value of each sweep override set (the composed config did not
-    see them): :func:`check_plain_keys` on each."""
-    sweeps = [ov for ov in parsed if ov.is_sweep_override() and not ov.key_or_group.startswith("hydra")]
-    for ov in sweeps:
-        job = {k: v for k, v in plain.items() if k != "hydra"}
-        for value in ov.sweep_iterator():
-            one = OmegaConf.create(job)
-            try:
-                OmegaConf.update(one, ov.key_or_group.split("@", 1)[0], value, merge=False, force_add=True)
-            except Exception:  # noqa: BLE001 - Hydra reports what it cannot set
-                continue
-            problem = check_plain_keys(OmegaConf.to_container(one, resolve=False))
-            if problem:
-                return problem
     return None
 
 
@@ -532,9 +366,3 @@ def check_stage_nodes(job: dict[str, Any]) -> str | None:
         except ConfigError as exc:
             return str(exc)
     return None
-
-
-def _primary_searchpath() -> list[str]:
-    """``hydra.searchpath`` of the primary config (conf/config.yaml)."""
-    cfg = _compose_or_none([], hydra=True)
-    return [] if cfg is None else [str(p) for p in cfg.hydra.searchpath]

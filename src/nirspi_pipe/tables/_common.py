@@ -44,7 +44,6 @@ __all__ = [
     "ranking",
     "ranking_note",
     "with_families",
-    "fmt_se",
     "score_flag_columns",
     "degenerate_mask",
     "degenerate_count",
@@ -231,11 +230,6 @@ def with_families(markdown: str, claims: pd.DataFrame) -> str:
     """``markdown`` with a closing paragraph on what is controlled across the table's families
     (:func:`nirspi_pipe.stats.family_sentence`; ``claims`` from :func:`nirspi_pipe.stats.across_families`)."""
     return markdown.rstrip("\n") + "\n\n**Across families.** " + st.family_sentence(claims) + "\n"
-
-
-def fmt_se(mean: float, se: float, digits: int = 2) -> str:
-    """``"m ± se"`` with the clustered standard error (``"n/a"`` for NaN mean)."""
-    return fmt(mean, se, digits)
 
 
 def scan_by_level_rows(table: pd.DataFrame, levels: list[float], cell: Callable[[pd.Series], str]) -> list[str]:
