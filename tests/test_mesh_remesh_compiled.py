@@ -11,7 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled, clean_mesh, remesh_clean
+from nirspi_pipe.mesh.isotropic import clean_and_remesh_compiled, remesh_clean
+from nirspi_pipe.mesh.meshclean import clean_mesh
 from nirspi_pipe.mesh.metrics3d import equiangle_skewness
 from nirspi_pipe.mesh.powercrust import power_crust, trim_to_samples
 from nirspi_pipe.mesh.remesh import resolve_remesher, sample_spacing
@@ -170,9 +171,10 @@ def test_compiled_kernels_fuse_no_multiply_add(tmp_path) -> None:  # type: ignor
     code = (
         "import re, numpy as np\n"
         "import nirspi_pipe.mesh.isotropic as iso, nirspi_pipe.mesh.crustfaces as cf, nirspi_pipe.mesh.powercrust as pc\n"
+        "import nirspi_pipe.mesh.halfedges as he, nirspi_pipe.mesh.meshclean as mc\n"
         "assert iso.warm_up() and pc.warm_up()\n"
         "n = hits = 0\n"
-        "for m in (iso, cf):\n"
+        "for m in (he, mc, iso, cf):\n"
         "    for k in dir(m):\n"
         "        d = getattr(m, k)\n"
         "        for sig in getattr(d, 'signatures', []):\n"

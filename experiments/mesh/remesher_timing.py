@@ -25,7 +25,8 @@ def main(argv: list[str] | None = None) -> int:
     ns = p.parse_args(argv)
 
     import nirspi_pipe
-    from nirspi_pipe.mesh.isotropic import clean_mesh, remesh_clean
+    from nirspi_pipe.mesh.isotropic import remesh_clean
+    from nirspi_pipe.mesh.meshclean import clean_mesh
     from nirspi_pipe.mesh.metrics3d import equiangle_skewness
     from nirspi_pipe.mesh.powercrust import CLOUD_QUANTUM_M, PowerCrust, power_crust, trim_to_samples
     from nirspi_pipe.mesh.remesh import clean_and_remesh, sample_spacing

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nirspi_pipe.mesh.isotropic import _find, _jit, _live, _ranks
+from nirspi_pipe.mesh.halfedges import find_root, jit_kernel, live_faces, ranks
 
 __all__ = ["crust_faces", "power_centres"]
 
@@ -34,7 +34,7 @@ __all__ = ["crust_faces", "power_centres"]
 _EDGES = np.array([(0, 1, 2, 3), (0, 2, 1, 3), (0, 3, 1, 2), (1, 2, 0, 3), (1, 3, 0, 2), (2, 3, 0, 1)], dtype=np.int64)
 
 
-@_jit
+@jit_kernel
 def _centres(T, W, use_w):
     t = T.shape[0]
     c = np.zeros((t, 3))
@@ -76,7 +76,7 @@ def power_centres(tets: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     return _centres(T, W, weights is not None)
 
 
-@_jit
+@jit_kernel
 def _stable_order(key, m):
     """``np.argsort(key, kind="stable")`` for keys ``a*m + b`` (0 <= b < m): a counting sort by
     ``a``, then an insertion sort by ``b`` inside each (small) bucket."""
@@ -106,7 +106,7 @@ def _stable_order(key, m):
     return order
 
 
-@_jit
+@jit_kernel
 def _weld(P, wtol):
     """Cluster of each point of P (n, 3): connected components of the pairs within wtol,
     numbered in order of their smallest member; and the clusters' mean positions."""
@@ -123,14 +123,14 @@ def _weld(P, wtol):
                 break
             dy, dz = P[q, 1] - P[p, 1], P[q, 2] - P[p, 2]
             if dx * dx + dy * dy + dz * dz <= w2:
-                a, b = _find(parent, p), _find(parent, q)
+                a, b = find_root(parent, p), find_root(parent, q)
                 if a != b:
                     parent[max(a, b)] = min(a, b)
     label = np.full(n, -1, np.int64)
     cl = np.empty(n, np.int64)
     n_cl = 0
     for i in range(n):
-        r = _find(parent, i)
+        r = find_root(parent, i)
         if label[r] < 0:
             label[r] = n_cl
             n_cl += 1
@@ -150,7 +150,7 @@ def _weld(P, wtol):
     return cl, pos
 
 
-@_jit
+@jit_kernel
 def _crust(poles, tets, centres, inner, wtol, edges):
     """The four steps of the module docstring: ``(vertices, faces, polygons)``."""
     m = poles.shape[0]
@@ -161,7 +161,7 @@ def _crust(poles, tets, centres, inner, wtol, edges):
     return _fan_polygons(poles, inner, ring_t, ring_start, ring_ab, n_ring, id_of, cl, vpos)
 
 
-@_jit
+@jit_kernel
 def _mixed_edges(tets, inner, edges, m):
     """Step 1: every edge of every tetrahedron between an inner and an outer pole: its key
     ``a·m + b`` (a < b), its tetrahedron, and the two other vertices (the ring pair)."""
@@ -186,7 +186,7 @@ def _mixed_edges(tets, inner, edges, m):
     return key, tid, oth
 
 
-@_jit
+@jit_kernel
 def _is_closed(oth, order, i, j):
     """The ring of entries ``order[i:j]`` is closed: each of its vertices is seen exactly twice."""
     for q in range(i, j):
@@ -200,7 +200,7 @@ def _is_closed(oth, order, i, j):
     return True
 
 
-@_jit
+@jit_kernel
 def _closed_rings(poles, centres, key, tid, oth, order, m):
     """Step 2: the closed rings, each one's tetrahedra ordered by angle around its edge.
     Returns ``(tetrahedra ring after ring, ring starts, ring edges (a, b), number of rings)``."""
@@ -234,7 +234,7 @@ def _closed_rings(poles, centres, key, tid, oth, order, m):
     return ring_t[:n_t], ring_start, ring_ab, n_ring
 
 
-@_jit
+@jit_kernel
 def _order_by_angle(poles, centres, tid, order, i, j, a, b, ang, idx):
     """The tetrahedra ``tid[order[i:j]]`` into ``idx[:j - i]``, by the angle of their power
     centres around the axis a → b about the ring's centroid (a stable insertion sort)."""
@@ -272,7 +272,7 @@ def _order_by_angle(poles, centres, tid, order, i, j, a, b, ang, idx):
         idx[r + 1] = iv
 
 
-@_jit
+@jit_kernel
 def _weld_ring_centres(centres, ring_t, wtol):
     """Step 3: the power centres the rings use, welded within ``wtol``. Returns each
     tetrahedron's index among the used ones, each used one's cluster, and the clusters' positions."""
@@ -280,7 +280,7 @@ def _weld_ring_centres(centres, ring_t, wtol):
     used = np.zeros(t, np.bool_)
     for q in range(ring_t.shape[0]):
         used[ring_t[q]] = True
-    id_of, n_id = _ranks(used)
+    id_of, n_id = ranks(used)
     P = np.empty((n_id, 3))
     for q in range(t):
         if used[q]:
@@ -289,7 +289,7 @@ def _weld_ring_centres(centres, ring_t, wtol):
     return id_of, cl, vpos
 
 
-@_jit
+@jit_kernel
 def _fan_polygons(poles, inner, ring_t, ring_start, ring_ab, n_ring, id_of, cl, vpos):
     """Step 4: each ring's polygon of welded centres without cyclic repeats; one with three or
     more vertices is fanned around its centroid, oriented from the inner pole to the outer one."""
@@ -334,7 +334,7 @@ def _fan_polygons(poles, inner, ring_t, ring_start, ring_ab, n_ring, id_of, cl, 
     verts = np.empty((n_cl + n_poly, 3))
     verts[:n_cl] = vpos
     verts[n_cl:] = cen[:n_poly]
-    keep, new_faces = _live(faces[:n_f], n_cl + n_poly)
+    keep, new_faces = live_faces(faces[:n_f], n_cl + n_poly)
     return verts[keep], new_faces, n_poly
 
 
