@@ -17,7 +17,7 @@ import pytest
 from conftest import script
 from nirspi_pipe import records
 from nirspi_pipe.app import jobs
-from nirspi_pipe.app.sweeper import ComposedJob
+from nirspi_pipe.app.jobcomposer import ComposedJob
 from nirspi_pipe.records import RECORD_NAME, JobLock, OutputError, read_record, write_record
 
 fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are forked")

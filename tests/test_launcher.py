@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from conftest import crash_as
-from nirspi_pipe.app.sweeper import ComposedJob
+from nirspi_pipe.app.jobcomposer import ComposedJob
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.records import RECORD_NAME, read_record, write_record
 

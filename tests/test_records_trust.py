@@ -18,8 +18,9 @@ from pathlib import Path
 import pytest
 
 from nirspi_pipe import records
+from nirspi_pipe.app.jobcomposer import expand_grid
 from nirspi_pipe.app.jobs import crash_message, run_sweep_job
-from nirspi_pipe.app.sweeper import SweepFileError, expand_grid, load_sweep_file
+from nirspi_pipe.app.sweepfile import SweepFileError, load_sweep_file
 from nirspi_pipe.records import (
     RECORD_NAME,
     InputHasher,

@@ -1,4 +1,4 @@
-"""The sacct shim of a SLURM cluster without accounting (``app.sweeper.quiet_sacct_without_accounting``):
+"""The sacct shim of a SLURM cluster without accounting (``app.slurmshim.quiet_sacct_without_accounting``):
 first on ``PATH`` while the sweep runs, its temporary folder gone when the process exits."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 PROBE = """
 import os
-from nirspi_pipe.app.sweeper import quiet_sacct_without_accounting
+from nirspi_pipe.app.slurmshim import quiet_sacct_without_accounting
 quieted = quiet_sacct_without_accounting()
 first = os.environ["PATH"].split(os.pathsep)[0]
 print(quieted, first, os.path.isfile(os.path.join(first, "sacct")))

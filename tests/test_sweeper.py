@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from hydra.core.override_parser.overrides_parser import OverridesParser
 
-from nirspi_pipe.app.sweeper import subdir_override
+from nirspi_pipe.app.jobcomposer import subdir_override
 
 
 def test_hex_job_keys_stay_strings() -> None:

@@ -42,9 +42,10 @@ from hydra.plugins.launcher import Launcher
 from omegaconf import open_dict
 from threadpoolctl import threadpool_limits
 
+from nirspi_pipe.app.jobcomposer import ComposedJob, composed_job
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import objective_values
-from nirspi_pipe.app.sweeper import ComposedJob, composed_job, format_progress
+from nirspi_pipe.app.sweepfile import format_progress
 from nirspi_pipe.records import OutputError, refuse_link
 
 __all__ = ["NirspiLauncherBase"]

@@ -29,7 +29,8 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_names, objective_values, pareto_mask
 from nirspi_pipe.app.registration import register_hydra_plugins
-from nirspi_pipe.app.sweeper import SweepFileError, launcher_failures, load_sweep_file
+from nirspi_pipe.app.sweeper import launcher_failures
+from nirspi_pipe.app.sweepfile import SweepFileError, load_sweep_file
 from nirspi_pipe.finite import drop_nonfinite
 from nirspi_pipe.records import (
     RECORD_NAME,

@@ -23,6 +23,10 @@ launched again, at most ``max_attempts`` rounds (fewer when a round wrote no rec
 launcher could not start). A job folder that is a symbolic link is refused (not launched; a failed
 row naming the link), and nothing is written through it.
 
+The pieces live in their own modules: the grid, the composed job and its key in
+:mod:`nirspi_pipe.app.jobcomposer`; ``sweep.json`` and the progress line in
+:mod:`nirspi_pipe.app.sweepfile`; the ``sacct`` shim for SLURM in :mod:`nirspi_pipe.app.slurmshim`.
+
 After the sweep the results callback (:class:`nirspi_pipe.app.results.CollectResults`) exits non-zero
 when any job failed or is missing, naming how many and why (:data:`launcher_failures` holds why the
 launcher failed), unless ``hydra.sweeper.allow_failures=true``.
@@ -30,23 +34,13 @@ launcher failed), unless ``hydra.sweeper.allow_failures=true``.
 
 from __future__ import annotations
 
-import atexit
 import copy
-import itertools
-import json
 import logging
-import math
 import multiprocessing
 import os
-import re
-import shutil
-import subprocess
 import sys
-import tempfile
-import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
 
@@ -54,12 +48,25 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.plugins import Plugins
 from hydra.plugins.sweeper import Sweeper
 from omegaconf import OmegaConf
-from omegaconf.errors import InterpolationResolutionError
 
 from nirspi_pipe.app.flags import Refused
+from nirspi_pipe.app.jobcomposer import (
+    ComposedJob,
+    ComposeFailure,
+    JobRefused,
+    choices_of,
+    composed_job,
+    error_line,
+    error_type,
+    expand_grid,
+    resolve_plain,
+    set_plain,
+    subdir_override,
+)
+from nirspi_pipe.app.slurmshim import quiet_sacct_without_accounting
+from nirspi_pipe.app.sweepfile import SWEEP_FILE, ProgressWatcher, record_status
 from nirspi_pipe.records import (
     RECORD_NAME,
-    RECORD_READ_LIMIT,
     InputHasher,
     OutputError,
     atomic_write,
@@ -67,170 +74,17 @@ from nirspi_pipe.records import (
     dumps_strict,
     job_key_of,
     provenance,
-    read_record,
     refuse_link,
     write_record,
 )
-from nirspi_pipe.safeio import read_regular
 
-__all__ = [
-    "SWEEP_FILE",
-    "ComposedJob",
-    "composed_job",
-    "NirspiSweeperBase",
-    "ProgressWatcher",
-    "SweepFileError",
-    "expand_grid",
-    "format_progress",
-    "job_key",
-    "load_sweep_file",
-    "progress_line",
-    "read_sweep_file",
-]
+__all__ = ["NirspiSweeperBase", "launcher_failures"]
 
 log = logging.getLogger(__name__)
-
-SWEEP_FILE = "sweep.json"
-_KEY = re.compile(r"^[0-9a-f]{16}$")
 
 #: Why the launcher failed in the last sweep of this process (one line each, in order); the
 #: results callback names them when the sweep exits non-zero.
 launcher_failures: list[str] = []
-
-
-def _resolved(job_cfg: Any) -> dict[str, Any]:
-    plain = cast("dict[str, Any]", OmegaConf.to_container(job_cfg, resolve=False))
-    plain.pop("hydra", None)
-    return _resolve_plain(plain)
-
-
-#: An interpolation that is a whole-value reference to another node: ``${fog}``, ``${a.b}``.
-_NODE_REF = re.compile(r"^\$\{([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)\}$")
-
-
-class _NotSimple(Exception):
-    """The config holds an interpolation other than a plain node reference."""
-
-
-def _resolve_references(root: dict[str, Any]) -> dict[str, Any]:
-    """``OmegaConf.to_container(OmegaConf.create(root), resolve=True)`` for a config whose only
-    interpolations are whole-value references to other nodes (``source.effects.fog: ${fog}``, all
-    that the shipped configs use): each becomes a copy of the node it names, resolved in turn.
-    Raises :class:`_NotSimple` for anything else (resolvers, string interpolation, relative or
-    missing keys, cycles), which OmegaConf then resolves. Before, the per-job part of keying
-    (all but the 50 compositions) took 24 of the paper sweep's 55 s of keying under ``cProfile``,
-    most of it in OmegaConf; ``tests/test_sweeper.py`` compares the keys with Hydra's own
-    composition."""
-
-    def lookup(path: str, depth: int) -> Any:
-        node: Any = root
-        for part in path.split("."):
-            if not isinstance(node, dict) or part not in node:
-                raise _NotSimple(path)
-            node = node[part]
-        return resolve(node, depth + 1)
-
-    def resolve(node: Any, depth: int) -> Any:
-        if depth > 32:
-            raise _NotSimple("reference cycle")
-        if isinstance(node, dict):
-            return {k: resolve(v, depth) for k, v in node.items()}
-        if isinstance(node, list):
-            return [resolve(v, depth) for v in node]
-        if isinstance(node, str) and "$" in node:
-            ref = _NODE_REF.match(node)
-            if ref is None:
-                raise _NotSimple(node)
-            return lookup(ref.group(1), depth)
-        return node
-
-    return cast("dict[str, Any]", resolve(root, 0))
-
-
-def _resolve_plain(plain: dict[str, Any]) -> dict[str, Any]:
-    try:
-        return _resolve_references(plain)
-    except _NotSimple:
-        pass
-    try:
-        return cast("dict[str, Any]", OmegaConf.to_container(OmegaConf.create(plain), resolve=True))
-    except InterpolationResolutionError as exc:
-        raise ValueError(
-            "a job config interpolates ${hydra:...} outside the hydra node, so it cannot be keyed "
-            f"before it runs ({exc.full_key}); for per-job seeds use seed=null"
-        ) from None
-
-
-def _choices(cfg: Any) -> dict[str, Any]:
-    """``hydra.runtime.choices`` of a composed config, ``hydra/*`` groups left out (as records keep them)."""
-    return {str(k): v for k, v in cfg.hydra.runtime.choices.items() if not str(k).startswith("hydra/")}
-
-
-def _set_plain(cfg: dict[str, Any], dotted: str, value: Any) -> bool:
-    """Set ``dotted`` (``scene.distance_mm``) in a plain config as Hydra's ``OmegaConf.update(...,
-    merge=True)`` of a struct config would: only an existing key, only a non-mapping value over a
-    non-mapping one. False (nothing set) for anything else, which the caller composes in full."""
-    node: Any = cfg
-    *parents, leaf = dotted.split(".")
-    for part in parents:
-        if not isinstance(node, dict) or part not in node:
-            return False
-        node = node[part]
-    if not isinstance(node, dict) or leaf not in node or isinstance(node[leaf], dict) or isinstance(value, dict):
-        return False
-    node[leaf] = value
-    return True
-
-
-@dataclass(frozen=True)
-class ComposedJob:
-    """A job as the sweeper composed it to key it, and as the ``nirspi`` launcher runs it.
-
-    Attributes:
-        config: the resolved config without the ``hydra`` node (the task's config).
-        choices: the option of every config group (``hydra/*`` groups left out).
-        task_overrides: the job's overrides other than ``hydra.*`` (``hydra.overrides.task``).
-    """
-
-    config: dict[str, Any]
-    choices: dict[str, Any]
-    task_overrides: list[str]
-
-
-def composed_job(cfg: Any) -> ComposedJob:
-    """The :class:`ComposedJob` of a config Hydra composed (``load_sweep_config``)."""
-    task = list(OmegaConf.to_container(cfg.hydra.overrides.task, resolve=False) or [])
-    return ComposedJob(_resolved(cfg), _choices(cfg), task)
-
-
-def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
-    """The folder key of a composed job config: the hash of its resolved non-hydra part and of
-    the content of every input file it names (:func:`nirspi_pipe.records.job_key_of`)."""
-    resolved = _resolved(job_cfg)
-    return job_key_of(resolved, (hasher or InputHasher()).hashes(resolved))
-
-
-class JobRefused(ValueError):
-    """A job whose composed Hydra node the job gate refuses (:func:`nirspi_pipe.app.hydranode.check_job`);
-    one line. Raised, not recorded: every job of the sweep would receive the same node, so the sweep
-    stops (exit 2). Picklable, so that a forked keying worker hands it back to the sweeping process
-    instead of dying with ``SystemExit`` (the pool then waited forever for the lost task)."""
-
-
-class ComposeFailure(Exception):
-    """Why a job did not compose, as a keying worker process reports it (picklable, whatever
-    the original exception): ``type_name`` is the original exception's class name."""
-
-    def __init__(self, type_name: str, message: str) -> None:
-        super().__init__(message)
-        self.type_name = type_name
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        return (ComposeFailure, (self.type_name, str(self)))
-
-
-def _error_type(exc: BaseException) -> str:
-    return exc.type_name if isinstance(exc, ComposeFailure) else type(exc).__name__
 
 
 #: The sweeper a keying worker process (forked by ``NirspiSweeperBase._prepare_parallel``) keys for.
@@ -249,143 +103,6 @@ def _key_chunk(chunk: list[tuple[int, list[str]]]) -> list[tuple[int, Any, Compo
         (i, key if isinstance(key, str) else ComposeFailure(type(key).__name__, str(key)), job)
         for (i, _), (key, job) in zip(chunk, done, strict=True)
     ]
-
-
-def subdir_override(key: str) -> str:
-    """The override that puts a job in folder ``key``. Quoted: Hydra would read an unquoted hex
-    key such as ``4703e54460190101`` as a float (``inf``), and jobs would share a folder."""
-    return f"hydra.sweep.subdir='{key}'"
-
-
-class SweepFileError(ValueError):
-    """``sweep.json`` exists but is not what the sweeper writes; the message names the file."""
-
-
-def load_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
-    """``sweep.json`` of a sweep folder, checked; None when there is none (e.g. a basic sweep).
-
-    Raises :class:`SweepFileError` (one line naming the file) when it is unreadable, not JSON, or
-    lacks a ``jobs`` list of ``{"key": <16 hex digits>, ...}`` (a key is never a path)."""
-    path = Path(sweep_dir) / SWEEP_FILE
-    if not path.exists():
-        return None
-    try:  # a regular file only (a FIFO would block), bounded like a record
-        info = json.loads(read_regular(path, RECORD_READ_LIMIT, str(path)))
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise SweepFileError(
-            f"{path} is not readable JSON ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})"
-        ) from None
-    problem = None
-    if not isinstance(info, dict):
-        problem = f"expected a JSON object, got {type(info).__name__}"
-    elif not isinstance(info.get("jobs"), list):
-        problem = "expected a 'jobs' list"
-    else:
-        for i, job in enumerate(info["jobs"]):
-            if not isinstance(job, dict) or not isinstance(job.get("key"), str) or not _KEY.match(job["key"]):
-                problem = f"jobs[{i}] needs a 'key' of 16 hex digits"
-                break
-    if problem is None:
-        for name in ("started", "to_run"):
-            if name in info and not isinstance(info[name], (int, float)):
-                problem = f"'{name}' must be a number"
-    if problem:
-        raise SweepFileError(
-            f"{path} is malformed: {problem} (it is written by `nirspi-run -m`; "
-            "delete it to collect every record.json below the folder)"
-        )
-    return info
-
-
-def read_sweep_file(sweep_dir: Path) -> dict[str, Any] | None:
-    """``sweep.json`` of a sweep folder, or None when there is none or it is malformed."""
-    try:
-        return load_sweep_file(sweep_dir)
-    except SweepFileError:
-        return None
-
-
-def _record_status(folder: Path) -> str | None:
-    try:
-        return read_record(folder / RECORD_NAME).get("meta", {}).get("status")
-    except (OSError, ValueError, AttributeError):
-        return None
-
-
-def expand_grid(overrides: Sequence[Any]) -> list[list[str]]:
-    """Every job of a grid, as Hydra's basic sweeper expands it: the cartesian product of each
-    sweep override's values (in order), plain overrides kept as they are; a key given twice (an
-    experiment's ``seed: range(0,20)`` and ``seed=0,1`` on the command line) takes its last value,
-    where it first appeared. ``overrides`` are parsed
-    :class:`hydra.core.override_parser.types.Override` objects (Hydra's public parser)."""
-    lists: dict[str, list[str]] = {}  # a later override of the same key replaces the earlier (Hydra's rule)
-    for ov in overrides:
-        key = ov.get_key_element()
-        if ov.is_sweep_override():
-            if not ov.is_discrete_sweep():
-                raise ValueError(
-                    f"{key}: the nirspi sweeper takes lists, range() and choice(); not interval() ({ov.input_line})"
-                )
-            lists[key] = [f"{key}={val}" for val in ov.sweep_string_iterator()]
-        else:
-            lists[key] = [f"{key}={ov.get_value_element_as_str()}"]
-    return [list(job) for job in itertools.product(*lists.values())]
-
-
-def _one_line(text: str) -> str:
-    """Hydra's multi-line composition errors as one line (with the allowed options, if listed)."""
-    lines = [ln.strip() for ln in str(text).splitlines() if ln.strip()]
-    if not lines:
-        return "unknown error"
-    head, allowed = lines[0], []
-    for ln in lines[1:]:
-        if ln.startswith("Config search path"):
-            break
-        if not ln.startswith("Available options") and not ln.startswith("To append"):
-            allowed.append(ln)
-    return head + (f"; allowed: {', '.join(allowed)}" if allowed and "Available" in text else "")
-
-
-def progress_line(sweep_dir: Path) -> str | None:
-    """``"7/12 jobs done (1 failed), 3 skipped | elapsed 0:42 | ETA 1:12"`` for a running sweep,
-    from ``sweep.json`` and the records written since the sweep started; None without one."""
-    info = read_sweep_file(sweep_dir)
-    if not info:
-        return None
-    started = float(info.get("started", 0.0))
-    done = failed = 0
-    for job in info["jobs"]:
-        if job.get("skipped") or job.get("duplicate") or not job.get("launched", True):
-            continue
-        rec = Path(sweep_dir) / job["key"] / RECORD_NAME
-        try:
-            if rec.stat().st_mtime >= started:
-                done += 1
-                failed += _record_status(rec.parent) != "ok"
-        except OSError:
-            continue
-    total = int(info.get("to_run", len(info["jobs"])))
-    skipped = sum(bool(j.get("skipped")) and not j.get("duplicate") for j in info["jobs"])
-    not_run = sum(bool(j.get("gave_up") or j.get("uncomposable") or j.get("refused")) for j in info["jobs"])
-    return format_progress(done, failed, total, skipped, not_run, max(0.0, time.time() - started))
-
-
-def format_progress(done: int, failed: int, total: int, skipped: int, not_run: int, elapsed_s: float) -> str:
-    """The progress line: ``"7/12 jobs done (1 failed), 3 skipped | elapsed 0:42 | ETA 1:12"``."""
-    eta = elapsed_s / done * (total - done) if done else float("nan")
-
-    def hms(s: float) -> str:
-        if math.isnan(s):
-            return "?"
-        s = round(s)
-        return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
-
-    head = f"{done}/{total} jobs done" + (f" ({failed} failed)" if failed else "")
-    if skipped:
-        head += f", {skipped} skipped"
-    if not_run:
-        head += f", {not_run} not run (failed)"
-    return " | ".join([head, f"elapsed {hms(elapsed_s)}", f"ETA {hms(eta)}"])
 
 
 class NirspiSweeperBase(Sweeper):
@@ -529,14 +246,14 @@ class NirspiSweeperBase(Sweeper):
             cfg = self.compose(list(base_key))
             raw = cast("dict[str, Any]", OmegaConf.to_container(cfg, resolve=False))
             raw.pop("hydra", None)
-            bases[base_key] = (raw, _choices(cfg))
+            bases[base_key] = (raw, choices_of(cfg))
         raw, choices = bases[base_key]
         plain_cfg = copy.deepcopy(raw)
         for ov in updates:
-            if not _set_plain(plain_cfg, str(ov.key_or_group), ov.value()):
+            if not set_plain(plain_cfg, str(ov.key_or_group), ov.value()):
                 return self._composed(overrides)
         try:
-            resolved = _resolve_plain(plain_cfg)
+            resolved = resolve_plain(plain_cfg)
         except Exception:  # noqa: BLE001 - let Hydra's composition say what is wrong
             return self._composed(overrides)
         return ComposedJob(resolved, dict(choices), task)
@@ -585,7 +302,7 @@ class NirspiSweeperBase(Sweeper):
                 bad = overrides[i]
                 break
         where = f"override {bad!r}" if bad else f"overrides {' '.join(overrides)!r}"
-        return f"job does not compose: {where}: {_one_line(str(exc))}"
+        return f"job does not compose: {where}: {error_line(str(exc))}"
 
     def job_keys(self, jobs: list[list[str]], fast: bool = True) -> list[str | Exception]:
         """The folder key of each job (or the exception that stopped it composing)."""
@@ -666,16 +383,16 @@ class NirspiSweeperBase(Sweeper):
         try:
             grid = self._expand(arguments)
         except Exception as exc:  # noqa: BLE001 - a grid that cannot be expanded: nothing to run
-            print(f"nirspi-run: error: the sweep cannot be expanded: {_one_line(str(exc))}", file=sys.stderr)
+            print(f"nirspi-run: error: the sweep cannot be expanded: {error_line(str(exc))}", file=sys.stderr)
             raise SystemExit(2) from None
         t0 = time.perf_counter()
         # a launcher that can run composed jobs (the nirspi launcher, nirspi_pipe.app.launcher) gets them
         run_composed = getattr(self.launcher, "run_composed", None)
         prepared = self.prepare(grid, workers=getattr(self.launcher, "workers", None) if run_composed else None)
         composed: dict[str, ComposedJob] = {}  # the first job of each key runs (as it is launched below)
-        for key, composed_job in prepared:
-            if isinstance(key, str) and composed_job is not None:
-                composed.setdefault(key, composed_job)
+        for key, prepared_job in prepared:
+            if isinstance(key, str) and prepared_job is not None:
+                composed.setdefault(key, prepared_job)
         keying_s = time.perf_counter() - t0
         log.info("keyed %d jobs in %.1f s", len(grid), keying_s)
 
@@ -732,7 +449,7 @@ class NirspiSweeperBase(Sweeper):
                     n_bad += 1
                     message = self._compose_failure(overrides, failure)
                     log.error("%s", message)
-                    _record_uncomposable(sweep_dir / key, overrides, message, _error_type(failure))
+                    _record_uncomposable(sweep_dir / key, overrides, message, error_type(failure))
             elif (sweep_dir / key).is_symlink():  # never written through, never read through
                 job.update(key=key, skipped=False, launched=False, refused=True)
                 if key not in seen:
@@ -742,7 +459,7 @@ class NirspiSweeperBase(Sweeper):
                     except OutputError as exc:
                         print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
             else:
-                status = _record_status(sweep_dir / key)
+                status = record_status(sweep_dir / key)
                 skipped = self.resume and status == "ok"
                 job.update(key=key, skipped=skipped)
                 if key in seen:
@@ -824,47 +541,6 @@ class NirspiSweeperBase(Sweeper):
         return False
 
 
-class _DropSacctNoise(logging.Filter):
-    def filter(self, record: logging.LogRecord) -> bool:
-        return "Bypassing sacct error" not in record.getMessage()
-
-
-def quiet_sacct_without_accounting() -> bool:
-    """On a SLURM cluster without accounting, ``sacct`` fails on every poll and submitit warns
-    each time ("Bypassing sacct error", plus sacct's own "accounting storage is disabled" on
-    stderr). Detect that once, say it in one line, drop those warnings and run ``sacct`` through a
-    shim that silences its stderr (first on ``PATH`` of the sweeping process only). Job states
-    then come from submitit's result files, which is all the sweep needs. True when quieted.
-    The shim's temporary folder is removed when the process exits."""
-    sacct = shutil.which("sacct")
-    if sacct is None:
-        return False
-    try:
-        probe = subprocess.run(
-            [sacct, "-n", "-X", "-j", "1", "-o", "JobID"],
-            check=False,
-            capture_output=True,
-            text=True,
-            timeout=20,
-            stdin=subprocess.DEVNULL,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return False
-    if "accounting storage is disabled" not in (probe.stderr or "").lower():
-        return False
-    shim_dir = Path(tempfile.mkdtemp(prefix="nirspi-sacct-"))
-    atexit.register(shutil.rmtree, shim_dir, ignore_errors=True)  # the shim lives as long as the sweep
-    shim = shim_dir / "sacct"
-    shim.write_text(f'#!/bin/sh\nexec "{sacct}" "$@" 2>/dev/null\n')
-    shim.chmod(0o755)
-    os.environ["PATH"] = f"{shim_dir}{os.pathsep}{os.environ.get('PATH', '')}"
-    logging.getLogger("submitit").addFilter(_DropSacctNoise())
-    print(
-        "nirspi-run: this SLURM cluster keeps no accounting (sacct): job states come from the result files", flush=True
-    )
-    return True
-
-
 def _written_since(path: Path, reference: Path) -> bool:
     try:
         return path.stat().st_mtime_ns >= reference.stat().st_mtime_ns
@@ -893,37 +569,3 @@ def _record_uncomposable(folder: Path, overrides: list[str], message: str, error
         },
     }
     write_record(folder, record)
-
-
-class ProgressWatcher(threading.Thread):
-    """Prints :func:`progress_line` whenever another job of the sweep finishes.
-
-    It runs in the process that launched the sweep and watches the records appear in the sweep
-    folder, so progress shows on the terminal whatever the launcher (joblib workers, submitit
-    subprocesses, SLURM nodes on a shared file system).
-    """
-
-    def __init__(self, sweep_dir: Path, interval_s: float = 2.0) -> None:
-        super().__init__(name="nirspi-progress", daemon=True)
-        self.sweep_dir, self.interval_s = Path(sweep_dir), interval_s
-        self._halt = threading.Event()
-        self._last: str | None = None
-
-    def run(self) -> None:
-        while not self._halt.wait(self.interval_s):
-            self.report()
-
-    def report(self) -> None:
-        """Print the progress line if the count of finished jobs changed since the last one."""
-        line = progress_line(self.sweep_dir)
-        head = line.split(" | ", 1)[0] if line else None
-        if line and head != self._last:
-            self._last = head
-            print(f"nirspi-run: {line}", flush=True)
-
-    def stop(self) -> None:
-        """Stop watching and print the final state."""
-        self._halt.set()
-        if self.is_alive():
-            self.join()
-        self.report()

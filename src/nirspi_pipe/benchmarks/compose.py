@@ -78,14 +78,14 @@ def sweeper_for(loader: Any, experiment: str, arguments: Sequence[str] = ()) -> 
 
 
 def hydra_job(overrides: Sequence[str]) -> Any:
-    """A job as Hydra's public ``compose`` makes it: a :class:`~nirspi_pipe.app.sweeper.ComposedJob`
+    """A job as Hydra's public ``compose`` makes it: a :class:`~nirspi_pipe.app.jobcomposer.ComposedJob`
     (the config resolved by OmegaConf without the ``hydra`` node, the group choices without
     ``hydra/*``, ``hydra.overrides.task``), or the exception composing or resolving raised.
     Call it inside :func:`hydra_session`."""
     from hydra import compose  # start-up: loads hydra and omegaconf (501 ms here)
     from omegaconf import OmegaConf, open_dict, read_write  # start-up: loads omegaconf (227 ms here)
 
-    from nirspi_pipe.app.sweeper import ComposedJob  # start-up: loads hydra and omegaconf (656 ms here)
+    from nirspi_pipe.app.jobcomposer import ComposedJob  # start-up: loads hydra and omegaconf (656 ms here)
 
     try:
         cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
