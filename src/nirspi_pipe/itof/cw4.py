@@ -42,12 +42,13 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.detector import sample_electrons
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.types import Acquisition, Camera, Image2D, ItofSample, Scene
 
 __all__ = ["ContinuousWave4", "aim_spots", "ambiguity_range_m", "demodulate_4phase", "laser_directions"]
@@ -225,23 +226,23 @@ class ContinuousWave4:
             return: it is reported with ``sigma = inf`` (fusion ignores it) and a warning.
     """
 
-    f_mod_mhz: float = 4.8
-    t_int_us: float = 150.0
-    averaging_s: float = 0.5
-    ned_cm_per_sqrt_hz: float = 1.0
-    laser_power_mw: float = 5.0
-    wavelength_nm: float = 1550.0
-    spots: str = "auto"
-    n_spots: int = 4
-    aim_threshold: float = 0.1
-    spot_angle_deg: float = 3.5
-    azimuth_deg: float = 45.0
+    f_mod_mhz: Annotated[float, Range(0.0, None, "a frequency in MHz", lo_open=True)] = 4.8
+    t_int_us: Annotated[float, Range(0.0, None, "an integration time in µs", lo_open=True)] = 150.0
+    averaging_s: Annotated[float, Range(0.0, None, "an averaging time in s", lo_open=True)] = 0.5
+    ned_cm_per_sqrt_hz: Annotated[float, Range(0.0, None, "a NED in cm/√Hz")] = 1.0
+    laser_power_mw: Annotated[float, Range(0.0, _MAX_POWER_MW, "a power in mW", lo_open=True)] = 5.0
+    wavelength_nm: Annotated[float, Range(0.0, None, "a wavelength in nm", lo_open=True)] = 1550.0
+    spots: Annotated[str, OneOf(SPOT_MODES)] = "auto"
+    n_spots: Annotated[int, Range(1, 4, "an integer", integer=True)] = 4
+    aim_threshold: Annotated[float, Range(0.0, 1.0, "a fraction", lo_open=True, hi_open=True)] = 0.1
+    spot_angle_deg: Annotated[float, Range(0.0, 80.0, "degrees", hi_open=True)] = 3.5
+    azimuth_deg: Annotated[float, Range(None, None, "an angle in degrees")] = 45.0
     aim_directions: tuple | None = None
-    aperture_mm: float = 5.0
-    rx_half_fov_deg: float = 10.0
-    quantum_efficiency: float = 0.8
-    demod_contrast: float = 0.5
-    min_phase_snr: float = 3.0
+    aperture_mm: Annotated[float, Range(0.0, None, "a diameter in mm", lo_open=True)] = 5.0
+    rx_half_fov_deg: Annotated[float, Range(0.0, 90.0, "degrees", lo_open=True, hi_open=True)] = 10.0
+    quantum_efficiency: Annotated[float, Range(0.0, 1.0, "a fraction", lo_open=True)] = 0.8
+    demod_contrast: Annotated[float, Range(0.0, 1.0, "a contrast", lo_open=True)] = 0.5
+    min_phase_snr: Annotated[float, Range(0.0, None, "a phase SNR", lo_open=True)] = 3.0
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -250,31 +251,9 @@ class ContinuousWave4:
         from skimage.filters import threshold_otsu  # noqa: F401
 
     def __post_init__(self) -> None:
-        positive = {
-            "f_mod_mhz": "a frequency in MHz > 0",
-            "t_int_us": "an integration time in µs > 0",
-            "averaging_s": "an averaging time in s > 0",
-            "laser_power_mw": "a power in mW > 0",
-            "wavelength_nm": "a wavelength in nm > 0",
-            "aperture_mm": "a diameter in mm > 0",
-            "min_phase_snr": "a phase SNR > 0",
-        }
-        for key, allowed in positive.items():
-            v = getattr(self, key)
-            if not (np.isfinite(v) and v > 0):
-                raise ConfigError(key, v, allowed)
-        if self.laser_power_mw > _MAX_POWER_MW:
-            raise ConfigError("laser_power_mw", self.laser_power_mw, f"a power in mW in (0, {_MAX_POWER_MW:g}]")
-        if not (np.isfinite(self.ned_cm_per_sqrt_hz) and self.ned_cm_per_sqrt_hz >= 0):
-            raise ConfigError("ned_cm_per_sqrt_hz", self.ned_cm_per_sqrt_hz, "a NED in cm/√Hz >= 0")
+        check_ranges(self)
         if self.averaging_s < self.t_int_us * 1e-6:
             raise ConfigError("averaging_s", self.averaging_s, "at least one frame (>= t_int_us)")
-        if self.spots not in SPOT_MODES:
-            raise ConfigError("spots", self.spots, ", ".join(SPOT_MODES))
-        if isinstance(self.n_spots, bool) or int(self.n_spots) != self.n_spots or not 1 <= self.n_spots <= 4:
-            raise ConfigError("n_spots", self.n_spots, "an integer from 1 to 4")
-        if not 0.0 < self.aim_threshold < 1.0:
-            raise ConfigError("aim_threshold", self.aim_threshold, "a fraction in (0, 1)")
         if self.aim_directions is not None:
             d = np.asarray(self.aim_directions, dtype=np.float64) if np.size(self.aim_directions) else np.zeros(0)
             if (
@@ -287,16 +266,6 @@ class ContinuousWave4:
                 raise ConfigError(
                     "aim_directions", self.aim_directions, "1 to 4 directions [x, y, z] with z > 0, or null"
                 )
-        if not 0.0 <= self.spot_angle_deg < 80.0:
-            raise ConfigError("spot_angle_deg", self.spot_angle_deg, "degrees in [0, 80)")
-        if not np.isfinite(self.azimuth_deg):
-            raise ConfigError("azimuth_deg", self.azimuth_deg, "a finite angle in degrees")
-        if not 0.0 < self.rx_half_fov_deg < 90.0:
-            raise ConfigError("rx_half_fov_deg", self.rx_half_fov_deg, "degrees in (0, 90)")
-        if not 0.0 < self.quantum_efficiency <= 1.0:
-            raise ConfigError("quantum_efficiency", self.quantum_efficiency, "a fraction in (0, 1]")
-        if not 0.0 < self.demod_contrast <= 1.0:
-            raise ConfigError("demod_contrast", self.demod_contrast, "a contrast in (0, 1]")
 
     def aimed(self, image: Image2D, camera: Camera) -> ContinuousWave4:
         """This iToF with its spots aimed at the object seen in ``image`` (``spots: auto``; the

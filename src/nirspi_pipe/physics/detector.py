@@ -22,11 +22,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
+from nirspi_pipe.ranges import Range, check_ranges
 
 __all__ = ["IdealDetector", "Photodiode", "sample_electrons", "digitize", "ELEMENTARY_CHARGE"]
 
@@ -113,12 +115,12 @@ class Photodiode:
 
     budget: PhotonBudget = field(default_factory=PhotonBudget)
     shot_noise: bool = True
-    dark_current_na: float = 0.0066
-    read_noise_e: float = 376.66
-    c_eq_ff: float = 19.0
-    full_scale_v: float | None = 1.0
-    adc_bits: int | None = 16
-    offset_e: float = 2000.0
+    dark_current_na: Annotated[float, Range(0.0, 1e6, "a current in nA")] = 0.0066
+    read_noise_e: Annotated[float, Range(0.0, 1e9, "a noise in e⁻ rms")] = 376.66
+    c_eq_ff: Annotated[float, Range(0.0, 1e9, "a capacitance in fF", lo_open=True)] = 19.0
+    full_scale_v: Annotated[float | None, Range(0.0, 1e3, "a voltage in V", lo_open=True)] = 1.0
+    adc_bits: Annotated[int | None, Range(1, 32, "an integer", integer=True)] = 16
+    offset_e: Annotated[float, Range(0.0, 1e12, "a pedestal in e⁻")] = 2000.0
 
     physical = True
 
@@ -133,18 +135,7 @@ class Photodiode:
                 raise ConfigError("budget", params, f"PhotonBudget keys ({exc})") from None
         if not isinstance(self.budget, PhotonBudget):
             raise ConfigError("budget", self.budget, "a PhotonBudget (Eqs. 10–11)")
-        if not np.isfinite(self.dark_current_na) or not 0 <= self.dark_current_na <= 1e6:
-            raise ConfigError("dark_current_na", self.dark_current_na, "a current in nA in [0, 1e6]")
-        if not np.isfinite(self.read_noise_e) or not 0 <= self.read_noise_e <= 1e9:
-            raise ConfigError("read_noise_e", self.read_noise_e, "a noise in e⁻ rms in [0, 1e9]")
-        if not np.isfinite(self.c_eq_ff) or not 0 < self.c_eq_ff <= 1e9:
-            raise ConfigError("c_eq_ff", self.c_eq_ff, "a capacitance in fF in (0, 1e9]")
-        if self.full_scale_v is not None and (not np.isfinite(self.full_scale_v) or not 0 < self.full_scale_v <= 1e3):
-            raise ConfigError("full_scale_v", self.full_scale_v, "a voltage in V in (0, 1000], or null")
-        if not np.isfinite(self.offset_e) or not 0 <= self.offset_e <= 1e12:
-            raise ConfigError("offset_e", self.offset_e, "a pedestal in e⁻ in [0, 1e12]")
-        if self.adc_bits is not None and (int(self.adc_bits) != self.adc_bits or not 1 <= self.adc_bits <= 32):
-            raise ConfigError("adc_bits", self.adc_bits, "an integer from 1 to 32, or null")
+        check_ranges(self)
 
     @property
     def dark_electrons(self) -> float:

@@ -25,11 +25,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, NamedTuple
+from typing import Annotated, Any, NamedTuple
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import Range, check_ranges
 
 __all__ = [
     "WATER_SURFACE_TENSION_N_M",
@@ -172,17 +173,6 @@ def backscatter(gain: float, radiance: Any, beta_per_m: Any, z_m: Any) -> np.nda
     return gain * np.asarray(radiance) * (1.0 - transmittance(beta_per_m, z_m))
 
 
-def _check_common(extent_mm: float, backscatter_gain: float, fluctuation_rel: float, fluctuation_time_s: float) -> None:
-    if not extent_mm > 0:
-        raise ConfigError("extent_mm", extent_mm, "a fog path length in mm > 0 (.inf for unbounded fog)")
-    if not np.isfinite(backscatter_gain) or backscatter_gain < 0:
-        raise ConfigError("backscatter_gain", backscatter_gain, "a factor >= 0")
-    if not np.isfinite(fluctuation_rel) or not 0 <= fluctuation_rel <= 1:
-        raise ConfigError("fluctuation_rel", fluctuation_rel, "a relative standard deviation in [0, 1]")
-    if not np.isfinite(fluctuation_time_s) or fluctuation_time_s <= 0:
-        raise ConfigError("fluctuation_time_s", fluctuation_time_s, "a correlation time in s > 0")
-
-
 @dataclass(frozen=True)
 class NoFog:
     """``fog=none``: clear air. The simulator drops it: no Mie call, no fog array, no cost."""
@@ -222,17 +212,19 @@ class MieFog:
             the fog density during the acquisition (Ornstein–Uhlenbeck, seeded); 0 = steady.
     """
 
-    piezo_frequency_hz: float = 1.7e6
-    droplet_diameter_um: float | None = None
-    number_density_per_cm3: float = 44770.0
-    wavelength_nm: float = 1550.0
-    index_real: float = WATER_INDEX_1550NM.real
-    index_imag: float = WATER_INDEX_1550NM.imag
-    extent_mm: float = 350.0
-    backscatter_gain: float = 0.01
-    fluctuation_rel: float = 0.0
-    fluctuation_time_s: float = 0.05
-    trend_rel: float = 0.0
+    piezo_frequency_hz: float = 1.7e6  # its range is Eq. (5)'s: checked by droplet_diameter_m
+    droplet_diameter_um: Annotated[float | None, Range(DROPLET_MIN_UM, 1e4, "a diameter in µm")] = None
+    number_density_per_cm3: Annotated[float, Range(0.0, None, "a density per cm³")] = 44770.0
+    wavelength_nm: Annotated[float, Range(200.0, 20000.0, "a wavelength in nm")] = 1550.0
+    index_real: Annotated[float, Range(1.0, 4.0, "a real refractive index")] = WATER_INDEX_1550NM.real
+    index_imag: Annotated[float, Range(0.0, 10.0, "an imaginary index k")] = WATER_INDEX_1550NM.imag
+    extent_mm: Annotated[
+        float, Range(0.0, None, "a fog path length in mm", lo_open=True, finite=False, note=".inf for unbounded fog")
+    ] = 350.0
+    backscatter_gain: Annotated[float, Range(0.0, None, "a factor")] = 0.01
+    fluctuation_rel: Annotated[float, Range(0.0, 1.0, "a relative standard deviation")] = 0.0
+    fluctuation_time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)] = 0.05
+    trend_rel: Annotated[float, Range(-0.9, 10.0, "a relative change of the density over the acquisition")] = 0.0
 
     active = True
 
@@ -244,27 +236,9 @@ class MieFog:
         import miepython  # noqa: F401
 
     def __post_init__(self) -> None:
+        check_ranges(self)
         if self.droplet_diameter_um is None:
             droplet_diameter_m(self.piezo_frequency_hz)  # validates the frequency
-        elif not np.isfinite(self.droplet_diameter_um) or not DROPLET_MIN_UM <= self.droplet_diameter_um <= 1e4:
-            raise ConfigError(
-                "droplet_diameter_um",
-                self.droplet_diameter_um,
-                f"a diameter in µm in [{DROPLET_MIN_UM:g}, 10000], or null",
-            )
-        if not np.isfinite(self.number_density_per_cm3) or self.number_density_per_cm3 < 0:
-            raise ConfigError("number_density_per_cm3", self.number_density_per_cm3, "a density >= 0 per cm³")
-        if not np.isfinite(self.wavelength_nm) or not 200 <= self.wavelength_nm <= 20000:
-            raise ConfigError("wavelength_nm", self.wavelength_nm, "a wavelength in nm in [200, 20000]")
-        if not 1.0 <= self.index_real <= 4.0:
-            raise ConfigError("index_real", self.index_real, "a real refractive index in [1, 4]")
-        if not 0.0 <= self.index_imag <= 10.0:
-            raise ConfigError("index_imag", self.index_imag, "an imaginary index k in [0, 10]")
-        _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
-        if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
-            raise ConfigError(
-                "trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]"
-            )
 
     @property
     def diameter_m(self) -> float:
@@ -317,26 +291,20 @@ class MeasuredFog:
         single_scattering_albedo: ``Q_sca/Q_ext`` used for fog airlight under background light.
     """
 
-    beta_per_m: float = 1.0
-    extent_mm: float = 350.0
-    backscatter_gain: float = 0.01
-    fluctuation_rel: float = 0.0
-    fluctuation_time_s: float = 0.05
-    trend_rel: float = 0.0
-    single_scattering_albedo: float = 1.0
+    beta_per_m: Annotated[float, Range(0.0, None, "an extinction coefficient in 1/m")] = 1.0
+    extent_mm: Annotated[
+        float, Range(0.0, None, "a fog path length in mm", lo_open=True, finite=False, note=".inf for unbounded fog")
+    ] = 350.0
+    backscatter_gain: Annotated[float, Range(0.0, None, "a factor")] = 0.01
+    fluctuation_rel: Annotated[float, Range(0.0, 1.0, "a relative standard deviation")] = 0.0
+    fluctuation_time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)] = 0.05
+    trend_rel: Annotated[float, Range(-0.9, 10.0, "a relative change of the density over the acquisition")] = 0.0
+    single_scattering_albedo: Annotated[float, Range(0.0, 1.0, "a value")] = 1.0
 
     active = True
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.beta_per_m) or self.beta_per_m < 0:
-            raise ConfigError("beta_per_m", self.beta_per_m, "an extinction coefficient >= 0 in 1/m")
-        if not 0 <= self.single_scattering_albedo <= 1:
-            raise ConfigError("single_scattering_albedo", self.single_scattering_albedo, "a value in [0, 1]")
-        _check_common(self.extent_mm, self.backscatter_gain, self.fluctuation_rel, self.fluctuation_time_s)
-        if not np.isfinite(self.trend_rel) or not -0.9 <= self.trend_rel <= 10.0:
-            raise ConfigError(
-                "trend_rel", self.trend_rel, "a relative change of the density over the acquisition in [-0.9, 10]"
-            )
+        check_ranges(self)
 
     @property
     def extinction_per_m(self) -> float:

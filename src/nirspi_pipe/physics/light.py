@@ -35,10 +35,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
+from typing import Annotated
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 
 __all__ = [
     "SPECTRA",
@@ -204,52 +206,32 @@ class Background:
             relative standard deviation and correlation time.
     """
 
-    klux: float = 0.0
+    klux: Annotated[float, Range(0.0, 100.0, "an illuminance in kLux")] = 0.0
     band_nm: tuple[float, float] = (1500.0, 1600.0)
-    spectrum: str = "blackbody"
-    spectrum_temperature_k: float = 5778.0
-    filament_time_s: float = 0.05
-    mains_hz: float = 50.0
-    surround_reflectance: float = 0.2
-    drift_rel_per_s: float = 0.0
-    flicker_rel: float | None = 0.0
-    flicker_hz: float = 100.0
-    wander_rel: float = 0.0
-    wander_time_s: float = 0.1
+    spectrum: Annotated[str, OneOf(SPECTRA)] = "blackbody"
+    spectrum_temperature_k: Annotated[float, Range(1000.0, 20000.0, "a temperature in K")] = 5778.0
+    filament_time_s: Annotated[float, Range(0.0, None, "a thermal time constant in s", lo_open=True)] = 0.05
+    # a halogen lamp flickers at twice its mains frequency: at most MAX_HZ
+    mains_hz: Annotated[float, Range(0.0, MAX_HZ / 2, "a mains frequency in Hz", lo_open=True)] = 50.0
+    surround_reflectance: Annotated[float, Range(0.0, 1.0, "a reflectance")] = 0.2
+    drift_rel_per_s: Annotated[float, Range(-10.0, 10.0, "a relative drift per s")] = 0.0
+    flicker_rel: Annotated[float | None, Range(0.0, 10.0, "a relative amount")] = 0.0
+    flicker_hz: Annotated[float, Range(0.0, MAX_HZ, "a frequency in Hz")] = 100.0
+    wander_rel: Annotated[float, Range(0.0, 10.0, "a relative amount")] = 0.0
+    wander_time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)] = 0.1
 
     def __post_init__(self) -> None:
-        if not np.isfinite(self.klux) or not 0.0 <= self.klux <= 100.0:
-            raise ConfigError("klux", self.klux, "an illuminance in kLux in [0, 100]")
+        check_ranges(self)
         band = tuple(float(b) for b in self.band_nm)
         if len(band) != 2 or not 200.0 <= band[0] < band[1] <= 20000.0:
             raise ConfigError("band_nm", self.band_nm, "[lo, hi] in nm with 200 <= lo < hi <= 20000")
         object.__setattr__(self, "band_nm", band)
-        if self.spectrum not in SPECTRA:
-            raise ConfigError("spectrum", self.spectrum, f"one of {list(SPECTRA)}")
         if self.spectrum == "sun" and not 360.0 <= band[0] < band[1] <= 1800.0:
             raise ConfigError("band_nm", list(band), "a band inside 360-1800 nm for spectrum=sun (the tabulated rows)")
-        if not np.isfinite(self.filament_time_s) or self.filament_time_s <= 0:
-            raise ConfigError("filament_time_s", self.filament_time_s, "a thermal time constant in s > 0")
-        if not np.isfinite(self.mains_hz) or not 0 < self.mains_hz <= MAX_HZ / 2:  # a halogen flickers at 2×
-            raise ConfigError("mains_hz", self.mains_hz, f"a mains frequency in Hz in (0, {MAX_HZ / 2:g}]")
-        if self.flicker_rel is None:
+        if self.flicker_rel is None:  # the source's own, within range by construction
             object.__setattr__(self, "flicker_rel", self.flicker_amplitude())
             if self.spectrum == "halogen":
                 object.__setattr__(self, "flicker_hz", 2.0 * self.mains_hz)
-        if not 1000.0 <= self.spectrum_temperature_k <= 20000.0:
-            raise ConfigError(
-                "spectrum_temperature_k", self.spectrum_temperature_k, "a temperature in K in [1000, 20000]"
-            )
-        if not 0.0 <= self.surround_reflectance <= 1.0:
-            raise ConfigError("surround_reflectance", self.surround_reflectance, "a reflectance in [0, 1]")
-        for key in ("drift_rel_per_s", "flicker_rel", "wander_rel"):
-            v = getattr(self, key)
-            if not np.isfinite(v) or abs(v) > 10.0 or (key != "drift_rel_per_s" and v < 0):
-                raise ConfigError(key, v, "a relative amount in [0, 10] (drift: [-10, 10] per s)")
-        if not np.isfinite(self.flicker_hz) or not 0 <= self.flicker_hz <= MAX_HZ:
-            raise ConfigError("flicker_hz", self.flicker_hz, f"a frequency in Hz in [0, {MAX_HZ:g}]")
-        if not np.isfinite(self.wander_time_s) or self.wander_time_s <= 0:
-            raise ConfigError("wander_time_s", self.wander_time_s, "a correlation time in s > 0")
 
     def flicker_amplitude(self) -> float:
         """The source's own flicker (relative): none for the sun (no mains) or a generic blackbody;
