@@ -12,15 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nirspi_pipe.app.study import (
-    StorageError,
-    check_objective_keys,
-    check_storage,
-    dimension_of,
-    median_values,
-    repeat_key,
-    storage_url,
-)
+from nirspi_pipe.app.searchspace import check_objective_keys, dimension_of, median_values, repeat_key
+from nirspi_pipe.app.storage import StorageError, check_storage, storage_url
 
 optuna = pytest.importorskip("optuna", reason="pip install '.[optuna]'")
 

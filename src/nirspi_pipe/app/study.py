@@ -11,8 +11,8 @@ grid sweeper's machinery (job folders keyed by config hash, a record per job, cr
   asks for, so a finished study runs none and a larger ``n_trials`` adds the difference. A trial's
   job lands in its keyed folder, so a configuration Optuna asks for again reuses its record
   instead of being timed again. A database URL may be named for a study shared between machines
-  (:func:`check_storage`: ``postgresql``/``mysql`` schemes, or ``sqlite`` on a file inside the sweep
-  folder; anything else is refused in one line).
+  (:func:`~nirspi_pipe.app.storage.check_storage`: ``postgresql``/``mysql`` schemes, or ``sqlite``
+  on a file inside the sweep folder; anything else is refused in one line).
 * **Objectives checked before the first trial.** Before the study asks for a trial, one job (the
   search space's first configuration, in its keyed folder, so its record is reused when a trial
   asks for it) shows which record keys this experiment writes; an ``objective`` naming a key that
@@ -22,12 +22,15 @@ grid sweeper's machinery (job folders keyed by config hash, a record per job, cr
   did not finish ok.
 * **Repeats.** ``repeats: k`` runs each trial's configuration ``k`` times (folders keyed by the
   config hash and the repeat) and tells Optuna the median of each objective over the repeats
-  (:func:`median_values`); the results' ``pareto`` column marks configurations on the front of
-  those medians (:func:`nirspi_pipe.app.results.mark_pareto`).
+  (:func:`~nirspi_pipe.app.searchspace.median_values`); the results' ``pareto`` column marks
+  configurations on the front of those medians (:func:`nirspi_pipe.app.results.mark_pareto`).
 * **Ctrl-C** ends the sweep with one line: how many trials finished, where the study is, and the
   command that resumes it; the results table is written for what finished.
 * **Several workers** (e.g. SLURM jobs each running the same command on one database) share one
   study: each asks for trials until the study holds ``n_trials`` (finished or running).
+
+The search space and the objectives' checks are pure functions in
+:mod:`nirspi_pipe.app.searchspace`; the storage rule is :mod:`nirspi_pipe.app.storage`.
 
 Only Optuna's public API is used (``create_study``, ``ask``, ``tell``, ``get_trials``,
 ``Trial.suggest_*``), which Optuna 2.10 and later versions share.
@@ -35,52 +38,42 @@ Only Optuna's public API is used (``create_study``, ``ask``, ``tell``, ``get_tri
 
 from __future__ import annotations
 
-import difflib
 import logging
-import math
 import os
 import shlex
 import socket
 import sys
 import time
 import warnings
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from omegaconf import OmegaConf
 
-from nirspi_pipe.app.objective import SECTIONS, directions_of, objective_names
-from nirspi_pipe.app.storage import ALLOWED_SCHEMES, StorageError, check_storage, shown_url, storage_url
+from nirspi_pipe.app.objective import directions_of, objective_names
+from nirspi_pipe.app.searchspace import (
+    Dimension,
+    as_override_value,
+    check_objective_keys,
+    dimension_of,
+    median_values,
+    repeat_key,
+)
+from nirspi_pipe.app.storage import StorageError, shown_url, storage_url
 from nirspi_pipe.app.sweeper import NirspiSweeperBase
 from nirspi_pipe.records import (
     RECORD_NAME,
     InputHasher,
     OutputError,
     atomic_write,
-    config_hash,
     dumps_strict,
     job_key_of,
     read_record,
 )
 
-__all__ = [
-    "ALLOWED_SCHEMES",
-    "Dimension",
-    "StorageError",
-    "StudySweeperBase",
-    "check_storage",
-    "check_objective_keys",
-    "dimension_of",
-    "median_values",
-    "record_keys",
-    "register_config",
-    "repeat_key",
-    "storage_url",
-]
+__all__ = ["SWEEPER_CONFIG", "StudySweeperBase", "register_config"]
+
 
 #: ``hydra/sweeper=optuna``: this sweeper's config, registered over hydra-optuna-sweeper's node of
 #: that name (:func:`register_config`); the samplers are the plugin's ``hydra/sweeper/sampler`` options.
@@ -118,157 +111,6 @@ def register_config() -> None:
 
 
 log = logging.getLogger(__name__)
-
-
-# -- the search space ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Dimension:
-    """One swept key as Optuna samples it (Hydra's sweep syntax, as hydra-optuna-sweeper reads it):
-    ``choice(...)`` and a shuffled ``range`` are categorical; ``range(a,b,s)`` an integer (or a
-    float on a grid) from ``a`` up to below ``b``; ``interval(a,b)`` a float (an integer when both
-    ends are), log-uniform with ``tag(log, ...)``."""
-
-    name: str
-    kind: str  # "categorical", "int" or "float"
-    choices: tuple[Any, ...] = ()
-    low: float = 0.0
-    high: float = 0.0
-    step: float | None = None
-    log: bool = False
-
-    def suggest(self, trial: Any) -> Any:
-        """The trial's value (Optuna's ``Trial.suggest_*``)."""
-        if self.kind == "categorical":
-            return trial.suggest_categorical(self.name, list(self.choices))
-        if self.kind == "int":
-            return trial.suggest_int(self.name, int(self.low), int(self.high), step=int(self.step or 1), log=self.log)
-        return trial.suggest_float(self.name, self.low, self.high, step=self.step, log=self.log)
-
-    def first(self) -> Any:
-        """The space's first value: the first choice, or the low end."""
-        if self.kind == "categorical":
-            return self.choices[0]
-        return int(self.low) if self.kind == "int" else self.low
-
-
-def dimension_of(override: Any) -> Dimension | None:
-    """The :class:`Dimension` of a parsed Hydra override, or None when it is not a sweep.
-    Raises ``ValueError`` (one line) for a sweep Optuna cannot sample."""
-    # start-up: Hydra's override grammar, only for a sweep
-    from hydra.core.override_parser.types import Transformer
-
-    if not override.is_sweep_override():
-        return None
-    name = override.get_key_element()
-    value = override.value()
-    if override.is_choice_sweep() or (override.is_range_sweep() and value.shuffle):
-        choices = tuple(override.sweep_iterator(transformer=Transformer.encode))
-        for c in choices:
-            if not isinstance(c, (str, int, float, bool, type(None))):
-                raise ValueError(f"{name}: a choice of Optuna is a string, number, boolean or null, not {c!r}")
-        return Dimension(name, "categorical", choices=choices)
-    if override.is_range_sweep():
-        start, stop, step = value.start, value.stop, value.step
-        if any(isinstance(v, float) for v in (start, stop, step)):
-            n = math.ceil((stop - start) / step) - 1
-            if n < 0:
-                raise ValueError(f"{name}: range({start},{stop},{step}) is empty")
-            return Dimension(name, "float", low=float(start), high=float(start + n * step), step=float(step))
-        n = len(range(int(start), int(stop), int(step)))
-        if n == 0 or step < 0:
-            raise ValueError(f"{name}: range({start},{stop},{step}) is empty or descending")
-        return Dimension(name, "int", low=int(start), high=int(start + (n - 1) * step), step=int(step))
-    if override.is_interval_sweep():
-        log = "log" in value.tags
-        is_int = isinstance(value.start, int) and isinstance(value.end, int)
-        if not value.start < value.end or (log and value.start <= 0):
-            raise ValueError(
-                f"{name}: interval({value.start},{value.end}) is empty" + (" or not positive" if log else "")
-            )
-        return Dimension(name, "int" if is_int else "float", low=value.start, high=value.end, log=log)
-    raise ValueError(f"{name}: {override.input_line} is not a sweep Optuna samples (choice, range, interval)")
-
-
-def _as_override_value(value: Any) -> str:
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)
-    return str(value)
-
-
-# -- objectives against records -----------------------------------------------------------------
-
-
-def record_keys(record: Mapping[str, Any], sections: Sequence[str]) -> list[str]:
-    """The dotted keys of a record's numeric leaves in ``sections`` (``metrics.psnr``, ...)."""
-    out: list[str] = []
-
-    def walk(prefix: str, node: Any) -> None:
-        if isinstance(node, Mapping):
-            for k, v in node.items():
-                walk(f"{prefix}.{k}", v)
-        elif isinstance(node, (int, float)) and not isinstance(node, bool):
-            out.append(prefix)
-
-    for section in sections:
-        walk(section, record.get(section))
-    return out
-
-
-def check_objective_keys(names: Sequence[str], record: Mapping[str, Any]) -> str | None:
-    """One line naming every objective key that ``record`` (an ``ok`` record of this sweep) lacks,
-    with the nearest keys it has, or None when it has them all."""
-    keys = record_keys(record, SECTIONS)
-    missing = [n for n in names if n not in keys]
-    if not missing:
-        return None
-    parts = []
-    for name in missing:
-        near = difflib.get_close_matches(name, keys, n=3, cutoff=0.6)
-        parts.append(f"{name!r}" + (f" (did you mean {', '.join(near)}?)" if near else ""))
-    section_keys = sorted({k for k in keys if k.split(".")[0] in {m.split(".")[0] for m in missing}})
-    shown = ", ".join(section_keys[:12]) + (", ..." if len(section_keys) > 12 else "")
-    return (
-        f"objective: {'; '.join(parts)} {'is' if len(missing) == 1 else 'are'} not a key of this sweep's records; "
-        f"allowed: {shown or 'keys of ' + ', '.join(SECTIONS)} (checked on one job's record before any trial)"
-    )
-
-
-def _value_of(record: Mapping[str, Any], name: str) -> float | None:
-    node: Any = record
-    for part in name.split("."):
-        if not isinstance(node, Mapping) or part not in node:
-            return None
-        node = node[part]
-    if isinstance(node, bool) or not isinstance(node, (int, float)) or not math.isfinite(node):
-        return None
-    return float(node)
-
-
-def median_values(records: Sequence[Mapping[str, Any] | None], names: Sequence[str]) -> list[float] | None:
-    """Each objective's median over a trial's repeats, or None (a failed trial) when any repeat
-    failed or lacks a finite value."""
-    rows = []
-    for rec in records:
-        if rec is None or (rec.get("meta") or {}).get("status") != "ok":
-            return None
-        row = [_value_of(rec, n) for n in names]
-        if any(v is None for v in row):
-            return None
-        rows.append(row)
-    if not rows:
-        return None
-    return [float(v) for v in np.median(np.asarray(rows, dtype=float), axis=0)]
-
-
-def repeat_key(key: str, repeat: int) -> str:
-    """The folder key of repeat ``repeat`` of the job keyed ``key`` (repeat 0 is ``key``)."""
-    return key if repeat == 0 else config_hash({"repeat_of": key, "repeat": repeat})
 
 
 def _read(folder: Path) -> dict[str, Any] | None:
@@ -518,7 +360,7 @@ class StudySweeperBase(NirspiSweeperBase):
                             break
                         trial = study.ask()
                         values = [d.suggest(trial) for d in dims]
-                        ov = [*fixed, *(f"{d.name}={_as_override_value(v)}" for d, v in zip(dims, values, strict=True))]
+                        ov = [*fixed, *(f"{d.name}={as_override_value(v)}" for d, v in zip(dims, values, strict=True))]
                         trial.set_user_attr("overrides", ov)
                         trial.set_user_attr("worker", [_HOST, os.getpid()])
                         running.append((trial, []))
@@ -597,7 +439,7 @@ class StudySweeperBase(NirspiSweeperBase):
         """Refuse (exit 2, one line) an objective the records of this sweep do not have, checked on
         one job's record: the space's first configuration, run once into its keyed folder (a
         trial that asks for it reuses that record). A failing probe job checks nothing."""
-        probe = [*fixed, *(f"{d.name}={_as_override_value(d.first())}" for d in dims)]
+        probe = [*fixed, *(f"{d.name}={as_override_value(d.first())}" for d in dims)]
         jobs, composed, errors = self._prepare_trials(sweep_dir, [probe])
         if errors[0] is not None or not jobs[0]:
             return
