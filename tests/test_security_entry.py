@@ -215,8 +215,8 @@ def test_the_sweeper_and_optuna_options_are_data() -> None:
 
 
 def test_targets_logging_classes_only_at_logging_handler_keys() -> None:
+    from nirspi_pipe.app.hydratargets import check_target
     from nirspi_pipe.errors import ConfigError
-    from nirspi_pipe.targets import check_target
 
     check_target("logging.StreamHandler", "hydra.job_logging.handlers.console.class")
     for key in ("hydra.callbacks.logging._target_", "solver.logging._target_", "hydra.job_logging._target_"):

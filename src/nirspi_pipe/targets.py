@@ -6,26 +6,29 @@ target is built only when it is on the allow-list, and the check is a comparison
 **before** anything is imported or called:
 
 * :data:`PROJECT_TARGETS`: nirspi-pipe's own stage classes (every ``_target_`` the shipped config
-  options and experiments name, and the nested classes whose defaults the schemas expand), and
-  its one Hydra callback (:class:`nirspi_pipe.app.results.CollectResults`);
+  options and experiments name, and the nested classes whose defaults the schemas expand);
 * the classes that installed plugins register, read from the installed distributions' metadata
   (entry-point group ``nirspi_pipe.targets``, see docs/plugins.md) without importing them::
 
       [project.entry-points."nirspi_pipe.targets"]
       ADMMTVSolver = "nirspi_admm:ADMMTVSolver"     # allows _target_: nirspi_admm.ADMMTVSolver
 
-Anything else is a one-line :class:`~nirspi_pipe.errors.ConfigError` naming the key. The
-runner (:func:`nirspi_pipe.pipeline.build`) checks every node it builds; ``nirspi-run`` and
-``nirspi_pipe.run`` also check the whole composed config, Hydra's own node included, before
-Hydra builds its callbacks, launcher and sweeper (:func:`nirspi_pipe.app.validate.check_config`).
-This module imports neither Hydra nor OmegaConf.
+A target in a layer above the runner (Hydra, OmegaConf, the app, the config groups, the
+command-line tools: :data:`UPPER_LAYERS`) is refused, whatever the lists hold (a plugin
+cannot register one): the runner builds stages without the config layer (issue 42, checked at run
+time by tests/test_layering_runtime.py). Anything else is a one-line
+:class:`~nirspi_pipe.errors.ConfigError` naming the key. The runner
+(:func:`nirspi_pipe.pipeline.build`) checks every node it builds. The classes Hydra itself builds
+from its own node (the results callback, launcher and sweeper plugins, logging handlers) are the
+app's business: it allows them at their keys of ``hydra.*`` and hands every other key to
+:func:`check_target` (:mod:`nirspi_pipe.app.hydratargets`). This module imports neither Hydra nor
+OmegaConf, and names no class of the app.
 """
 
 from __future__ import annotations
 
 import importlib
 import os
-import re
 import sys
 from collections.abc import Iterator
 from functools import lru_cache
@@ -37,8 +40,8 @@ from nirspi_pipe.errors import ConfigError
 __all__ = [
     "PROJECT_TARGETS",
     "TARGET_ENTRY_POINTS",
-    "HYDRA_PLUGIN_PREFIXES",
-    "LOGGING_CLASSES",
+    "UPPER_LAYERS",
+    "above_the_runner",
     "plugin_targets",
     "allowed_targets",
     "find_targets",
@@ -111,20 +114,37 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         "nirspi_pipe.metrics.ImageMetrics",
         "nirspi_pipe.upscale.metrics.UpscaleMetrics",
         "nirspi_pipe.mesh.metrics3d.Metrics3D",
-        # Hydra callback (hydra.callbacks.collect)
-        "nirspi_pipe.app.results.CollectResults",
     }
 )
 
-#: Where Hydra's own plugin classes live. Only ``hydra.launcher._target_`` and
-#: ``hydra.sweeper._target_`` may name one: Hydra builds those itself and accepts only classes
-#: registered as Hydra plugins (in these packages); their nested nodes are checked like any other.
-HYDRA_PLUGIN_PREFIXES = ("hydra_plugins.", "hydra._internal.core_plugins.")
-_HYDRA_PLUGIN_KEYS = ("hydra.launcher._target_", "hydra.sweeper._target_")
+#: The layers above the runner, by dotted prefix: Hydra and its plugin namespace, OmegaConf, the
+#: app, the config groups (``nirspi_pipe.conf`` registers the app's schemas on import) and the
+#: command-line tools that compose configs (the same split as tests/test_architecture.py, which
+#: checks that this list covers its own). A ``_target_`` in one of them is never built by the
+#: runner. ``nirspi_pipe.<name>`` alone is the package's facade, whose names the app serves lazily.
+UPPER_LAYERS: tuple[str, ...] = (
+    "hydra",
+    "hydra_plugins",
+    "omegaconf",
+    "nirspi_pipe.app",
+    "nirspi_pipe.conf",
+    "nirspi_pipe.experiments",
+    "nirspi_pipe.benchmarks",
+    "nirspi_pipe.bench",
+    "nirspi_pipe.readme_numbers",
+    "nirspi_pipe.hardcases",
+    "nirspi_pipe.reproduce",
+)
 
-#: The handler classes of Hydra's default logging configs (``hydra/job_logging/default.yaml``):
-#: the only classes a ``class``/``()`` key of a logging node may name.
-LOGGING_CLASSES = frozenset({"logging.StreamHandler", "logging.FileHandler", "logging.NullHandler"})
+
+def above_the_runner(target: str) -> bool:
+    """True when the dotted name ``target`` lies in :data:`UPPER_LAYERS` or is an attribute of the
+    package's facade (``nirspi_pipe.run``): a string comparison, nothing is imported."""
+    name = target.strip()
+    parts = name.split(".")
+    if parts[0] == "nirspi_pipe" and len(parts) <= 2:
+        return True
+    return any(name == layer or name.startswith(layer + ".") for layer in UPPER_LAYERS)
 
 
 def trusted_paths() -> list[str]:
@@ -195,20 +215,15 @@ def plugin_targets() -> frozenset[str]:
     return frozenset(found)
 
 
+@lru_cache(maxsize=4)
+def _allowed(project: frozenset[str], plugins: frozenset[str]) -> frozenset[str]:
+    return frozenset(t for t in project | plugins if not above_the_runner(t))
+
+
 def allowed_targets() -> frozenset[str]:
-    """Every ``_target_`` a config may name: :data:`PROJECT_TARGETS` and :func:`plugin_targets`."""
-    return PROJECT_TARGETS | plugin_targets()
-
-
-#: Keys where Python's ``logging.config`` builds a handler: a ``class``/``()`` there may name one of
-#: :data:`LOGGING_CLASSES` (nowhere else: a key path merely containing "logging" unlocks nothing).
-_LOGGING_CLASS_KEY = re.compile(r"^hydra\.(job|hydra)_logging\.handlers\.[^.]+\.(class|\(\))$")
-#: Optuna's samplers and pruners (hydra-optuna-sweeper, issue 34): only at these two keys, and
-#: only from these packages; :mod:`nirspi_pipe.app.entry` also requires the Optuna sweeper.
-OPTUNA_TARGET_KEYS = {
-    "hydra.sweeper.sampler._target_": "optuna.samplers.",
-    "hydra.sweeper.pruner._target_": "optuna.pruners.",
-}
+    """Every ``_target_`` a config may name: :data:`PROJECT_TARGETS` and :func:`plugin_targets`,
+    less any name :func:`above_the_runner` (which no list can allow)."""
+    return _allowed(PROJECT_TARGETS, plugin_targets())
 
 
 def _in_logging(key: str) -> bool:
@@ -243,16 +258,19 @@ def _allowed_text() -> str:
 
 def check_target(target: Any, key: str) -> None:
     """Raise a one-line :class:`ConfigError` naming ``key`` unless ``target`` is allowed. Only
-    strings are compared: nothing is imported."""
+    strings are compared: nothing is imported. A target :func:`above_the_runner` is refused,
+    saying why, even when an allow-list holds it (:func:`allowed_targets` leaves those out)."""
     if isinstance(target, str) and target in allowed_targets():
         return
-    if isinstance(target, str) and key in _HYDRA_PLUGIN_KEYS and target.startswith(HYDRA_PLUGIN_PREFIXES):
-        return  # Hydra accepts only its registered plugin classes here (hydra.core.plugins)
-    if isinstance(target, str) and _LOGGING_CLASS_KEY.match(key) and target in LOGGING_CLASSES:
-        return
-    prefix = OPTUNA_TARGET_KEYS.get(key)
-    if isinstance(target, str) and prefix and target.startswith(prefix) and target[len(prefix) :].isidentifier():
-        return
+    if isinstance(target, str) and above_the_runner(target):
+        raise ConfigError(
+            key,
+            target,
+            "a stage class of the runner (e.g. nirspi_pipe.solvers.fwht.FWHTSolver), never a class of a "
+            f"layer above it ({', '.join(p + '.*' for p in UPPER_LAYERS)}, or the facade nirspi_pipe.<name>): "
+            "the runner builds stages without Hydra, OmegaConf or the app",
+            absolute=True,
+        )
     allowed = _allowed_text()
     where = untrusted(TARGET_ENTRY_POINTS).get(target) if isinstance(target, str) else None
     if where:  # registered, but not by an installed distribution (a *.dist-info in the working directory)
