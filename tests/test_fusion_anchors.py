@@ -14,7 +14,9 @@ from hypothesis import strategies as st
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.itof.cw4 import ContinuousWave4
-from nirspi_pipe.mesh.fusion import ItofFusion, fit_anchors, semi_even_points, worse_than_prior
+from nirspi_pipe.mesh.anchors import fit_anchors, worse_than_prior
+from nirspi_pipe.mesh.fusion import ItofFusion
+from nirspi_pipe.mesh.pointcloud import semi_even_points
 from nirspi_pipe.mesh.standin import degraded_depth
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.types import Acquisition, Camera, ItofSample

@@ -9,14 +9,9 @@ from hypothesis import strategies as st
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.itof.cw4 import ContinuousWave4
-from nirspi_pipe.mesh.fusion import (
-    ItofFusion,
-    fit_anchors,
-    heat_diffusion,
-    region_weights,
-    semi_even_points,
-    voxel_merge,
-)
+from nirspi_pipe.mesh.anchors import fit_anchors, region_weights
+from nirspi_pipe.mesh.fusion import ItofFusion
+from nirspi_pipe.mesh.pointcloud import heat_diffusion, semi_even_points, voxel_merge
 from nirspi_pipe.mesh.standin import degraded_depth
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.types import Acquisition, Camera, DepthMap, ItofSample

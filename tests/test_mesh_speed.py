@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from nirspi_pipe.mesh.crustfaces import _stable_order, _weld
-from nirspi_pipe.mesh.fusion import _heat_graph, _heat_step, _nanmedian_last, heat_diffusion
+from nirspi_pipe.mesh.pointcloud import _nanmedian_last, heat_diffusion, heat_graph, heat_step
 from nirspi_pipe.mesh.powercrust import _compact, _group_first, circumcentres
 
 # finite values with ties, signed zeros and a wide range of magnitudes
@@ -97,10 +97,10 @@ def test_circumcentres_is_cramer_on_rows(tets: np.ndarray, weighted: bool, flatt
 @given(st.integers(0, 2**32 - 1), st.integers(5, 60), st.sampled_from([1.0, 3.0, 0.01]))
 def test_heat_step_on_a_reused_graph_is_heat_diffusion(seed: int, p: int, t: float) -> None:
     pts = np.random.default_rng(seed).normal(0.0, 0.01, (p, 3)) + [0.0, 0.0, 0.2]
-    graph = _heat_graph(pts, 8)
+    graph = heat_graph(pts, 8)
     r = np.linalg.norm(pts, axis=1)
     for values in (r, pts, r):  # the graph serves several solves unchanged
-        assert _same(_heat_step(values, *graph, t), heat_diffusion(values, pts, 8, t))
+        assert _same(heat_step(values, *graph, t), heat_diffusion(values, pts, 8, t))
     # ItofFusion._diffuse differs from before only by this substitution (one graph, three steps)
 
 

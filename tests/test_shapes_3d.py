@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.itof.cw4 import ContinuousWave4, aim_spots
-from nirspi_pipe.mesh.fusion import ItofFusion, depth_noise
+from nirspi_pipe.mesh.anchors import depth_noise
+from nirspi_pipe.mesh.fusion import ItofFusion
 from nirspi_pipe.mesh.metrics3d import equiangle_skewness
 from nirspi_pipe.mesh.powercrust import PowerCrust
 from nirspi_pipe.mesh.remesh import clean_and_remesh

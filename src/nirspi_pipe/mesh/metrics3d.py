@@ -47,7 +47,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import build
-from nirspi_pipe.mesh.fusion import back_project, grid_triangles
+from nirspi_pipe.mesh.pointcloud import back_project, grid_triangles
 from nirspi_pipe.metrics import ImageMetrics, rmse
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products

@@ -41,7 +41,7 @@ def truth_mesh(truth: Scene) -> Mesh:
     """The ground-truth visible surface as a triangle mesh (metres): the true depth map
     back-projected, two triangles per 2×2 block of object pixels."""
     # start-up: loads scipy, charset_normalizer (263 ms here)
-    from nirspi_pipe.mesh.fusion import (
+    from nirspi_pipe.mesh.pointcloud import (
         back_project,
         grid_triangles,
     )

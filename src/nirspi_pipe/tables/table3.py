@@ -58,7 +58,7 @@ BASELINE_RMSE = {
 }
 FUSED_RMSE = "metrics.depth_rmse_fused_mm"
 #: The fusion's own flag: its fit says the fused depth is expected to be worse than SFS alone
-#: (:func:`nirspi_pipe.mesh.fusion.worse_than_prior`); flagged jobs stay in the means and are counted.
+#: (:func:`nirspi_pipe.mesh.anchors.worse_than_prior`); flagged jobs stay in the means and are counted.
 FLAG = "info.fusion.worse_than_sfs"
 
 

@@ -1,0 +1,397 @@
+"""The anchors' fit of the fusion ``itof`` (Alg. A3, step 1 of :mod:`nirspi_pipe.mesh.fusion`).
+
+The relative SFS depth is made metric by a weighted fit of a scale and an offset to the iToF
+anchors (:func:`fit_anchors`, Levenberg-Marquardt over a log scale ratio and the placement, with
+priors), after a leave-one-out outlier test (:func:`consistent_anchors`); :func:`worse_than_prior`
+flags a placement the fit itself expects to be worse than the working-distance prior's;
+:func:`depth_noise` estimates the SFS map's noise that weights the anchors; :func:`anchor_weights`
+and :func:`region_weights` blend per-anchor offsets over the image.
+
+The fit uses elementwise numpy and sums only, no BLAS or LAPACK (the 2×2 covariance is inverted in
+closed form), so that it gives the same bits under every OpenBLAS kernel set (docs/sweeps.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from nirspi_pipe.errors import NirspiError
+
+__all__ = [
+    "AnchorFit",
+    "fit_anchors",
+    "consistent_anchors",
+    "worse_than_prior",
+    "depth_noise",
+    "anchor_weights",
+    "region_weights",
+]
+
+
+def depth_noise(depth: np.ndarray, valid: np.ndarray) -> float:
+    """Robust estimate of the white-noise standard deviation of a depth map ``(n, n)`` (its unit).
+
+    The residual of each valid pixel against the mean of its four valid neighbours has standard
+    deviation ``σ·sqrt(1 + 1/4)`` for white noise ``σ`` and no residual on a plane; we take
+    1.4826 × its median absolute value / 1.118 (a smooth surface adds only its small curvature
+    term, ``pitch²·κ/2``). Returns 0 when fewer than 9 pixels have four valid neighbours.
+    """
+    z = np.where(valid, depth, 0.0)
+    v = valid.astype(np.float64)
+    zp, vp = np.pad(z, 1), np.pad(v, 1)
+    nsum = zp[:-2, 1:-1] + zp[2:, 1:-1] + zp[1:-1, :-2] + zp[1:-1, 2:]
+    ncnt = vp[:-2, 1:-1] + vp[2:, 1:-1] + vp[1:-1, :-2] + vp[1:-1, 2:]
+    inner = valid & (ncnt == 4)
+    if inner.sum() < 9:
+        return 0.0
+    res = (z - nsum / np.maximum(ncnt, 1))[inner]
+    return float(1.4826 * np.median(np.abs(res - np.median(res))) / np.sqrt(1.25))
+
+
+def anchor_weights(rows: np.ndarray, cols: np.ndarray, anchor_rc: np.ndarray, blend_px: float) -> np.ndarray:
+    """Weights ``(…, k)`` of the anchors' image regions at pixels ``(rows, cols)``: Voronoi cells
+    of the anchors' pixel positions ``anchor_rc`` ``(k, 2)``, blended over a band ``blend_px``
+    wide around each cell border (``w_k ∝ clip((d_min + blend/2 − d_k)/blend, 0, 1)``, the same
+    linear ramp as :func:`region_weights`); non-negative, summing to 1."""
+    d = np.hypot(rows[..., None] - anchor_rc[:, 0], cols[..., None] - anchor_rc[:, 1])
+    hard = np.zeros(d.shape)
+    np.put_along_axis(hard, np.argmin(d, axis=-1)[..., None], 1.0, axis=-1)
+    if blend_px <= 0 or anchor_rc.shape[0] == 1:
+        return hard
+    dmin = d.min(axis=-1, keepdims=True)
+    w = np.clip((dmin + 0.5 * blend_px - d) / blend_px, 0.0, 1.0)
+    tot = w.sum(axis=-1, keepdims=True)
+    return np.where(tot > 0, w / np.where(tot > 0, tot, 1.0), hard)
+
+
+def region_weights(angles_deg: np.ndarray, anchor_angles_deg: np.ndarray, blend_deg: float) -> np.ndarray:
+    """Blending weights ``(…, k)`` of the angular regions centred on ``anchor_angles_deg``.
+
+    A pixel at polar angle ``ψ`` (degrees, about the principal point) belongs to the region of
+    the nearest anchor angle. With ``blend_deg = b > 0`` the weights ramp linearly over a band of
+    ``b`` degrees centred on each border (45° from the anchors when they are 90° apart), so the
+    per-region offsets do not leave steps; ``b = 0`` gives hard regions (the paper). Weights are
+    non-negative and sum to 1.
+    """
+    a = np.asarray(angles_deg, dtype=np.float64)[..., None]
+    delta = np.abs((a - np.asarray(anchor_angles_deg)[None, :] + 180.0) % 360.0 - 180.0)
+    nearest = np.argmin(delta, axis=-1)
+    hard = np.zeros(delta.shape)
+    np.put_along_axis(hard, nearest[..., None], 1.0, axis=-1)
+    if blend_deg <= 0:
+        return hard
+    half = 180.0 / len(anchor_angles_deg)  # 45° for four anchors
+    w = np.clip((half + 0.5 * blend_deg - delta) / blend_deg, 0.0, 1.0)
+    s = w.sum(axis=-1, keepdims=True)
+    return np.where(s > 0, w / np.where(s > 0, s, 1.0), hard)
+
+
+#: Bounds of the fitted log scale ratio ``u = ln(s / s_ref)``: the scale stays within a factor
+#: 1e6 of the geometric one (assumed: far beyond any SFS scale error; keeps the solver finite
+#: when anchors without a scale prior pull the scale towards 0 or a sign flip).
+_LOG_RATIO_BOUND = float(np.log(1e6))
+
+
+@dataclass(frozen=True)
+class AnchorFit:
+    """The anchors' fit of Alg. A3 (:func:`fit_anchors`).
+
+    Attributes:
+        scale: ``s`` (metres per SFS unit), > 0 by construction (``s = e^u · s_ref``).
+        offset_m: ``t`` (metres), so that ``z = s·zr + t``.
+        placement_m: ``c``, the metric depth at the reference SFS depth ``ref_zr`` (metres, > 0).
+        placement_sigma_m: the fit's standard deviation of ``c`` (metres; from the Jacobian).
+        scale_ref: ``s_ref``, the geometric scale at the placement (``c / focal_px``; 1 for
+            metric SFS depth).
+        chi2: the fit's χ², anchors and priors (dimensionless).
+        dof: its degrees of freedom, anchors + priors − 2.
+        anchor_chi2: the anchors' part of ``chi2``.
+        cov: ``(2, 2)`` covariance of ``(u, ln c)``.
+    """
+
+    scale: float
+    offset_m: float
+    placement_m: float
+    placement_sigma_m: float
+    scale_ref: float
+    chi2: float
+    dof: int
+    anchor_chi2: float
+    cov: np.ndarray
+
+    def predict(self, zr: np.ndarray, ref_zr: float, focal_px: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Metric depth at relative depths ``zr`` and its variance from the fit (metres, m²)."""
+        zr = np.asarray(zr, dtype=np.float64)
+        b = zr - ref_zr
+        pred = self.scale * zr + self.offset_m
+        # gradient of pred = c + e^u·s_ref(c)·b in (u, ln c): s·b, and c + s·b (s_ref = c/f) or c (1)
+        dv = self.placement_m + (self.scale * b if focal_px is not None else np.zeros_like(b))
+        g0, g1 = self.scale * b, dv  # written out: no BLAS kernel may change its bits
+        var = g0 * g0 * self.cov[0, 0] + 2.0 * g0 * g1 * self.cov[0, 1] + g1 * g1 * self.cov[1, 1]
+        return pred, np.maximum(var, 0.0)
+
+
+def _inv_sym2(a: float, b: float, d: float) -> np.ndarray:
+    """The (pseudo-)inverse of the symmetric 2×2 matrix ``[[a, b], [b, d]]``, in closed form
+    (no LAPACK: its result must not depend on the BLAS kernels, see docs/sweeps.md)."""
+    tr, det = a + d, a * d - b * b
+    if not tr > 0:
+        return np.zeros((2, 2))
+    big = 0.5 * (tr + math.hypot(a - d, 2.0 * b))  # the larger eigenvalue; the smaller is det/big
+    if det > 1e-15 * big * big:  # numpy.linalg.pinv's default cut-off (rcond=1e-15)
+        return np.array([[d / det, -b / det], [-b / det, a / det]])
+    # rank 1 within that cut-off: the pseudo-inverse v·vᵀ/λ of the one eigenpair, λ ≈ tr
+    return np.array([[a, b], [b, d]]) / tr**2
+
+
+def _levenberg_marquardt(
+    fun: Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    x0: tuple[float, float],
+    u_bound: float,
+    v_max: float,
+    max_iter: int = 200,
+) -> tuple[float, float]:
+    """Minimise ``Σ r²`` over two parameters ``(u, v)``, ``|u| ≤ u_bound``, ``v ≤ v_max``, by
+    Levenberg–Marquardt with Marquardt's diagonal scaling (Nocedal & Wright, *Numerical
+    Optimization*, 2nd ed., §10.3), steps projected onto the bounds. ``fun`` returns the
+    residuals and their derivatives in ``u`` and ``v``.
+
+    Written out with elementwise numpy and sums only, so that the fit gives the same bits under
+    every OpenBLAS/LAPACK kernel set (``scipy.optimize.least_squares`` did not: its last bits
+    moved the fused cloud of one CI job, docs/sweeps.md)."""
+
+    def clip(u: float, v: float) -> tuple[float, float]:
+        return min(max(u, -u_bound), u_bound), min(v, v_max)
+
+    x = clip(*x0)
+    r, ju, jv = fun(x)
+    cost = float(np.sum(r * r))
+    lam = 1e-3
+    for _ in range(max_iter):
+        a, b, d = float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv))
+        gu, gv = float(np.sum(ju * r)), float(np.sum(jv * r))
+        if not (math.isfinite(cost) and math.isfinite(a + b + d + gu + gv)):
+            break
+        if abs(gu) + abs(gv) <= 1e-15 * max(cost, 1e-300) ** 0.5 * (math.sqrt(a) + math.sqrt(d) + 1e-300):
+            break
+        improved = False
+        while lam < 1e16:
+            a2, d2 = a + lam * max(a, 1e-300), d + lam * max(d, 1e-300)
+            det = a2 * d2 - b * b
+            if not det > 0:
+                lam *= 10.0
+                continue
+            du, dv = (-d2 * gu + b * gv) / det, (b * gu - a2 * gv) / det
+            x_new = clip(x[0] + du, x[1] + dv)
+            r_new, ju_new, jv_new = fun(x_new)
+            cost_new = float(np.sum(r_new * r_new))
+            if math.isfinite(cost_new) and cost_new <= cost:
+                step = abs(x_new[0] - x[0]) + abs(x_new[1] - x[1])
+                gain = cost - cost_new
+                x, r, ju, jv, cost = x_new, r_new, ju_new, jv_new, cost_new
+                lam = max(lam / 10.0, 1e-12)
+                improved = step > 1e-14 * (1.0 + abs(x[0]) + abs(x[1])) and gain > 1e-15 * max(cost, 1e-300)
+                break
+            lam *= 10.0
+        if not improved:
+            break
+    return x
+
+
+def fit_anchors(
+    zr: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    ref_zr: float,
+    focal_px: float | None,
+    scale_prior_rel: float | None,
+    prior_m: float | None = None,
+    prior_sigma_m: float | None = None,
+) -> AnchorFit:
+    """Alg. A3's global fit ``z ≈ s·zr + t`` to the anchors, weighted by their noise, with the
+    scale positive by construction.
+
+    The unknowns are the placement ``c`` (metric depth at the SFS depth ``ref_zr``) and the
+    log scale ratio ``u``: ``s = e^u · s_ref``, ``s_ref = c / focal_px`` (one relative SFS unit
+    is a pixel pitch at the object's depth; ``focal_px=None``: metric SFS depth, ``s_ref = 1``),
+    ``t = c − s·ref_zr``. Minimised (Levenberg–Marquardt, :func:`_levenberg_marquardt`, ``u``
+    bounded to a factor 1e6):
+
+        Σ_i ((ẑ_i − z_i)/σ_i)² + ((e^u − 1) / scale_prior_rel)² + ((c − prior_m)/prior_sigma_m)²
+
+    the last two terms only when given: a Gaussian prior on the scale ratio ``e^u`` (positive
+    by construction, so it is never overruled into
+    a sign flip) and a Gaussian prior on the placement (the set-up's working distance). An
+    anchor whose ``σ`` is far above the prior's moves nothing.
+
+    Args:
+        zr: ``(k,)`` relative SFS depth at the anchors.
+        z: ``(k,)`` iToF z-depth of the anchors, metres.
+        sigma: ``(k,)`` anchor standard deviations, metres (finite, > 0).
+        ref_zr: the reference relative depth of the placement (the caller: the anchors' mean SFS
+            depth, so ``c/f`` is the pixel pitch at their depth).
+        focal_px: focal length in pixels (relative SFS depth), or None (metric SFS depth).
+        scale_prior_rel: standard deviation of ``u`` (≈ the relative tolerance of the scale);
+            None = no scale prior (needs anchors at two SFS depths).
+        prior_m, prior_sigma_m: the placement prior, metres; None = none.
+
+    Raises:
+        NirspiError: no anchor, or anchors that cannot determine the scale without its prior.
+    """
+    zr = np.asarray(zr, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    sig = np.asarray(sigma, dtype=np.float64)
+    k = len(z)
+    has_prior = prior_m is not None and prior_sigma_m is not None and prior_sigma_m > 0
+    if k == 0 and not has_prior:
+        raise NirspiError("fusion: no valid iToF anchor on the SFS depth map; cannot make it metric")
+    if k == 0 and scale_prior_rel is None:
+        scale_prior_rel = 0.2  # no anchor: the scale is the geometric one, as with one anchor
+    if scale_prior_rel is None and (k < 2 or float(np.ptp(zr)) <= 0):
+        raise NirspiError(
+            f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
+            "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
+        )
+    b = zr - ref_zr
+    rel = focal_px is not None
+    f_px = float(focal_px) if focal_px is not None else 1.0
+
+    sp = None if scale_prior_rel is None else float(scale_prior_rel)
+    pm = float(prior_m) if has_prior else 0.0  # type: ignore[arg-type]
+    ps = float(prior_sigma_m) if has_prior else 1.0  # type: ignore[arg-type]
+
+    def residuals(x: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals and their derivatives in ``u`` and ``ln c`` (analytic)."""
+        eu, c = math.exp(x[0]), math.exp(x[1])
+        s = eu * (c / f_px if rel else 1.0)
+        r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
+        if sp is not None:  # ratio e^u ~ N(1, rel), > 0
+            r.append(np.array([math.expm1(x[0]) / sp]))
+            du.append(np.array([eu / sp]))
+            dv.append(np.zeros(1))
+        if has_prior:
+            r.append(np.array([(c - pm) / ps]))
+            du.append(np.zeros(1))
+            dv.append(np.array([c / ps]))
+        return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
+
+    # start: u = 0 and the weighted least-squares placement at that scale (closed form)
+    w = 1.0 / sig**2
+    a = 1.0 + b / f_px if rel else np.ones(k)
+    shift = np.zeros(k) if rel else b
+    num = float(np.sum(w * a * (z - shift)))
+    den = float(np.sum(w * a * a))
+    if has_prior:
+        num += pm / ps**2
+        den += 1.0 / ps**2
+    c0 = num / den if den > 0 and np.isfinite(num / den) else float(np.median(z))
+    c0 = max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        x = _levenberg_marquardt(residuals, (0.0, math.log(c0)), _LOG_RATIO_BOUND, math.log(1e12))
+        res, ju, jv = residuals(x)
+        cov = _inv_sym2(float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv)))
+    u, v = x
+    c = math.exp(v) if v < 709.0 else math.inf
+    s_ref = c / f_px if rel else 1.0
+    s = math.exp(u) * s_ref
+    if not (np.isfinite(s) and np.isfinite(c) and np.all(np.isfinite(res)) and np.all(np.isfinite(cov))):
+        raise NirspiError("fusion: the anchors' fit of the depth scale and offset did not converge to finite values")
+    return AnchorFit(
+        scale=s,
+        offset_m=float(c - s * ref_zr),
+        placement_m=c,
+        placement_sigma_m=float(c * np.sqrt(max(cov[1, 1], 0.0))),
+        scale_ref=float(s_ref),
+        chi2=float(np.sum(res**2)),
+        dof=int(len(res) - 2),
+        anchor_chi2=float(np.sum(res[:k] ** 2)),
+        cov=cov,
+    )
+
+
+def consistent_anchors(
+    zr: np.ndarray,
+    z: np.ndarray,
+    sigma: np.ndarray,
+    alpha: float | None,
+    fit: Callable[[np.ndarray], AnchorFit],
+    ref_zr: float,
+    focal_px: float | None,
+    tau_m: float = 0.0,
+) -> tuple[np.ndarray, dict[int, str], AnchorFit]:
+    """The anchors that pass an outlier test, the rejected ones with their reason, and the final
+    fit.
+
+    Each anchor is predicted from the others (leave-one-out fit, weighted by ``sigma``) and its
+    squared standardised deviation ``d² = (z_i − ẑ_i)² / (σ_i² + τ² + var(ẑ_i))`` is compared
+    with the χ²₁ quantile at ``alpha / k`` (the outlier test on externally studentised residuals
+    with a Bonferroni bound over the ``k`` anchors: Cook & Weisberg, *Residuals and Influence in
+    Regression*, 1982, §2.2.2; Weisberg, *Applied Linear Regression*, 4th ed., §9.1.2). ``τ``
+    (``tau_m``) is the SFS map's own shape error at an anchor, which the local offsets absorb
+    (the caller passes the map's relief: an anchor within it can be a local SFS error, not a bad
+    anchor). The farthest anchor beyond the bound is rejected, the rest refitted and tested
+    again; the family-wise chance of rejecting a good anchor is at most ``alpha``.
+    ``alpha=None``: no test. ``fit(idx)`` fits the anchors ``idx`` (indices into the arrays).
+    """
+    from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
+
+    keep = np.arange(len(z))
+    rejected: dict[int, str] = {}
+    cur = fit(keep)
+    while alpha is not None and len(keep) >= 2:
+        worst, worst_d2, worst_dev = -1, 0.0, 0.0
+        for j in keep:
+            try:
+                loo = fit(keep[keep != j])
+            except NirspiError:
+                continue
+            pred, var = loo.predict(zr[j : j + 1], ref_zr, focal_px)
+            d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + tau_m**2 + var[0]))
+            if d2 > worst_d2:
+                worst, worst_d2, worst_dev = int(j), d2, float(z[j] - pred[0])
+        limit = float(chi2_dist.ppf(1.0 - alpha / len(keep), 1))
+        if worst < 0 or worst_d2 <= limit:
+            break
+        rejected[worst] = (
+            f"inconsistent: {abs(worst_dev):.3g} m "
+            f"from the depth the other anchors and the SFS shape predict there, {np.sqrt(worst_d2):.1f} times its "
+            f"sigma with the SFS relief (limit {np.sqrt(limit):.2f}: outlier test at alpha={alpha:g}, Bonferroni over "
+            f"{len(keep)} anchors)"
+        )
+        keep = keep[keep != worst]
+        cur = fit(keep)
+    return keep, rejected, cur
+
+
+def worse_than_prior(cur: AnchorFit, prior_sigma_m: float | None, n_anchors: int, scale_prior: bool) -> str | None:
+    """Why the fused placement is expected to be worse than SFS placed by the prior alone, or
+    None. No ground truth: from the fit's own numbers.
+
+    The fit weighs the anchors by their stated σ: its placement is ``c = w·c_a + (1 − w)·c_p``
+    with the anchors' share ``w = 1 − σ_c² / σ_p²`` (``σ_c`` the fitted placement's standard
+    deviation, ``σ_p`` the prior's). If the anchors in fact scatter ``R`` times more than their σ
+    (``R² = χ²_anchors / dof``, the Birge ratio, floored at 1; ``dof = k − 1`` with a scale prior,
+    ``k − 2`` without), the placement's mean square error is ``w²R²σ_a² + (1 − w)²σ_p²``
+    (``σ_a² = σ_c² / w`` the anchors' own variance), against ``σ_p²`` for the prior alone: it is
+    larger exactly when ``R² > 2 + σ_p²/σ_a²``."""
+    if prior_sigma_m is None or not prior_sigma_m > 0:
+        return None
+    dof = n_anchors - (1 if scale_prior else 2)
+    if dof < 1:
+        return None
+    r2 = max(1.0, cur.anchor_chi2 / dof)
+    share = 1.0 - (cur.placement_sigma_m / prior_sigma_m) ** 2
+    if not share > 0:
+        return None
+    var_a = cur.placement_sigma_m**2 / share
+    if r2 > 2.0 + prior_sigma_m**2 / var_a:
+        return (
+            f"the {n_anchors} anchors scatter {np.sqrt(r2):.3g} times their stated sigma (chi2 {cur.anchor_chi2:.3g} "
+            f"on {dof} dof), so the placement they carry (weight {share:.2f}) is expected to be worse than the "
+            f"working-distance prior's ({prior_sigma_m * 1e3:.3g} mm): limit {np.sqrt(2.0 + prior_sigma_m**2 / var_a):.3g}"
+        )
+    return None
