@@ -35,12 +35,13 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from nirspi_pipe.accel import check_device
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES
 from nirspi_pipe.sfs.sweeping import BIG, SCHEMES, SweepProblem, SweepResult, solve_numpy
 from nirspi_pipe.types import Camera, DepthMap, Image2D
@@ -95,26 +96,15 @@ class Prepared:
     info: dict[str, Any]
 
 
-def _check_common(obj: Any, schemes: tuple[str, ...]) -> None:
-    if obj.scheme not in schemes:
-        raise ConfigError("scheme", obj.scheme, ", ".join(schemes))
-    if obj.backend not in BACKENDS:
-        raise ConfigError("backend", obj.backend, ", ".join(BACKENDS))
-    if not (isinstance(obj.tol, (int, float)) and np.isfinite(obj.tol) and obj.tol > 0):
-        raise ConfigError("tol", obj.tol, "a tolerance in pixels > 0")
-    if int(obj.max_sweeps) != obj.max_sweeps or obj.max_sweeps < 4:
-        raise ConfigError("max_sweeps", obj.max_sweeps, "an integer >= 4")
+def _check_common(obj: Any) -> None:
+    """The checks of the SFS options that relate to more than a field's declared range."""
+    check_ranges(obj)
     if obj.albedo != "auto":
         ok = isinstance(obj.albedo, (int, float)) and not isinstance(obj.albedo, bool)
         if not ok or not 0.0 < float(obj.albedo) <= 1.0:
             raise ConfigError("albedo", obj.albedo, "auto, or a reflectance in (0, 1]")
-    if not 0.0 < float(obj.min_intensity) < 1.0:
-        raise ConfigError("min_intensity", obj.min_intensity, "a normalised radiance in (0, 1)")
-    if not 0.0 <= float(obj.source_tol) < 0.5:
-        raise ConfigError("source_tol", obj.source_tol, "a value in [0, 0.5)")
-    m = obj.median_px
-    if int(m) != m or m < 0 or (m > 0 and m % 2 == 0):
-        raise ConfigError("median_px", m, "0 (off) or an odd window size in pixels")
+    if obj.median_px > 0 and obj.median_px % 2 == 0:
+        raise ConfigError("median_px", obj.median_px, "0 (off) or an odd window size in pixels")
 
 
 def prepare_image(
@@ -370,18 +360,18 @@ class LaxFriedrichsSFS:
     :mod:`nirspi_pipe.sfs.second_order`). Depth in pixel pitches.
     """
 
-    scheme: str = "lax_friedrichs"
-    backend: str = "numpy"
-    tol: float = 1e-4
-    max_sweeps: int = 4000
+    scheme: Annotated[str, OneOf(SCHEMES)] = "lax_friedrichs"
+    backend: Annotated[str, OneOf(BACKENDS)] = "numpy"
+    tol: Annotated[float, Range(0.0, None, "a tolerance in pixels", lo_open=True)] = 1e-4
+    max_sweeps: Annotated[int, Range(4, None, "an integer", integer=True)] = 4000
     albedo: float | str = "auto"
-    min_intensity: float = 0.05
-    source_tol: float = 1e-3
-    median_px: int = 0
+    min_intensity: Annotated[float, Range(0.0, 1.0, "a normalised radiance", lo_open=True, hi_open=True)] = 0.05
+    source_tol: Annotated[float, Range(0.0, 0.5, "a value", hi_open=True)] = 1e-3
+    median_px: Annotated[int, Range(0, None, "0 (off) or an odd window size in pixels", integer=True)] = 0
     # Not in the generated config schema (only sfs=second_order, which sets it, reads it): the
     # configs, job keys and derived seeds of the other SFS options stay as they were.
-    slope_average: str = field(default="cos2", metadata={"config": False})
-    singular: str = "maximal"
+    slope_average: Annotated[str, OneOf(SLOPE_AVERAGES)] = field(default="cos2", metadata={"config": False})
+    singular: Annotated[str, OneOf(SINGULAR_CHOICES)] = "maximal"
     device: str = "auto"
 
     @classmethod
@@ -390,11 +380,7 @@ class LaxFriedrichsSFS:
         _warm_up_opencl(str(params.get("backend", cls.backend)))
 
     def __post_init__(self) -> None:
-        _check_common(self, SCHEMES)
-        if self.singular not in SINGULAR_CHOICES:
-            raise ConfigError("singular", self.singular, ", ".join(SINGULAR_CHOICES))
-        if self.slope_average not in SLOPE_AVERAGES:
-            raise ConfigError("slope_average", self.slope_average, ", ".join(SLOPE_AVERAGES))
+        _check_common(self)
         _check_device(self)
         self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
 
@@ -455,17 +441,16 @@ class OrenNayarSFS(LaxFriedrichsSFS):
     (``I = ρA``).
     """
 
-    roughness_rad: float = 0.3
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not 0.0 <= float(self.roughness_rad) <= _ON_MAX_ROUGHNESS:
-            raise ConfigError(
-                "roughness_rad",
-                self.roughness_rad,
-                f"radians in [0, {_ON_MAX_ROUGHNESS:.3f}] (beyond, brightness is not monotone in "
-                "the incidence angle with the light at the camera and SFS is ambiguous)",
-            )
+    roughness_rad: Annotated[
+        float,
+        Range(
+            0.0,
+            _ON_MAX_ROUGHNESS,
+            "radians",
+            note="beyond, brightness is not monotone in the incidence angle with the light at the camera "
+            "and SFS is ambiguous",
+        ),
+    ] = 0.3
 
     def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
         a, b = oren_nayar_ab(self.roughness_rad)
@@ -489,15 +474,8 @@ class PhongSFS(LaxFriedrichsSFS):
     per pixel by bisection, then the eikonal as in ``lax_friedrichs``.
     """
 
-    specular: float = 0.3
-    shininess: float = 10.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not 0.0 <= float(self.specular) < 1.0:
-            raise ConfigError("specular", self.specular, "a specular fraction k_s in [0, 1)")
-        if not 1.0 <= float(self.shininess) <= 1000.0:
-            raise ConfigError("shininess", self.shininess, "a Phong exponent in [1, 1000]")
+    specular: Annotated[float, Range(0.0, 1.0, "a specular fraction k_s", hi_open=True)] = 0.3
+    shininess: Annotated[float, Range(1.0, 1000.0, "a Phong exponent")] = 10.0
 
     def cos_incidence(self, norm: np.ndarray) -> np.ndarray:
         ks, alpha = float(self.specular), float(self.shininess)
@@ -528,15 +506,15 @@ class PerspectiveSFS:
     ``f (z/z_min − 1)``, the depth behind the nearest point in pixel pitches at that point.
     """
 
-    falloff: bool = True
-    scheme: str = "lax_friedrichs"
-    backend: str = "numpy"
-    tol: float = 1e-4
-    max_sweeps: int = 4000
+    falloff: Annotated[bool, OneOf((True, False), "true or false")] = True
+    scheme: Annotated[str, OneOf(("lax_friedrichs",))] = "lax_friedrichs"
+    backend: Annotated[str, OneOf(BACKENDS)] = "numpy"
+    tol: Annotated[float, Range(0.0, None, "a tolerance in pixels", lo_open=True)] = 1e-4
+    max_sweeps: Annotated[int, Range(4, None, "an integer", integer=True)] = 4000
     albedo: float | str = "auto"
-    min_intensity: float = 0.05
-    source_tol: float = 1e-3
-    median_px: int = 0
+    min_intensity: Annotated[float, Range(0.0, 1.0, "a normalised radiance", lo_open=True, hi_open=True)] = 0.05
+    source_tol: Annotated[float, Range(0.0, 0.5, "a value", hi_open=True)] = 1e-3
+    median_px: Annotated[int, Range(0, None, "0 (off) or an odd window size in pixels", integer=True)] = 0
     device: str = "auto"
 
     @classmethod
@@ -545,9 +523,7 @@ class PerspectiveSFS:
         _warm_up_opencl(str(params.get("backend", cls.backend)))
 
     def __post_init__(self) -> None:
-        _check_common(self, ("lax_friedrichs",))
-        if not isinstance(self.falloff, bool):
-            raise ConfigError("falloff", self.falloff, "true or false")
+        _check_common(self)
         _check_device(self)
         self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
 
