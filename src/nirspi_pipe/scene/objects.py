@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import check_ranges
 from nirspi_pipe.safeio import UnsafeInputError, check_budget, sanitize_text
-from nirspi_pipe.scene.render import check_common, check_size, compose_scene
+from nirspi_pipe.scene.render import DistanceMm, Reflectance, Supersample, check_size, compose_scene
 from nirspi_pipe.types import Camera, Scene
 
 __all__ = ["Sphere", "ImageTarget", "load_gray_image"]
@@ -30,13 +31,13 @@ class Sphere:
         supersample: rays per pixel side for anti-aliasing (1–16).
     """
 
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     diameter_mm: float = 50.0
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         check_size(self, "diameter_mm")
 
     def render(self, camera: Camera) -> Scene:
@@ -166,13 +167,13 @@ class ImageTarget:
     """
 
     path: str = "skimage:camera"
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     size_mm: float | None = None
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         if self.size_mm is not None and not self.size_mm > 0:
             raise ConfigError("size_mm", self.size_mm, "a size in mm > 0, or null to fill the view")
 

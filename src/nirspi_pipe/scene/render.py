@@ -11,14 +11,15 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import fields
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import Range
 from nirspi_pipe.types import Camera, Scene
 
-__all__ = ["check_common", "compose_scene", "forget_renders", "render_cached"]
+__all__ = ["DistanceMm", "Reflectance", "Supersample", "check_size", "compose_scene", "forget_renders", "render_cached"]
 
 
 def render_cached(shape: Any, camera: Any) -> Scene:
@@ -62,6 +63,12 @@ MAX_REMEMBERED = 8
 _REMEMBERED: OrderedDict[tuple[Any, Any], Scene] = OrderedDict()
 
 
+#: The keys every scene shares, with their declared ranges (:mod:`nirspi_pipe.ranges`).
+DistanceMm = Annotated[float, Range(0.0, None, "a distance in mm", lo_open=True)]
+Reflectance = Annotated[float, Range(0.0, 1.0, "a reflectance")]
+Supersample = Annotated[int, Range(1, 16, "an integer", integer=True)]
+
+
 def check_size(obj: Any, key: str, factor: float = 1.0, limit: float = 2.0) -> None:
     """``factor × obj.<key>`` (mm) must lie in ``(0, limit × obj.distance_mm)``: the object stays in
     front of the camera. A size that is no size (not finite, <= 0) is named. A size too large for
@@ -82,16 +89,6 @@ def check_size(obj: Any, key: str, factor: float = 1.0, limit: float = 2.0) -> N
             f"a distance in mm > {factor * value / limit:g} for {key}={value:g} (the object must stay in front of the camera)",
         )
     raise ConfigError(key, value, f"a size {span} (the object must stay in front of the camera)")
-
-
-def check_common(distance_mm: float, reflectance: float, supersample: int) -> None:
-    """Validate the keys every scene shares; raises :class:`ConfigError` naming the key."""
-    if not np.isfinite(distance_mm) or distance_mm <= 0:
-        raise ConfigError("distance_mm", distance_mm, "a distance in mm > 0")
-    if not 0.0 <= float(reflectance) <= 1.0:
-        raise ConfigError("reflectance", reflectance, "a reflectance in [0, 1]")
-    if int(supersample) != supersample or not 1 <= supersample <= 16:
-        raise ConfigError("supersample", supersample, "an integer from 1 to 16")
 
 
 def compose_scene(

@@ -26,9 +26,10 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import check_ranges
 from nirspi_pipe.safeio import UnsafeInputError
 from nirspi_pipe.scene.meshfiles import MeshFileError, read_mesh_file
-from nirspi_pipe.scene.render import check_common, check_size, compose_scene
+from nirspi_pipe.scene.render import DistanceMm, Reflectance, Supersample, check_size, compose_scene
 from nirspi_pipe.types import Camera, Scene
 
 __all__ = [
@@ -114,15 +115,15 @@ class Torus:
         rotation_deg: ``[rx, ry, rz]``; ``[0, 0, 0]`` puts the axis along the view.
     """
 
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     outer_diameter_mm: float = 55.0
     inner_diameter_mm: float = 25.0
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
     rotation_deg: tuple[float, float, float] = (20.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         check_size(self, "outer_diameter_mm")
         if not np.isfinite(self.inner_diameter_mm) or not 0 <= self.inner_diameter_mm < self.outer_diameter_mm:
             raise ConfigError(
@@ -189,14 +190,14 @@ class Cube:
         reflectance, supersample, rotation_deg: as in :class:`Torus`.
     """
 
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     side_mm: float = 40.0
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
     rotation_deg: tuple[float, float, float] = (25.0, 35.0, 0.0)
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         check_size(self, "side_mm", factor=float(np.sqrt(3)))  # its diagonal in front of the camera
         object.__setattr__(self, "rotation_deg", _check_rotation(self.rotation_deg))
 
@@ -222,17 +223,17 @@ class UShape:
         reflectance, supersample, rotation_deg: as in :class:`Torus`.
     """
 
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     width_mm: float = 65.0
     height_mm: float = 40.0
     depth_mm: float = 17.0
     thickness_mm: float = 15.0
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
     rotation_deg: tuple[float, float, float] = (15.0, 20.0, 0.0)
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         for key in ("width_mm", "height_mm", "depth_mm"):
             check_size(self, key)
         if not np.isfinite(self.thickness_mm) or not 0 < self.thickness_mm < 0.5 * min(
@@ -273,13 +274,13 @@ class Plane:
         supersample: rays per pixel side (1–16).
     """
 
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     size_mm: float | None = None
-    reflectance: float = 0.5
-    supersample: int = 1
+    reflectance: Reflectance = 0.5
+    supersample: Supersample = 1
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         if self.size_mm is not None and (not np.isfinite(self.size_mm) or not self.size_mm > 0):
             raise ConfigError("size_mm", self.size_mm, "a size in mm > 0, or null to fill the view")
 
@@ -468,16 +469,16 @@ class MeshScene:
     """
 
     path: str = ""
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     size_mm: float | None = 50.0
     scale: float = 1.0
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
     rotation_deg: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0))
     smooth: bool = True
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         if not self.path:
             raise ConfigError("path", self.path, "a mesh file (.ply, .stl, .obj)")
         if self.size_mm is not None:

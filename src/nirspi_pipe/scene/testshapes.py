@@ -31,7 +31,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.scene.render import check_common, check_size, compose_scene
+from nirspi_pipe.ranges import check_ranges
+from nirspi_pipe.scene.render import DistanceMm, Reflectance, Supersample, check_size, compose_scene
 from nirspi_pipe.scene.shapes import raycast_mesh, rotation_matrix
 from nirspi_pipe.types import Camera, Scene
 
@@ -193,14 +194,14 @@ class GeneratedShape:
 
     kind: str = "vase"
     size_mm: float = 50.0
-    distance_mm: float = 200.0
+    distance_mm: DistanceMm = 200.0
     offset_mm: tuple[float, float] = field(default=(0.0, 0.0))
     rotation_deg: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0))
-    reflectance: float = 0.8
-    supersample: int = 4
+    reflectance: Reflectance = 0.8
+    supersample: Supersample = 4
 
     def __post_init__(self) -> None:
-        check_common(self.distance_mm, self.reflectance, self.supersample)
+        check_ranges(self)
         if self.kind not in KINDS:
             raise ConfigError("kind", self.kind, ", ".join(KINDS))
         check_size(self, "size_mm", limit=1.0)
