@@ -17,17 +17,20 @@ the jobs without a record):
 Then it reads the records back with :func:`nirspi_pipe.load_results` and writes, in ``DIR``:
 
 * ``front.parquet`` / ``front.csv``: one row per configuration (condition, resolution, sfs,
-  averaging, surface) with the median, smallest and largest ``metrics.chamfer_mm``,
-  ``metrics.depth_rmse_fused_mm`` and ``timings_ms.total`` over its shapes × seeds, the
-  jobs that ran ok out of the jobs swept, the error split by stage against the configuration's
-  ``sfs=truth`` row, and the front flags ``front_chamfer`` / ``front_depth``;
-* ``front.md``: the same as Markdown tables, one per condition;
+  averaging, surface) with, of ``metrics.chamfer_mm`` and ``metrics.depth_rmse_fused_mm``, the
+  mean over the shapes of each shape's median over the seeds (each shape weighs the same), each
+  shape's median and the smallest and largest job; the median ``timings_ms.total`` over its
+  jobs; the jobs that ran ok out of the jobs swept; the error split by stage against the
+  configuration's ``sfs=truth`` row; and the front flags ``front_chamfer`` / ``front_depth``;
+* ``front.md``: the same as Markdown tables, one per condition (``front_members.md``: the
+  front members only);
 * ``front.png``: error against time, one panel per (condition, metric), the fronts joined.
 
 A configuration is on a front when no other configuration of its condition is at least as good in
 the error's median, the median of ``timings_ms.total`` (the job's computing time, ms) and the
 iToF's averaging time (``itof.averaging_s``: acquisition time the computing time does not hold),
-and strictly better in one. A configuration with a failed job has no median (never on a front).
+and strictly better in one. The oracle rows (``sfs=truth``) are references for the split, never
+on a front. A configuration with a failed job has no summary (never on a front).
 
 The default grid (≤ 10 minutes on an idle 2-core machine) is :data:`DEFAULT`; ``--full`` is
 :data:`FULL` (hours).
@@ -166,8 +169,11 @@ def front_mask(values: np.ndarray) -> np.ndarray:
 
 def summarise(frame: Any) -> Any:
     """One row per (condition, resolution, sfs, averaging, surface) of a load_results table with a
-    ``condition`` column: jobs, ok jobs, median/min/max of chamfer, fused depth error and time,
-    the split by stage, the front flags."""
+    ``condition`` column: jobs, ok jobs; for chamfer and fused depth error the mean over the shapes
+    of each shape's median over the seeds (``chamfer_mm``, ``depth_mm``), the smallest and largest
+    job (``_min``, ``_max``) and each shape's median (``_by_shape``); the median time over the
+    jobs (``time_ms``); the split by stage and the front flags (:func:`split_and_front`). A
+    configuration with a job that failed or lacks a value has no summary (NaN)."""
     # start-up: pandas loads with the table
     import pandas as pd
 
@@ -182,9 +188,16 @@ def summarise(frame: Any) -> Any:
         for col, name in ((CHAMFER, "chamfer_mm"), (DEPTH, "depth_mm"), (TIME, "time_ms")):
             vals = pd.to_numeric(ok[col], errors="coerce") if col in ok.columns else pd.Series([], dtype=float)
             complete = len(ok) == len(group) and len(vals) > 0 and bool(np.isfinite(vals).all())
-            row[name] = float(vals.median()) if complete else math.nan
+            if name == "time_ms":
+                row[name] = float(vals.median()) if complete else math.nan
+                continue
+            by_shape = vals.groupby(ok["scene"].astype(str)).median() if complete else None
+            row[name] = float(by_shape.mean()) if by_shape is not None else math.nan
             row[f"{name}_min"] = float(vals.min()) if complete else math.nan
             row[f"{name}_max"] = float(vals.max()) if complete else math.nan
+            row[f"{name}_by_shape"] = (
+                ", ".join(f"{k} {v:.2f}" for k, v in by_shape.items()) if by_shape is not None else ""
+            )
         rows.append(row)
     table = pd.DataFrame(rows)
     return split_and_front(table)
@@ -208,7 +221,9 @@ def split_and_front(table: Any) -> Any:
     out["surface_mm"] = out["truth_chamfer_mm"] - out["truth_depth_mm"]
     out["front_chamfer"] = False
     out["front_depth"] = False
-    for _cond, idx in out.groupby("condition").groups.items():
+    # the oracle is a reference, not something a camera can run: never on a front
+    real = out[out["sfs"] != "truth"]
+    for _cond, idx in real.groupby("condition").groups.items():
         sub = out.loc[idx]
         for stat, flag in (("chamfer_mm", "front_chamfer"), ("depth_mm", "front_depth")):
             values = sub[[stat, "time_ms", AVERAGING]].to_numpy(dtype=float)
@@ -220,13 +235,36 @@ def _fmt(x: float, digits: int = 2) -> str:
     return "—" if not math.isfinite(x) else f"{x:.{digits}f}"
 
 
-def markdown(table: Any) -> str:
-    """One Markdown table per condition, rows by time; front members marked."""
-    parts = []
+def _cell(r: Any, stat: str) -> str:
+    """``mean (shape median, …; smallest–largest job)`` of one configuration's ``stat``."""
+    if not math.isfinite(r[stat]):
+        return "—"
+    shapes = str(r[f"{stat}_by_shape"])
+    return f"{r[stat]:.2f} ({shapes}; {r[f'{stat}_min']:.2f}–{r[f'{stat}_max']:.2f})"
+
+
+LEGEND = (
+    "Per configuration: `time` the median of `timings_ms.total` over its jobs (ms); chamfer and fused depth: "
+    "the mean over the shapes of each shape's median over the seeds (each shape's median; the smallest–largest "
+    "job). front: C on the chamfer front, D on the depth front (error, time and iToF averaging time; the "
+    "`sfs=truth` oracle rows are references, never on a front). Split "
+    "by stage against the `sfs=truth` row of the same resolution, averaging and surface: SFS share = this "
+    "row − the truth row; anchoring = the truth row's fused depth error; surface = the truth row's chamfer "
+    "− its fused depth error (negative: the mesh lies closer to the truth than the fused points' z-error)."
+)
+
+
+def markdown(table: Any, front_only: bool = False) -> str:
+    """One Markdown table per condition, rows by time; front members marked (``front_only``: the
+    front members and the oracle rows only)."""
+    parts = [LEGEND, ""]
+    if front_only:
+        table = table[table["front_chamfer"] | table["front_depth"] | (table["sfs"] == "truth")]
     for cond, sub in table.groupby("condition", sort=False):
         parts.append(f"**{cond}** ({' '.join(CONDITIONS[str(cond)])})\n")
         parts.append(
-            "| res | sfs | iToF avg (s) | surface | ok/jobs | time (ms) | chamfer (mm) | fused depth (mm) "
+            "| res | sfs | iToF avg (s) | surface | ok/jobs | time (ms) | chamfer (mm) "
+            "| fused depth (mm) "
             "| front | SFS share chamfer / depth | anchoring | surface |"
         )
         parts.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -240,8 +278,7 @@ def markdown(table: Any) -> str:
             parts.append(
                 f"| {int(r['camera.resolution'])} | {r['sfs']} | {r[AVERAGING]:g} | {r['surface']} "
                 f"| {int(r['ok'])}/{int(r['jobs'])} | {_fmt(r['time_ms'], 0)} "
-                f"| {_fmt(r['chamfer_mm'])} ({_fmt(r['chamfer_mm_min'])}–{_fmt(r['chamfer_mm_max'])}) "
-                f"| {_fmt(r['depth_mm'])} ({_fmt(r['depth_mm_min'])}–{_fmt(r['depth_mm_max'])}) | {marks} "
+                f"| {_cell(r, 'chamfer_mm')} | {_cell(r, 'depth_mm')} | {marks} "
                 f"| {share} | {_fmt(r['anchoring_mm'])} | {_fmt(r['surface_mm'])} |"
             )
         parts.append("")
@@ -268,6 +305,17 @@ def figure(table: Any, path: Path) -> None:
             ax = axes[i][j]
             for sfs, part in sub.groupby("sfs"):
                 colours = ["C0" if a <= min(sub[AVERAGING]) else "C1" for a in part[AVERAGING]]
+                if sfs == "truth":  # the oracle: a reference, hollow
+                    ax.scatter(
+                        part["time_ms"],
+                        part[stat],
+                        marker=markers[str(sfs)],
+                        facecolors="none",
+                        edgecolors=colours,
+                        s=26,
+                        label="truth (oracle)",
+                    )
+                    continue
                 ax.scatter(part["time_ms"], part[stat], marker=markers[str(sfs)], c=colours, s=22, label=str(sfs))
             front = sub[sub[flag]].sort_values("time_ms")
             ax.plot(front["time_ms"], front[stat], "-", color="C3", lw=1, label="front")
@@ -358,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     table.to_parquet(out / "front.parquet", index=False)
     table.to_csv(out / "front.csv", index=False)
     (out / "front.md").write_text(markdown(table))
+    (out / "front_members.md").write_text(markdown(table, front_only=True))
     figure(table, out / "front.png")
     bad = int((frame["status"] != "ok").sum())
     print(
