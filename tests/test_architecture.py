@@ -17,8 +17,14 @@ a function); importing ``a.b.c`` runs the ``__init__`` of ``a`` and ``a.b`` firs
 reaches its parent packages; a name a package serves lazily (PEP 562: a module-level
 ``__getattr__``, as ``nirspi_pipe.run`` is served from ``nirspi_pipe.app.api``) reaches what that
 ``__getattr__`` imports, whether it is taken with ``from nirspi_pipe import run`` or read as the
-attribute ``nirspi_pipe.run`` of an imported package. Imports under ``if TYPE_CHECKING:`` do not
-run, so they are no edge of the reach; a runner module may still not name the app there.
+attribute ``nirspi_pipe.run`` of an imported package (or ``getattr(nirspi_pipe, "run")``); an
+import by a string (``importlib.import_module``, ``__import__``, ``runpy.run_module``,
+``pkgutil.resolve_name``; a name built from literals, or known only by its start as in
+``f"pkg.{name}"``, which reaches every module below ``pkg``). Imports under ``if TYPE_CHECKING:``
+(anywhere, and in the ``else:`` of ``if not TYPE_CHECKING:``) do not run, so they are no edge of
+the reach; a runner module may still not name the app there. The other branch runs: it is an edge.
+What this scan cannot see (a name computed at run time) the run-time test covers:
+tests/test_layering_runtime.py runs jobs with Hydra, OmegaConf and the app blocked from import.
 
 The rules are checked on the real tree and, to show that they can fail, on small packages
 written into a temporary folder (the circle of 2191b36: ``cli`` ↔ ``launcher``; the three holes
@@ -92,6 +98,99 @@ def _is_type_checking(node: ast.If) -> bool:
     )
 
 
+def _typing_only(node: ast.If) -> list[ast.stmt]:
+    """The statements of an ``if`` that run only under a type checker: the body of
+    ``if TYPE_CHECKING:``, the ``else:`` of ``if not TYPE_CHECKING:``. The other branch runs."""
+    if _is_type_checking(node):
+        return node.body
+    t = node.test
+    if isinstance(t, ast.UnaryOp) and isinstance(t.op, ast.Not) and _is_type_checking(ast.If(test=t.operand)):
+        return node.orelse
+    return []
+
+
+#: Calls that import the module their first argument names (``importlib.import_module("a.b")``,
+#: ``__import__("a.b")``, ``runpy.run_module("a.b")``, ``pkgutil.resolve_name("a.b:c")``), by the
+#: dotted name the call's function is bound to.
+STRING_IMPORTS = (
+    "importlib.import_module",
+    "__import__",
+    "builtins.__import__",
+    "importlib.__import__",
+    "runpy.run_module",
+    "pkgutil.resolve_name",
+)
+
+
+def _const_str(node: ast.AST | None) -> str | None:
+    """The string an expression always evaluates to (a literal, ``"a." + "b"``, an f-string
+    without fields), or None."""
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+        return node.value
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+        left, right = _const_str(node.left), _const_str(node.right)
+        return left + right if left is not None and right is not None else None
+    if isinstance(node, ast.JoinedStr):
+        parts = [_const_str(v) for v in node.values]
+        return "".join(p for p in parts if p is not None) if all(p is not None for p in parts) else None
+    return None
+
+
+def _bound_to(node: ast.expr, aliases: dict[str, str]) -> str | None:
+    """The dotted name an expression such as ``importlib.import_module`` or ``import_module``
+    refers to, through the module's imports (a builtin keeps its own name)."""
+    chain: list[str] = []
+    while isinstance(node, ast.Attribute):
+        chain.append(node.attr)
+        node = node.value
+    if not isinstance(node, ast.Name):
+        return None
+    return ".".join([aliases.get(node.id, node.id), *reversed(chain)])
+
+
+def _const_prefix(node: ast.AST | None) -> str:
+    """The constant start of a string expression (``f"a.b.{x}"`` → ``a.b.``), or ``""``."""
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+        left = _const_str(node.left)
+        return left + _const_prefix(node.right) if left is not None else _const_prefix(node.left)
+    if isinstance(node, ast.JoinedStr):
+        out = ""
+        for v in node.values:
+            part = _const_str(v)
+            if part is None:
+                break
+            out += part
+        return out
+    return ""
+
+
+def _string_import(call: ast.Call, aliases: dict[str, str], package: str) -> list[str]:
+    """What a call imports by a string: ``importlib.import_module("a.b")`` (relative names with a
+    constant ``package``), ``__import__("a.b", fromlist=["c"])`` (``a.b`` and ``a.b.c``). A name
+    known only by its start (``f"a.b.{x}"``) is the pattern ``a.b.*``: any module below ``a.b``."""
+    if _bound_to(call.func, aliases) not in STRING_IMPORTS:
+        return []
+    kw = {k.arg: k.value for k in call.keywords if k.arg}
+    arg = call.args[0] if call.args else kw.get("name", kw.get("mod_name"))
+    name = _const_str(arg)
+    name = name.replace(":", ".") if name is not None else None  # pkgutil.resolve_name("a.b:c")
+    if name is None:
+        prefix = _const_prefix(arg)
+        return [prefix.rstrip(".") + ".*"] if "." in prefix and not prefix.startswith(".") else []
+    if not name:
+        return []
+    if name.startswith("."):  # import_module(".x", package="a.b")
+        base = _const_str(call.args[1] if len(call.args) > 1 else kw.get("package")) or package
+        dots = len(name) - len(name.lstrip("."))
+        parts = base.split(".")
+        name = ".".join(parts[: len(parts) - dots + 1] + [name.lstrip(".")])
+    found = [name]
+    fromlist = call.args[3] if len(call.args) > 3 else kw.get("fromlist")
+    if isinstance(fromlist, (ast.List, ast.Tuple)):
+        found += [f"{name}.{n}" for n in (_const_str(e) for e in fromlist.elts) if n]
+    return found
+
+
 def _resolve_from(node: ast.ImportFrom, package: str) -> str:
     if not node.level:
         return node.module or ""
@@ -110,9 +209,12 @@ def _scan(path: Path, name: str) -> _Scan:
     aliases: dict[str, str] = {}  # local name -> the module (or module.attribute) it is bound to
     typing_nodes: set[int] = set()
     lazy_nodes: set[int] = set()
+    for node in ast.walk(tree):  # ``if TYPE_CHECKING:`` anywhere; its ``else:`` runs
+        if isinstance(node, ast.If):
+            typing_nodes |= {id(n) for stmt in _typing_only(node) for n in ast.walk(stmt)}
     for top in tree.body:
         if isinstance(top, ast.If) and _is_type_checking(top):
-            typing_nodes |= {id(n) for n in ast.walk(top)}
+            pass  # its names are bound only for a type checker
         elif isinstance(top, ast.FunctionDef) and top.name == "__getattr__":
             scan.has_getattr = True
             lazy_nodes |= {id(n) for n in ast.walk(top)}
@@ -147,7 +249,18 @@ def _scan(path: Path, name: str) -> _Scan:
             scan.imports += [(m, node.lineno) for m in found]
             if node in tree.body:  # module level: the names it binds
                 scan.bound |= {a.asname or a.name.split(".")[0] for a in node.names}
-    # attribute reads on an imported name: ``nirspi_pipe.run`` after ``import nirspi_pipe``
+
+    def note(dotted: list[str], node: ast.expr) -> None:
+        if id(node) in lazy_nodes:
+            scan.lazy += dotted
+        elif id(node) in typing_nodes:
+            scan.typing += [(m, node.lineno) for m in dotted]
+        else:
+            scan.imports += [(m, node.lineno) for m in dotted]
+
+    # attribute reads on an imported name: ``nirspi_pipe.run`` after ``import nirspi_pipe``, also
+    # as ``getattr(nirspi_pipe, "run")``; imports by a string (``importlib.import_module("a.b")``,
+    # ``__import__("a.b")``), and ``getattr`` on what such a call returns
     for node in ast.walk(tree):
         if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Load):
             chain: list[str] = []
@@ -156,11 +269,17 @@ def _scan(path: Path, name: str) -> _Scan:
                 chain.append(inner.attr)
                 inner = inner.value
             if isinstance(inner, ast.Name) and inner.id in aliases:
-                dotted = ".".join([aliases[inner.id], *reversed(chain)])
-                if id(node) in lazy_nodes:
-                    scan.lazy.append(dotted)
+                note([".".join([aliases[inner.id], *reversed(chain)])], node)
+        elif isinstance(node, ast.Call):
+            note(_string_import(node, aliases, package), node)
+            if isinstance(node.func, ast.Name) and node.func.id == "getattr" and len(node.args) >= 2:
+                attr, obj = _const_str(node.args[1]), node.args[0]
+                if isinstance(obj, ast.Call):
+                    base = (_string_import(obj, aliases, package) or [None])[0]
                 else:
-                    scan.imports.append((dotted, node.lineno))
+                    base = aliases.get(obj.id) if isinstance(obj, ast.Name) else None
+                if base and attr:
+                    note([f"{base}.{attr}"], node)
     return scan
 
 
@@ -205,11 +324,18 @@ def _graph(root: Path, mapped: dict[str, Path] | None = None, *, reach: bool = T
             return set()
         return {m for m in s.lazy if m.split(".")[0] in CONFIG_SYSTEM or _owner(m, modules)}
 
+    def expand(mod: str) -> set[str]:
+        """``a.b.*`` (a string import known by its start): ``a.b`` and every module below it."""
+        if not mod.endswith(".*"):
+            return {mod}
+        base = mod[:-2]
+        return {base} | {m for m in modules if m.startswith(base + ".")}
+
     graph: dict[str, set[str]] = {name: set() for name in modules}
     for name, s in scans.items():
         edges = list(s.imports) + ([] if reach else list(s.typing))
         for mod, _ in edges:
-            for target in {mod} | lazy_targets(mod):
+            for target in expand(mod) | lazy_targets(mod):
                 top = target.split(".")[0]
                 if top in CONFIG_SYSTEM:
                     graph[name].add(top)
@@ -487,6 +613,96 @@ def test_an_eager_facade_is_found(tmp_path: Path) -> None:
     bad = _layer_violations(_graph(src, mapped))
     assert "nirspi_pipe.records -> nirspi_pipe -> nirspi_pipe.app.api" in bad
     assert {b.split(" ")[0] for b in bad} == {"nirspi_pipe.pipeline", "nirspi_pipe.records", "nirspi_pipe.stats"}
+
+
+#: Routes past the previous scan (issue 42: 16 were found from outside), each in a runner module:
+#: imports by a string, ``getattr`` on the package, the ``else:`` of ``if TYPE_CHECKING``. Each
+#: one runs when the module runs, so it must show as a reach (a layer violation), not merely as a
+#: name under ``TYPE_CHECKING``. The scan of 8c3f3fd missed each one but the last (it took any
+#: ``if TYPE_CHECKING`` inside a function for code that runs; checked when written).
+_RUNTIME_HOLES = {
+    "import-module": (
+        "nirspi_pipe/pipeline.py",
+        "import importlib\n\ndef go():\n    importlib.import_module('nirspi_pipe.app.api')\n",
+    ),
+    "import-module-renamed": ("nirspi_pipe/records.py", "from importlib import import_module as im\n\nim('hydra')\n"),
+    "import-module-relative": (
+        "nirspi_pipe/pipeline.py",
+        "import importlib\n\ndef go():\n    importlib.import_module('.app.api', package='nirspi_pipe')\n",
+    ),
+    "import-module-concatenated": (
+        "nirspi_pipe/pipeline.py",
+        "import importlib\n\ndef go():\n    importlib.import_module('nirspi_pipe.' + 'app.api')\n",
+    ),
+    "import-module-fstring": (
+        "nirspi_pipe/pipeline.py",
+        "import importlib\n\ndef go(x):\n    importlib.import_module(f'nirspi_pipe.app.{x}')\n",
+    ),
+    "dunder-import": ("nirspi_pipe/stats.py", "def go():\n    __import__('omegaconf.dictconfig')\n"),
+    "dunder-import-fromlist": ("nirspi_pipe/stats.py", "def go():\n    __import__('nirspi_pipe', fromlist=['conf'])\n"),
+    "getattr-facade": (
+        "nirspi_pipe/pipeline.py",
+        "import nirspi_pipe\n\ndef go():\n    getattr(nirspi_pipe, 'run')([])\n",
+    ),
+    "getattr-import-module": (
+        "nirspi_pipe/records.py",
+        "import importlib\n\ndef go():\n    getattr(importlib.import_module('nirspi_pipe'), 'run')([])\n",
+    ),
+    "type-checking-else": (
+        "nirspi_pipe/stats.py",
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    pass\nelse:\n    from nirspi_pipe.app.api import run\n",
+    ),
+    "run-module": ("nirspi_pipe/stats.py", "import runpy\n\ndef go():\n    runpy.run_module('nirspi_pipe.app.cli')\n"),
+    "resolve-name": (
+        "nirspi_pipe/stats.py",
+        "from pkgutil import resolve_name\n\ndef go():\n    resolve_name('nirspi_pipe.app.api:run')\n",
+    ),
+    "type-checking-else-in-function": (
+        "nirspi_pipe/stats.py",
+        "import typing\n\ndef go():\n    if typing.TYPE_CHECKING:\n        pass\n    else:\n        import hydra\n",
+    ),
+}
+
+
+@pytest.mark.parametrize("hole", sorted(_RUNTIME_HOLES))
+def test_each_route_that_runs_is_a_reach(tmp_path: Path, hole: str) -> None:
+    rel, text = _RUNTIME_HOLES[hole]
+    src, mapped = _facade_tree(tmp_path, {rel: text})
+    module = rel.removesuffix(".py").replace("/", ".")
+    bad = _layer_violations(_graph(src, mapped))
+    assert any(b.startswith(module + " -> ") for b in bad), (hole, bad)
+    assert not any(b.startswith("nirspi_pipe.stats") for b in bad) or module == "nirspi_pipe.stats", bad
+
+
+@pytest.mark.parametrize(
+    "extra",
+    [
+        "else:\n    from nirspi_pipe.app.api import compose\n",  # after the facade's TYPE_CHECKING block
+        "import importlib\nimportlib.import_module('nirspi_pipe.app.api')\n",
+        "__import__('nirspi_pipe.app.api')\n",
+    ],
+)
+def test_an_eager_facade_by_any_route_is_found(tmp_path: Path, extra: str) -> None:
+    """The facade importing the API at module level by another route: every runner module
+    reaches the app through its parent package."""
+    head, tail = _FACADE.split("def __getattr__", 1)
+    src, mapped = _facade_tree(tmp_path, {}, facade=head + extra + "def __getattr__" + tail)
+    assert "nirspi_pipe.records -> nirspi_pipe -> nirspi_pipe.app.api" in _layer_violations(_graph(src, mapped))
+
+
+def test_what_runs_only_for_a_type_checker_is_no_reach(tmp_path: Path) -> None:
+    """The other side: ``if TYPE_CHECKING:`` bodies (at module level or in a function) and the
+    ``else:`` of ``if not TYPE_CHECKING:`` are no edge of the reach (the typing rule reports
+    them), and an import by a name only known at run time is not guessed."""
+    text = (
+        "import importlib\nfrom typing import TYPE_CHECKING\n"
+        "if not TYPE_CHECKING:\n    import json\nelse:\n    from nirspi_pipe.app.api import run\n"
+        "def go(name):\n    if TYPE_CHECKING:\n        import hydra\n    importlib.import_module(name)\n"
+    )
+    src, mapped = _facade_tree(tmp_path, {"nirspi_pipe/stats.py": text})
+    assert not any(b.startswith("nirspi_pipe.stats") for b in _layer_violations(_graph(src, mapped)))
+    typing_bad = _typing_violations(src, mapped)
+    assert any("imports nirspi_pipe.app.api" in b for b in typing_bad) and any("imports hydra" in b for b in typing_bad)
 
 
 def test_a_name_the_facade_binds_is_not_lazy(tmp_path: Path) -> None:
