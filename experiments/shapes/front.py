@@ -24,7 +24,8 @@ Then it reads the records back with :func:`nirspi_pipe.load_results` and writes,
   configuration's ``sfs=truth`` row; and the front flags ``front_chamfer`` / ``front_depth``;
 * ``front.md``: the same as Markdown tables, one per condition (``front_members.md``: the
   front members only);
-* ``front.png``: error against time, one panel per (condition, metric), the fronts joined.
+* ``front.png``: error against time, one panel per (condition, metric), front members ringed
+  and labelled with their resolution and surface.
 
 A configuration is on a front when no other configuration of its condition is at least as good in
 the error's median, the median of ``timings_ms.total`` (the job's computing time, ms) and the
@@ -286,7 +287,7 @@ def markdown(table: Any, front_only: bool = False) -> str:
 
 
 def figure(table: Any, path: Path) -> None:
-    """Error against time, one panel per (condition, metric); front members joined."""
+    """Error against time, one panel per (condition, metric); front members ringed and labelled."""
     # start-up: matplotlib loads only for the figure
     import matplotlib
 
@@ -317,8 +318,16 @@ def figure(table: Any, path: Path) -> None:
                     )
                     continue
                 ax.scatter(part["time_ms"], part[stat], marker=markers[str(sfs)], c=colours, s=22, label=str(sfs))
-            front = sub[sub[flag]].sort_values("time_ms")
-            ax.plot(front["time_ms"], front[stat], "-", color="C3", lw=1, label="front")
+            front = sub[sub[flag]]
+            ax.scatter(front["time_ms"], front[stat], s=90, facecolors="none", edgecolors="C3", label="on the front")
+            for _, r in front.iterrows():  # which resolution and surface each member is
+                ax.annotate(
+                    f"{int(r['camera.resolution'])}² {str(r['surface']).replace('power_crust', 'crust')}",
+                    (r["time_ms"], r[stat]),
+                    fontsize=6,
+                    xytext=(4, 4),
+                    textcoords="offset points",
+                )
             ax.set_xscale("log")
             ax.set_xlabel("timings_ms.total, median (ms)")
             ax.set_ylabel(f"{label}, median")
