@@ -59,6 +59,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
@@ -83,6 +84,7 @@ from nirspi_pipe.mesh.pointcloud import (
     semi_even_points,
     voxel_merge,
 )
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.types import Camera, DepthMap, ItofSample, PointCloud
 
 __all__ = ["ItofFusion"]
@@ -130,70 +132,33 @@ class ItofFusion:
         diffuse: ``range`` (along camera rays; keeps the silhouette) or ``xyz``.
     """
 
-    d_pitch_mm: float = 5.0
-    voxel_mm: float | None = None
-    voxel_px: float = 2.0
-    min_voxels_across: int = 16
-    min_angle_deg: float = 1.0
-    scale_prior_rel: float | None = 0.2
-    prior_distance_mm: float | None = None
-    prior_distance_rel: float = 0.25
-    anchor_alpha: float | None = 0.01
-    local_offsets: bool = True
-    min_anchors_local: int = 3
-    blend_px: float = 8.0
-    anchor_radius_px: float = 2.0
-    despike_k: float | None = 4.0
-    max_edge_factor: float = 4.0
-    knn: int = 8
-    outlier_std: float | None = 2.5
-    time_step: float = 8.0
-    adaptive_step: bool = True
-    diffuse: str = "range"
+    d_pitch_mm: Annotated[float, Range(0.0, None, "a pitch in mm", lo_open=True)] = 5.0
+    voxel_mm: Annotated[float | None, Range(0.0, None, "a voxel size in mm", lo_open=True, note="null: automatic")] = (
+        None
+    )
+    voxel_px: Annotated[float, Range(0.0, None, "pixel pitches", lo_open=True)] = 2.0
+    min_voxels_across: Annotated[int, Range(2, 4096, "an integer", integer=True)] = 16
+    min_angle_deg: Annotated[float, Range(0.0, 90.0, "degrees", lo_open=True, hi_open=True)] = 1.0
+    scale_prior_rel: Annotated[float | None, Range(0.0, None, "a relative tolerance", lo_open=True)] = 0.2
+    prior_distance_mm: Annotated[float | None, Range(0.0, None, "a distance in mm", lo_open=True)] = None
+    prior_distance_rel: Annotated[float, Range(0.0, None, "a relative tolerance", lo_open=True)] = 0.25
+    anchor_alpha: Annotated[
+        float | None, Range(0.0, 1.0, "a test level", lo_open=True, hi_open=True, note="null: no test")
+    ] = 0.01
+    local_offsets: Annotated[bool, OneOf((True, False), "true or false")] = True
+    min_anchors_local: Annotated[int, Range(1, 64, "an integer", integer=True)] = 3
+    blend_px: Annotated[float, Range(0.0, None, "pixels")] = 8.0
+    anchor_radius_px: Annotated[float, Range(0.0, None, "pixels")] = 2.0
+    despike_k: Annotated[float | None, Range(0.0, None, "standard deviations", lo_open=True)] = 4.0
+    max_edge_factor: Annotated[float, Range(1.0, None, "a factor", lo_open=True)] = 4.0
+    knn: Annotated[int, Range(3, 64, "an integer", integer=True)] = 8
+    outlier_std: Annotated[float | None, Range(0.0, None, "standard deviations", lo_open=True)] = 2.5
+    time_step: Annotated[float, Range(0.0, None, "a dimensionless step")] = 8.0
+    adaptive_step: Annotated[bool, OneOf((True, False), "true or false")] = True
+    diffuse: Annotated[str, OneOf(("range", "xyz"))] = "range"
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.d_pitch_mm) and self.d_pitch_mm > 0):
-            raise ConfigError("d_pitch_mm", self.d_pitch_mm, "a pitch in mm > 0")
-        if self.voxel_mm is not None and not (np.isfinite(self.voxel_mm) and self.voxel_mm > 0):
-            raise ConfigError("voxel_mm", self.voxel_mm, "a voxel size in mm > 0, or null (automatic)")
-        if not (np.isfinite(self.voxel_px) and self.voxel_px > 0):
-            raise ConfigError("voxel_px", self.voxel_px, "pixel pitches > 0")
-        if int(self.min_voxels_across) != self.min_voxels_across or not 2 <= self.min_voxels_across <= 4096:
-            raise ConfigError("min_voxels_across", self.min_voxels_across, "an integer from 2 to 4096")
-        if not 0.0 < self.min_angle_deg < 90.0:
-            raise ConfigError("min_angle_deg", self.min_angle_deg, "degrees in (0, 90)")
-        if self.scale_prior_rel is not None and not (np.isfinite(self.scale_prior_rel) and self.scale_prior_rel > 0):
-            raise ConfigError("scale_prior_rel", self.scale_prior_rel, "a relative tolerance > 0, or null")
-        if self.prior_distance_mm is not None and not (
-            np.isfinite(self.prior_distance_mm) and self.prior_distance_mm > 0
-        ):
-            raise ConfigError("prior_distance_mm", self.prior_distance_mm, "a distance in mm > 0, or null")
-        if not (np.isfinite(self.prior_distance_rel) and self.prior_distance_rel > 0):
-            raise ConfigError("prior_distance_rel", self.prior_distance_rel, "a relative tolerance > 0")
-        if self.anchor_alpha is not None and not 0.0 < self.anchor_alpha < 1.0:
-            raise ConfigError("anchor_alpha", self.anchor_alpha, "a test level in (0, 1), or null (no test)")
-        if not isinstance(self.local_offsets, bool):
-            raise ConfigError("local_offsets", self.local_offsets, "true or false")
-        if int(self.min_anchors_local) != self.min_anchors_local or not 1 <= self.min_anchors_local <= 64:
-            raise ConfigError("min_anchors_local", self.min_anchors_local, "an integer from 1 to 64")
-        if not (np.isfinite(self.blend_px) and self.blend_px >= 0):
-            raise ConfigError("blend_px", self.blend_px, "pixels >= 0")
-        if not self.anchor_radius_px >= 0:
-            raise ConfigError("anchor_radius_px", self.anchor_radius_px, "pixels >= 0")
-        if self.despike_k is not None and not self.despike_k > 0:
-            raise ConfigError("despike_k", self.despike_k, "standard deviations > 0, or null")
-        if not self.max_edge_factor > 1:
-            raise ConfigError("max_edge_factor", self.max_edge_factor, "a factor > 1")
-        if int(self.knn) != self.knn or not 3 <= self.knn <= 64:
-            raise ConfigError("knn", self.knn, "an integer from 3 to 64")
-        if self.outlier_std is not None and not self.outlier_std > 0:
-            raise ConfigError("outlier_std", self.outlier_std, "standard deviations > 0, or null")
-        if not (np.isfinite(self.time_step) and self.time_step >= 0):
-            raise ConfigError("time_step", self.time_step, "a dimensionless step >= 0")
-        if not isinstance(self.adaptive_step, bool):
-            raise ConfigError("adaptive_step", self.adaptive_step, "true or false")
-        if self.diffuse not in ("range", "xyz"):
-            raise ConfigError("diffuse", self.diffuse, "range or xyz")
+        check_ranges(self)
 
     # -- Alg. A3: anchors and metric depth ---------------------------------------------------
     def _anchor_values(
