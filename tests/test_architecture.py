@@ -446,6 +446,53 @@ def test_the_runner_reaches_nothing_of_hydra() -> None:
     assert not bad, "the runner must not import Hydra, OmegaConf or nirspi_pipe.app: " + "; ".join(bad)
 
 
+def _named_upper_layers(root: Path, mapped: dict[str, Path] | None = None) -> list[str]:
+    """Runner modules whose strings (docstrings aside) name a module or class of a layer above
+    the runner (``"nirspi_pipe.app.results.CollectResults"`` in an allow-list, ``"hydra.utils.x"``
+    handed to a locator): the runner names nothing of them, so it cannot come to build one."""
+    upper = "|".join(re.escape(m) for m in (*CONFIG_SYSTEM, *APP_SIDE, *TOOLS))
+    pattern = re.compile(rf"(?<![\w.])({upper})\.(\w|$)")  # "$": the start of f"omegaconf.{name}"
+    bad = []
+    for name, path in sorted(_modules(root, mapped).items()):
+        if not _is_runner(name):
+            continue
+        tree = ast.parse(path.read_text())
+        docs = {
+            id(n.body[0].value)
+            for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
+            and n.body
+            and isinstance(n.body[0], ast.Expr)
+            and isinstance(n.body[0].value, ast.Constant)
+        }
+        bad += [
+            f"{name}:{n.lineno} names {m.group(0)}…"
+            for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs
+            for m in [pattern.search(n.value)]
+            if m
+        ]
+    return bad
+
+
+def test_the_runner_names_nothing_above_it() -> None:
+    bad = _named_upper_layers(SRC, MAPPED)
+    assert not bad, "the runner must name no class of Hydra, OmegaConf or the app (issue 42): " + "; ".join(bad)
+
+
+def test_a_runner_string_naming_the_app_is_found(tmp_path: Path) -> None:
+    src, mapped = _facade_tree(
+        tmp_path,
+        {
+            "nirspi_pipe/records.py": '"""Built by nirspi_pipe.app.results.CollectResults (a docstring)."""\n'
+            'ALLOWED = {"nirspi_pipe.app.results.CollectResults", "nirspi_pipe.stats.X"}\n',
+            "nirspi_pipe/stats.py": "def f(x):\n    return f'omegaconf.{x}'\n",
+        },
+    )
+    bad = _named_upper_layers(src, mapped)
+    assert [b.split(" ")[0] for b in bad] == ["nirspi_pipe.records:2", "nirspi_pipe.stats:2"], bad
+
+
 def test_no_import_circles_under_src() -> None:
     circles = _circles(_graph(SRC, MAPPED, reach=False))
     assert not circles, f"import circles: {circles}"

@@ -226,18 +226,15 @@ def allowed_targets() -> frozenset[str]:
     return _allowed(PROJECT_TARGETS, plugin_targets())
 
 
-def _in_logging(key: str) -> bool:
-    return key.startswith(("hydra.job_logging.", "hydra.hydra_logging.")) or "logging" in key
-
-
 def find_targets(node: Any, path: str) -> Iterator[tuple[str, Any]]:
     """``(key, value)`` of every place in a plain config tree (dicts and lists) that names
-    something to build: ``_target_`` keys, and ``()``/``class`` keys of logging factories
-    (Python's ``logging.config``, which Hydra applies to ``hydra.job_logging``)."""
+    something to build: ``_target_`` keys, and ``()``/``class`` keys below a key naming
+    "logging" (the factories of Python's ``logging.config``, which Hydra applies to its
+    ``job_logging`` node; the app allows its handler classes, :mod:`nirspi_pipe.app.hydratargets`)."""
     if isinstance(node, dict):
         for k, v in node.items():
             key = f"{path}.{k}" if path else str(k)
-            if k == "_target_" or (k in ("()", "class") and _in_logging(key)):
+            if k == "_target_" or (k in ("()", "class") and "logging" in key):
                 yield key, v
             else:
                 yield from find_targets(v, key)
