@@ -5,10 +5,12 @@
   a ``sys.meta_path`` finder, installed before ``nirspi_pipe`` is imported, makes loading them
   raise ``ImportError`` and notes every attempt (so an import swallowed by a
   ``try``/``except ImportError`` shows too). Finding them is allowed: the records' source hash
-  reads where ``nirspi_pipe.conf``'s files lie (``importlib.util.find_spec``) without importing it. A 2D job, a 3D job (iToF, fusion, surface, 3D
-  metrics) and a device replay (``source=recorded``) finish with status ok, and none of those
-  modules is loaded or was asked for. The configs are composed here, with the app, as the
-  command line composes them, and handed over as JSON.
+  reads where ``nirspi_pipe.conf``'s files lie (``importlib.util.find_spec``) without importing
+  it. A 2D job, a 3D job (iToF, fusion, surface, 3D metrics), a device replay
+  (``source=recorded``) and a live device job (``source=stream`` from the device emulator on
+  loopback, served in the same process) finish with status ok, and none of those modules is
+  loaded or was asked for. The configs are composed here, with the app, as the command line
+  composes them, and handed over as JSON.
 * The runner's target check refuses every class of a layer above it (``hydra.*``,
   ``omegaconf.*``, ``nirspi_pipe.app.*``, …), with one line naming the key and why, even when an
   allow-list holds the name; the app allows the classes Hydra builds from its own node, at
@@ -73,6 +75,13 @@ _CHILD = textwrap.dedent(
     plans = json.loads(Path(sys.argv[1]).read_text())
     out = {{}}
     for name, cfg in plans.items():
+        if name == "stream":  # the device emulator on loopback, in this process: nothing of the app
+            from nirspi_pipe.device.emulator import Emulator
+            from nirspi_pipe.scene.objects import Sphere
+            from nirspi_pipe.types import Camera
+
+            emulator = Emulator(Sphere().render(Camera(16)).radiance, device="layering-test")
+            cfg["source"]["port"], thread = emulator.serve_in_thread(connections=1, lifetime_s=60)
         rec = execute_job(cfg, Path(sys.argv[2]) / name, {{}}, [])
         out[name] = {{"status": rec["meta"].get("status"), "error": rec["meta"].get("error"),
                       "metrics": sorted(rec.get("metrics") or {{}}), "stages": sorted(rec.get("timings_ms") or {{}})}}
@@ -126,6 +135,7 @@ def _plans(tmp_path: Path) -> dict[str, object]:
             "source=recorded",
             f"source.path={_recording(tmp_path / 'rec.npz', 16)}",
         ],
+        "stream": [*small, "source=stream", "source.port=1"],  # the child serves the emulator, sets the port
     }
     with initialize_config_module(CONFIG_MODULE, version_base="1.3"):
         return {name: plain_config(compose(CONFIG_NAME, overrides=ov)) for name, ov in jobs.items()}
@@ -145,7 +155,7 @@ def test_jobs_run_with_hydra_omegaconf_and_the_app_blocked(tmp_path: Path) -> No
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    for name in ("2d", "3d", "replay"):
+    for name in ("2d", "3d", "replay", "stream"):
         assert out[name]["status"] == "ok", (name, out[name]["error"])
     assert {"sfs", "itof", "fusion", "surface", "metrics"} <= set(out["3d"]["stages"])
     assert "chamfer_mm" in out["3d"]["metrics"] and "ssim" in out["replay"]["metrics"]
