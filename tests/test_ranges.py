@@ -113,3 +113,8 @@ def test_the_stage_error_prints_what_the_docs_list() -> None:
     line = next(ln for ln in describe(MeasuredFog) if ln.startswith("extent_mm:"))
     assert str(err.value).endswith("allowed: " + line.split(": ", 1)[1])
     assert MeasuredFog(extent_mm=math.inf).extent_mm == math.inf
+
+
+def test_a_whole_float_in_an_integer_field_becomes_an_int() -> None:
+    p = _Probe(n=4.0)  # type: ignore[arg-type]
+    assert p.n == 4 and type(p.n) is int

@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import sys
 import typing
 from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
+
+import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 
@@ -48,6 +51,7 @@ class Range:
         finite: infinities are refused (NaN always is); False lets ``.inf`` through where the
             interval holds it (an unbounded fog).
         note: said after the interval, in parentheses (``.inf for unbounded fog``).
+        also: words accepted besides a number (``("auto",)``: the stage chooses the value).
     """
 
     lo: float | None = None
@@ -58,10 +62,12 @@ class Range:
     integer: bool = False
     finite: bool = True
     note: str = ""
+    also: tuple[str, ...] = ()
 
     def allowed(self) -> str:
         """The allowed values in words (the ``allowed:`` part of the error)."""
-        return self._interval() + (f" ({self.note})" if self.note else "")
+        words = "".join(f"{w}, or " for w in self.also)
+        return words + self._interval() + (f" ({self.note})" if self.note else "")
 
     def _interval(self) -> str:
         lo, hi = self.lo, self.hi
@@ -74,8 +80,10 @@ class Range:
         return f"{self.what} (finite)"
 
     def contains(self, value: Any) -> bool:
-        """Whether ``value`` is a finite number (not a bool) inside the interval."""
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        """Whether ``value`` is a finite number (not a bool) inside the interval, or one of ``also``."""
+        if isinstance(value, str):
+            return value in self.also
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
             return False
         v = float(value)
         if math.isnan(v) or (self.finite and math.isinf(v)) or (self.integer and not v.is_integer()):
@@ -126,12 +134,15 @@ def allowed_text(spec: Spec, nullable: bool) -> str:
 
 def check_ranges(obj: Any) -> None:
     """Raise :class:`ConfigError` for the first field of dataclass ``obj`` outside its declared
-    range (fields in declaration order; None passes)."""
+    range (fields in declaration order; None passes). A whole float in an integer field becomes
+    the ``int`` (the object is frozen: set once, here, before any use)."""
     cls: Any = type(obj)
     for name, spec, nullable in field_ranges(cls):
         value = getattr(obj, name)
         if value is not None and not spec.contains(value):
             raise ConfigError(name, value, allowed_text(spec, nullable))
+        if isinstance(spec, Range) and spec.integer and isinstance(value, float):
+            object.__setattr__(obj, name, int(value))  # 4.0 from a command line: the count 4
 
 
 def describe(cls: type) -> Iterator[str]:

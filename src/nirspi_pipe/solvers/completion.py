@@ -65,12 +65,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
+from typing import Annotated
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht, is_power_of_two, sylvester
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.solvers.common import checked_coefficients, require_hadamard
 from nirspi_pipe.solvers.crossval import holdout
 from nirspi_pipe.solvers.fista_tv import FistaTVSolver
@@ -126,18 +128,12 @@ class PowerLawPrior:
         mean: prior mean radiance (relative radiance), used when DC is not measured.
     """
 
-    alpha: float
-    f0: float
-    mean: float = 0.0
+    alpha: Annotated[float, Range(0.0, 6.0, "a spectral exponent")]
+    f0: Annotated[float, Range(*F0_RANGE, "a roll-off frequency", note="cycles per image side")]
+    mean: Annotated[float, Range(None, None, "a prior mean radiance")] = 0.0
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.alpha) and 0 <= self.alpha <= 6):
-            raise ConfigError("alpha", self.alpha, "a spectral exponent in [0, 6]")
-        lo, hi = F0_RANGE
-        if not (np.isfinite(self.f0) and lo <= self.f0 <= hi):
-            raise ConfigError("f0", self.f0, f"a roll-off frequency in [{lo:g}, {hi:g}] (cycles per image side)")
-        if not np.isfinite(self.mean):
-            raise ConfigError("mean", self.mean, "a finite prior mean radiance")
+        check_ranges(self)
 
     @property
     def cache_key(self) -> tuple:
@@ -418,24 +414,14 @@ class CompletionSolver:
             ``fista_tv`` solve plus a second map (the training set's) per acquisition.
     """
 
-    noise: float | str = "auto"
-    alpha: float | str = "auto"
-    f0: float | None = None
+    noise: Annotated[float | str, Range(0.0, NOISE_MAX, "a noise sigma per measurement", also=("auto",))] = "auto"
+    alpha: Annotated[float | str, Range(0.0, 6.0, "a spectral exponent", also=("auto",))] = "auto"
+    f0: Annotated[float | None, Range(*F0_RANGE, "a roll-off frequency", note="cycles per image side")] = None
     guard: bool = True
-    refine: str = "none"
+    refine: Annotated[str, OneOf(REFINE)] = "none"
 
     def __post_init__(self) -> None:
-        allowed = f"auto, or a noise sigma per measurement in [0, {NOISE_MAX:g}]"
-        if isinstance(self.noise, str):
-            if self.noise != "auto":
-                raise ConfigError("noise", self.noise, allowed)
-        elif not (np.isfinite(self.noise) and 0 <= self.noise <= NOISE_MAX):
-            raise ConfigError("noise", self.noise, allowed)
-        if isinstance(self.alpha, str) and self.alpha != "auto":
-            raise ConfigError("alpha", self.alpha, "auto, or a spectral exponent in [0, 6]")
-        self.priors()  # validates alpha and f0
-        if self.refine not in REFINE:
-            raise ConfigError("refine", self.refine, " or ".join(REFINE))
+        check_ranges(self)
 
     def priors(self) -> list[PowerLawPrior]:
         """The priors in use: the shipped exponents (``alpha: auto``) or the one given, with the

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.solvers.common import (
     checked_coefficients,
     data_scale,
@@ -209,27 +210,15 @@ class FistaTVSolver:
         nonneg: project onto ``x ≥ 0`` after each proximal step (radiance cannot be negative).
     """
 
-    lam: float | str = "auto"
-    lam_floor: float = 0.02
-    max_iter: int = 100
-    tol: float = 1e-4
-    tv_iter: int = 5
+    lam: Annotated[float | str, Range(0.0, None, "a TV weight", also=("auto",))] = "auto"
+    lam_floor: Annotated[float, Range(0.0, None, "a TV weight")] = 0.02
+    max_iter: Annotated[int, Range(1, None, "an integer", integer=True)] = 100
+    tol: Annotated[float, Range(0.0, None, "a relative tolerance")] = 1e-4
+    tv_iter: Annotated[int, Range(1, None, "an integer", integer=True)] = 5
     nonneg: bool = False
 
     def __post_init__(self) -> None:
-        if isinstance(self.lam, str):
-            if self.lam != "auto":
-                raise ConfigError("lam", self.lam, "auto, or a TV weight >= 0")
-        elif not (np.isfinite(self.lam) and self.lam >= 0):
-            raise ConfigError("lam", self.lam, "auto, or a TV weight >= 0")
-        if not (np.isfinite(self.lam_floor) and self.lam_floor >= 0):
-            raise ConfigError("lam_floor", self.lam_floor, "a TV weight >= 0")
-        if not isinstance(self.max_iter, (int, np.integer)) or self.max_iter < 1:
-            raise ConfigError("max_iter", self.max_iter, "an integer >= 1")
-        if not (np.isfinite(self.tol) and self.tol >= 0):
-            raise ConfigError("tol", self.tol, "a relative tolerance >= 0")
-        if not isinstance(self.tv_iter, (int, np.integer)) or self.tv_iter < 1:
-            raise ConfigError("tv_iter", self.tv_iter, "an integer >= 1")
+        check_ranges(self)
 
     def _fista(
         self,

@@ -36,14 +36,14 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Protocol, TypeVar
+from typing import Annotated, Any, Protocol, TypeVar
 
 import numpy as np
 from scipy.linalg.blas import daxpy, dtpmv
 
 from nirspi_pipe.accel import check_device, choose, device_label
-from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import sylvester
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.solvers.common import TIE_RTOL, checked_coefficients
 from nirspi_pipe.solvers.omp_opencl import DeviceOmp, opencl_context
 from nirspi_pipe.types import Acquisition, Image2D
@@ -465,25 +465,16 @@ class OMPSolver:
             (:mod:`nirspi_pipe.accel`; ``auto`` honours ``PYOPENCL_CTX``).
     """
 
-    basis: str = "dct"
-    sparsity: float = 0.25
-    max_atoms: int | None = 1000
-    tol: float = 1e-6
-    backend: str = "auto"
+    basis: Annotated[str, OneOf(("dct", "haar"))] = "dct"
+    sparsity: Annotated[float, Range(0.0, 1.0, "a fraction of the measurements", lo_open=True)] = 0.25
+    max_atoms: Annotated[int | None, Range(1, None, "an integer", integer=True)] = 1000
+    tol: Annotated[float, Range(0.0, 1.0, "a relative tolerance", hi_open=True)] = 1e-6
+    backend: Annotated[str, OneOf(("auto", "numpy", "opencl"))] = "auto"
     normalize: bool = False
     device: str = "auto"
 
     def __post_init__(self) -> None:
-        if self.basis not in ("dct", "haar"):
-            raise ConfigError("basis", self.basis, "dct or haar")
-        if not (0.0 < float(self.sparsity) <= 1.0):
-            raise ConfigError("sparsity", self.sparsity, "a fraction of the measurements in (0, 1]")
-        if self.max_atoms is not None and (not isinstance(self.max_atoms, (int, np.integer)) or self.max_atoms < 1):
-            raise ConfigError("max_atoms", self.max_atoms, "an integer >= 1, or null")
-        if not (np.isfinite(self.tol) and 0 <= self.tol < 1):
-            raise ConfigError("tol", self.tol, "a relative tolerance in [0, 1)")
-        if self.backend not in ("auto", "numpy", "opencl"):
-            raise ConfigError("backend", self.backend, "auto, numpy or opencl")
+        check_ranges(self)
         check_device(self.device)
         if self.backend == "opencl":
             opencl_context(self.device)  # build the kernels now (or fail in one line), never inside a timed solve
