@@ -103,7 +103,9 @@ def _frame() -> pd.DataFrame:
                         "status": "ok",
                         "metrics.chamfer_mm": chamfer + bump + seed,
                         "metrics.depth_rmse_fused_mm": depth + bump + seed,
-                        "timings_ms.total": t + seed,
+                        "timings_ms.total": t + seed + 30.0,
+                        "timings_ms.scene": 10.0,
+                        "timings_ms.metrics": 20.0,
                     }
                 )
     return pd.DataFrame(rows)
@@ -116,7 +118,8 @@ def test_summary_medians_split_and_front(front):
     # the mean of the shapes' medians over the seeds (vase 4, bowl 14), not the median of all six jobs (8.5)
     assert so["chamfer_mm"] == 9.0 and so["chamfer_mm_min"] == 3.0 and so["chamfer_mm_max"] == 18.0
     assert so["chamfer_mm_by_shape"] == "bowl 14.00, vase 4.00"
-    assert so["time_ms"] == 201.0 and so["ok"] == so["jobs"] == 6
+    # time: timings_ms.total less the scene's rendering and the metrics (no camera runs them)
+    assert so["time_ms"] == 201.0 and so["total_ms"] == 231.0 and so["ok"] == so["jobs"] == 6
     assert so["sfs_share_chamfer_mm"] == pytest.approx(2.0) and so["sfs_share_depth_mm"] == pytest.approx(1.5)
     assert tr["anchoring_mm"] == 8.5 and tr["surface_mm"] == pytest.approx(7.0 - 8.5)
     # the oracle is faster and better, but a reference: never on a front; second_order alone is
