@@ -315,6 +315,9 @@ def figure(table: Any, path: Path) -> None:
     # start-up: matplotlib loads only for the figure
     import matplotlib.pyplot as plt
 
+    # start-up: matplotlib loads only for the figure
+    import matplotlib.ticker
+
     conds = [c for c in CONDITIONS if c in set(table["condition"])]
     fig, axes = plt.subplots(len(conds), 2, figsize=(11, 3.8 * len(conds)), squeeze=False)
     markers = {s: m for s, m in zip(sorted(set(table["sfs"])), "osD^v<>ph")}
@@ -349,9 +352,13 @@ def figure(table: Any, path: Path) -> None:
                     textcoords="offset points",
                 )
             ax.set_xscale("log")
-            ax.set_xlabel("timings_ms.total − scene − metrics, median (ms)")
-            ax.set_ylabel(f"{label}, median")
-            ax.set_title(f"{cond}: blue iToF avg {min(sub[AVERAGING]):g} s, orange longer", fontsize=9)
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # minor labels overlapped
+            ax.set_xlabel("median time, timings_ms.total − scene − metrics (ms)")
+            ax.set_ylabel(label)
+            ax.set_title(
+                f"{cond}: mean of the shapes' medians; blue iToF avg {min(sub[AVERAGING]):g} s, orange longer",
+                fontsize=9,
+            )
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=7)
     fig.tight_layout()
