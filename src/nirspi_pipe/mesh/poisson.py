@@ -14,14 +14,24 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
 from nirspi_pipe.mesh.powercrust import trim_to_samples
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
+from nirspi_pipe.mesh.remesh import (
+    MaxHoleEdges,
+    RemeshEdgeFactor,
+    Remesher,
+    RemeshIterations,
+    load_meshlab,
+    remesh_to_cloud,
+    resolve_remesher,
+    sample_spacing,
+)
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.types import Mesh, PointCloud
 
 __all__ = ["ScreenedPoisson"]
@@ -47,16 +57,16 @@ class ScreenedPoisson:
             (:func:`~nirspi_pipe.mesh.remesh.resolve_remesher`); ``info.surface.remesher`` says which ran.
     """
 
-    depth: int = 6
-    point_weight: float = 4.0
-    samples_per_node: float = 1.5
-    normal_knn: int = 10
+    depth: Annotated[int, Range(4, 12, "an integer", integer=True)] = 6
+    point_weight: Annotated[float, Range(0.0, None, "a weight")] = 4.0
+    samples_per_node: Annotated[float, Range(1.0, None, "a number")] = 1.5
+    normal_knn: Annotated[int, Range(3, 100, "an integer", integer=True)] = 10
     closed: bool = False
-    trim_factor: float = 1.5
-    remesh_iterations: int = 0
-    remesh_edge_factor: float = 1.0
-    max_hole_edges: int = 30
-    remesher: str = "auto"
+    trim_factor: Annotated[float, Range(0.0, None, "a factor", lo_open=True)] = 1.5
+    remesh_iterations: RemeshIterations = 0
+    remesh_edge_factor: RemeshEdgeFactor = 1.0
+    max_hole_edges: MaxHoleEdges = 30
+    remesher: Remesher = "auto"
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -66,19 +76,9 @@ class ScreenedPoisson:
         warm_up_outputs()
 
     def __post_init__(self) -> None:
-        check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
+        check_ranges(self)  # before any import or compilation: a bad key is refused at once
         load_meshlab()  # at build, outside the timed stage
         object.__setattr__(self, "_remesher", resolve_remesher(self.remesher))
-        if int(self.depth) != self.depth or not 4 <= self.depth <= 12:
-            raise ConfigError("depth", self.depth, "an integer from 4 to 12")
-        if not self.point_weight >= 0:
-            raise ConfigError("point_weight", self.point_weight, "a weight >= 0")
-        if not self.samples_per_node >= 1:
-            raise ConfigError("samples_per_node", self.samples_per_node, "a number >= 1")
-        if int(self.normal_knn) != self.normal_knn or not 3 <= self.normal_knn <= 100:
-            raise ConfigError("normal_knn", self.normal_knn, "an integer from 3 to 100")
-        if not self.trim_factor > 0:
-            raise ConfigError("trim_factor", self.trim_factor, "a factor > 0")
 
     def reconstruct(self, cloud: PointCloud) -> Mesh:
         """Screened Poisson mesh of ``cloud.points_m`` (metres)."""

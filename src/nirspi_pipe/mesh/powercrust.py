@@ -40,16 +40,26 @@ import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
-from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.mesh.crustfaces import crust_faces, power_centres
 from nirspi_pipe.mesh.jitcache import rebuild_on_failure
 from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
-from nirspi_pipe.mesh.remesh import check_remesh_keys, load_meshlab, remesh_to_cloud, resolve_remesher, sample_spacing
+from nirspi_pipe.mesh.remesh import (
+    MaxHoleEdges,
+    RemeshEdgeFactor,
+    Remesher,
+    RemeshIterations,
+    load_meshlab,
+    remesh_to_cloud,
+    resolve_remesher,
+    sample_spacing,
+)
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.types import Mesh, PointCloud
 
 #: Grid (m) the samples are snapped to before the Delaunay/Qhull steps. Assumed: 10 nm, five orders
@@ -429,17 +439,19 @@ class PowerCrust:
             ``info.surface.remesher`` says which ran.
     """
 
-    labelling: str = "view"
+    labelling: Annotated[str, OneOf(("view", "amenta"))] = "view"
     closed: bool = False
-    trim_factor: float = 1.5
-    remesh_iterations: int = 3
-    remesh_edge_factor: float = 1.0
-    max_hole_edges: int = 30
-    box_factor: float = 3.0
-    remesher: str = "auto"
+    trim_factor: Annotated[float, Range(0.0, None, "a factor", lo_open=True)] = 1.5
+    remesh_iterations: RemeshIterations = 3
+    remesh_edge_factor: RemeshEdgeFactor = 1.0
+    max_hole_edges: MaxHoleEdges = 30
+    box_factor: Annotated[float, Range(1.5, None, "a factor")] = 3.0
+    remesher: Remesher = "auto"
     # Not in the generated config schema (never a key of surface=power_crust; +surface.weld_factor=…
     # sets it): the configs, job keys and derived seeds of power-crust runs stay as they were.
-    weld_factor: float = field(default=0.25, metadata={"config": False})
+    weld_factor: Annotated[float, Range(0.0, 1.0, "a fraction of the sample spacing", hi_open=True)] = field(
+        default=0.25, metadata={"config": False}
+    )
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -452,19 +464,11 @@ class PowerCrust:
         warm_up_outputs()
 
     def __post_init__(self) -> None:
-        check_remesh_keys(self.remesh_iterations, self.remesh_edge_factor, self.max_hole_edges)
+        check_ranges(self)  # before any compilation: a bad key is refused at once
         # compile (or load from numba's cache) the crust's kernels and the remesher now, at build,
         # never inside the timed stage
         object.__setattr__(self, "_remesher", resolve_remesher(self.remesher))
         warm_up()
-        if not 0.0 <= self.weld_factor < 1.0:
-            raise ConfigError("weld_factor", self.weld_factor, "a fraction of the sample spacing in [0, 1)")
-        if self.labelling not in ("view", "amenta"):
-            raise ConfigError("labelling", self.labelling, "view or amenta")
-        if not self.trim_factor > 0:
-            raise ConfigError("trim_factor", self.trim_factor, "a factor > 0")
-        if not self.box_factor >= 1.5:
-            raise ConfigError("box_factor", self.box_factor, "a factor >= 1.5")
 
     def reconstruct(self, cloud: PointCloud) -> Mesh:
         """Power-crust mesh of ``cloud.points_m`` (metres)."""

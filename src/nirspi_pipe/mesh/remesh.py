@@ -23,14 +23,19 @@ mesh3d`` prints it).
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Annotated
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.ranges import OneOf, Range
 
 __all__ = [
     "REMESHERS",
-    "check_remesh_keys",
+    "RemeshIterations",
+    "RemeshEdgeFactor",
+    "MaxHoleEdges",
+    "Remesher",
     "load_meshlab",
     "clean_and_remesh",
     "remesh_to_cloud",
@@ -40,6 +45,11 @@ __all__ = [
 
 #: Values of the surface stages' ``remesher`` key.
 REMESHERS = ("auto", "compiled", "pymeshlab")
+#: The remeshing keys the surface stages share, with their declared ranges (:mod:`nirspi_pipe.ranges`).
+RemeshIterations = Annotated[int, Range(0, 50, "an integer", integer=True, note="0: off")]
+RemeshEdgeFactor = Annotated[float, Range(0.1, 20.0, "a factor of the sample spacing")]
+MaxHoleEdges = Annotated[int, Range(0, 10_000, "an integer", integer=True, note="0: keep holes")]
+Remesher = Annotated[str, OneOf(REMESHERS)]
 
 
 @lru_cache(maxsize=1)
@@ -63,16 +73,6 @@ def resolve_remesher(remesher: str) -> str:
         )
     load_meshlab()
     return "pymeshlab"
-
-
-def check_remesh_keys(iterations: int, edge_factor: float, max_hole_edges: int) -> None:
-    """Validate the remeshing keys of a surface stage (one-line errors naming the key)."""
-    if isinstance(iterations, bool) or int(iterations) != iterations or not 0 <= iterations <= 50:
-        raise ConfigError("remesh_iterations", iterations, "an integer from 0 (off) to 50")
-    if not (np.isfinite(edge_factor) and 0.1 <= edge_factor <= 20.0):
-        raise ConfigError("remesh_edge_factor", edge_factor, "a factor of the sample spacing in [0.1, 20]")
-    if isinstance(max_hole_edges, bool) or int(max_hole_edges) != max_hole_edges or not 0 <= max_hole_edges <= 10_000:
-        raise ConfigError("max_hole_edges", max_hole_edges, "an integer from 0 (keep holes) to 10000")
 
 
 def load_meshlab() -> None:
