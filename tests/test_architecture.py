@@ -20,7 +20,8 @@ reaches its parent packages; a name a package serves lazily (PEP 562: a module-l
 attribute ``nirspi_pipe.run`` of an imported package (or ``getattr(nirspi_pipe, "run")``); an
 import by a string (``importlib.import_module``, ``__import__``, ``runpy.run_module``,
 ``pkgutil.resolve_name``; a name built from literals, or known only by its start as in
-``f"pkg.{name}"``, which reaches every module below ``pkg``). Imports under ``if TYPE_CHECKING:``
+``f"pkg.{name}"``, which reaches every module below ``pkg``); code given to ``exec``, ``eval`` or
+``compile`` as a literal. Imports under ``if TYPE_CHECKING:``
 (anywhere, and in the ``else:`` of ``if not TYPE_CHECKING:``) do not run, so they are no edge of
 the reach; a runner module may still not name the app there. The other branch runs: it is an edge.
 What this scan cannot see (a name computed at run time) the run-time test covers:
@@ -36,6 +37,7 @@ from __future__ import annotations
 import ast
 import re
 import sys
+import textwrap
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -199,11 +201,13 @@ def _resolve_from(node: ast.ImportFrom, package: str) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def _scan(path: Path, name: str) -> _Scan:
+def _scan(path: Path, name: str, text: str | None = None) -> _Scan:
     """Imports of ``path`` (module ``name``), absolute, with line numbers; function-level too.
     ``import a.b`` binds ``a``, so a later attribute read ``a.x.y`` counts as a use of ``a.x.y``
-    (reported with the imports: ``from a import x`` and ``a.x`` reach the same things)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    (reported with the imports: ``from a import x`` and ``a.x`` reach the same things). Code
+    given to ``exec``/``eval``/``compile`` as a literal is scanned as part of the module (``text``:
+    such code, scanned in the module's package)."""
+    tree = ast.parse(path.read_text() if text is None else text, filename=str(path))
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     scan = _Scan()
     aliases: dict[str, str] = {}  # local name -> the module (or module.attribute) it is bound to
@@ -272,6 +276,13 @@ def _scan(path: Path, name: str) -> _Scan:
                 note([".".join([aliases[inner.id], *reversed(chain)])], node)
         elif isinstance(node, ast.Call):
             note(_string_import(node, aliases, package), node)
+            code = _const_str(node.args[0]) if node.args else None
+            if isinstance(node.func, ast.Name) and node.func.id in ("exec", "eval", "compile") and code:
+                try:
+                    inner_scan = _scan(path, name, textwrap.dedent(code))
+                except SyntaxError:
+                    inner_scan = _Scan()
+                note([m for m, _ in inner_scan.imports + inner_scan.typing], node)
             if isinstance(node.func, ast.Name) and node.func.id == "getattr" and len(node.args) >= 2:
                 attr, obj = _const_str(node.args[1]), node.args[0]
                 if isinstance(obj, ast.Call):
@@ -663,7 +674,8 @@ def test_an_eager_facade_is_found(tmp_path: Path) -> None:
 
 
 #: Routes past the previous scan (issue 42: 16 were found from outside), each in a runner module:
-#: imports by a string, ``getattr`` on the package, the ``else:`` of ``if TYPE_CHECKING``. Each
+#: imports by a string, ``getattr`` on the package, the ``else:`` of ``if TYPE_CHECKING``, code
+#: run by ``exec`` from a literal. Each
 #: one runs when the module runs, so it must show as a reach (a layer violation), not merely as a
 #: name under ``TYPE_CHECKING``. The scan of 8c3f3fd missed each one but the last (it took any
 #: ``if TYPE_CHECKING`` inside a function for code that runs; checked when written).
@@ -704,6 +716,7 @@ _RUNTIME_HOLES = {
         "nirspi_pipe/stats.py",
         "from pkgutil import resolve_name\n\ndef go():\n    resolve_name('nirspi_pipe.app.api:run')\n",
     ),
+    "exec-literal": ("nirspi_pipe/stats.py", "def go():\n    exec('from nirspi_pipe.app import api')\n"),
     "type-checking-else-in-function": (
         "nirspi_pipe/stats.py",
         "import typing\n\ndef go():\n    if typing.TYPE_CHECKING:\n        pass\n    else:\n        import hydra\n",
