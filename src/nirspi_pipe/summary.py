@@ -69,6 +69,45 @@ def _time_varying(node: Mapping[str, Any], keys: tuple[tuple[str, str], ...]) ->
     return f" + {', '.join(parts)}" if parts else ""
 
 
+def _fog_line(choices: Mapping[str, Any], fog: Mapping[str, Any], derived: Mapping[str, Any]) -> str:
+    """The fog's line: off, or its extinction, visibility, round-trip transmittance and fluctuation."""
+    beta = _num(derived.get("beta_per_m", 0.0))
+    if choices.get("fog") in (None, "none") or not beta > 0:
+        return "fog        off (fog=none): clear air"
+    vis = _num(derived.get("visibility_m"))
+    vis_s = f", visibility {vis:.2f} m (Koschmieder, 5 % contrast)" if math.isfinite(vis) else ""
+    tr = _num(derived.get("transmittance_roundtrip"))
+    tr_s = f", {100 * tr:.0f} % of the light survives the round trip" if math.isfinite(tr) else ""
+    tv = _time_varying(fog, (("fluctuation_rel", "density fluctuation"),))
+    return f"fog        {choices.get('fog')}: extinction β = {beta:.3g} /m{vis_s}{tr_s}{tv}"
+
+
+def _background_line(choices: Mapping[str, Any], light: Mapping[str, Any], derived: Mapping[str, Any]) -> str:
+    """The background light's line: off, or its illuminance, irradiance in the band and variation."""
+    klux = _num(derived.get("klux", light.get("klux", 0.0)))
+    if choices.get("illumination") in (None, "none") or not klux > 0:
+        return "background off (illumination=none): dark room"
+    irr = _num(derived.get("background_irradiance_w_m2"))
+    band = light.get("band_nm") or []
+    band_s = f" in the {band[0]:g}–{band[1]:g} nm band" if len(band) == 2 else ""
+    irr_s = f" = {irr:.3g} W/m²{band_s}" if math.isfinite(irr) else ""
+    tv = _time_varying(
+        light, (("flicker_rel", "flicker"), ("wander_rel", "wander"), ("drift_rel_per_s", "drift per s"))
+    )
+    return f"background {klux:g} kLux{irr_s}{tv}"
+
+
+def _detector_line(choices: Mapping[str, Any], derived: Mapping[str, Any]) -> str:
+    """The detector's line: ideal, or its SNR per reading and count of saturated patterns."""
+    det = choices.get("detector")
+    snr = _num(derived.get("snr_db"))
+    sat = int(_num(derived.get("saturated_patterns", 0)) or 0)
+    if det in (None, "ideal"):
+        return "detector   ideal (detector=ideal): no photon, dark or read noise, no ADC"
+    snr_s = f": SNR {snr:.1f} dB per reading" if math.isfinite(snr) else ""
+    return f"detector   {det}{snr_s}, {sat} saturated pattern{'s' if sat != 1 else ''}"
+
+
 def effects_lines(record: Mapping[str, Any]) -> list[str]:
     """One line per physical effect group (fog, background light, detector, extra noise): on
     with its size, or off. Empty for sources that replay measurements (nothing is simulated)."""
@@ -77,39 +116,11 @@ def effects_lines(record: Mapping[str, Any]) -> list[str]:
     derived = record.get("derived", {}) or {}
     if choices.get("source", "simulator") != "simulator":
         return [f"source     {choices.get('source')}: measured data, no simulated effects"]
-    lines = []
-    fog = config.get("fog") or {}
-    beta = _num(derived.get("beta_per_m", 0.0))
-    if choices.get("fog") in (None, "none") or not beta > 0:
-        lines.append("fog        off (fog=none): clear air")
-    else:
-        vis = _num(derived.get("visibility_m"))
-        vis_s = f", visibility {vis:.2f} m (Koschmieder, 5 % contrast)" if math.isfinite(vis) else ""
-        tr = _num(derived.get("transmittance_roundtrip"))
-        tr_s = f", {100 * tr:.0f} % of the light survives the round trip" if math.isfinite(tr) else ""
-        tv = _time_varying(fog, (("fluctuation_rel", "density fluctuation"),))
-        lines.append(f"fog        {choices.get('fog')}: extinction β = {beta:.3g} /m{vis_s}{tr_s}{tv}")
-    light = config.get("illumination") or {}
-    klux = _num(derived.get("klux", light.get("klux", 0.0)))
-    if choices.get("illumination") in (None, "none") or not klux > 0:
-        lines.append("background off (illumination=none): dark room")
-    else:
-        irr = _num(derived.get("background_irradiance_w_m2"))
-        band = light.get("band_nm") or []
-        band_s = f" in the {band[0]:g}–{band[1]:g} nm band" if len(band) == 2 else ""
-        irr_s = f" = {irr:.3g} W/m²{band_s}" if math.isfinite(irr) else ""
-        tv = _time_varying(
-            light, (("flicker_rel", "flicker"), ("wander_rel", "wander"), ("drift_rel_per_s", "drift per s"))
-        )
-        lines.append(f"background {klux:g} kLux{irr_s}{tv}")
-    det = choices.get("detector")
-    snr = _num(derived.get("snr_db"))
-    sat = int(_num(derived.get("saturated_patterns", 0)) or 0)
-    if det in (None, "ideal"):
-        lines.append("detector   ideal (detector=ideal): no photon, dark or read noise, no ADC")
-    else:
-        snr_s = f": SNR {snr:.1f} dB per reading" if math.isfinite(snr) else ""
-        lines.append(f"detector   {det}{snr_s}, {sat} saturated pattern{'s' if sat != 1 else ''}")
+    lines = [
+        _fog_line(choices, config.get("fog") or {}, derived),
+        _background_line(choices, config.get("illumination") or {}, derived),
+        _detector_line(choices, derived),
+    ]
     mux = _multiplex_line(record)
     if mux:
         lines.append(mux)
@@ -189,6 +200,48 @@ def _degenerate_line(metrics: Mapping[str, float], prefix: str, reasons: Mapping
     return f"{_SCORED[prefix]:<18} {'degenerate':>10}  left out ({prefix}{flags[0]}=1): {why}"
 
 
+def _rmse_note(metrics: Mapping[str, float]) -> str:
+    """The note under the RMSE: which SSIM/PSNR the lines show, and the raw ones, as the RMSE."""
+    raw = f"PSNR {_num(metrics['psnr_raw']):.2f} dB" + (
+        f", SSIM {_num(metrics['ssim_raw']):.3f}" if "ssim_raw" in metrics else ""
+    )
+    fitted = (
+        "SSIM/PSNR above: after a least-squares gain and offset to the camera's noise-free image"
+        if "psnr" in metrics
+        else "no fitted SSIM/PSNR: the reference is uniform, dark or not finite (degenerate_reference)"
+        if "degenerate_reference" in metrics
+        else "no fitted SSIM/PSNR: degenerate, see above"
+    )
+    return f"{'':<18} {'':>10}  ({fitted}; raw, as the RMSE: {raw})"
+
+
+def _baselines_note(metrics: Mapping[str, float]) -> str | None:
+    """The note under the offset-free improvement: the other SFS baselines, or None without them."""
+    others = [
+        f"{words} {_num(metrics[rm]):.3g} mm ({_num(metrics[ip]):+.1f} %)"
+        for rm, ip, words in _OTHER_BASELINES
+        if rm in metrics and ip in metrics
+    ]
+    if not others:
+        return None
+    return f"{'':<18} {'':>10}  (other SFS baselines: {'; '.join(others)}; docs/paper.md, Table 3)"
+
+
+def _metric_line(metrics: Mapping[str, float], k: str) -> list[str]:
+    """The line of metric ``k`` (``label  value  explanation``) and the note that follows it, if any."""
+    fmt, text = METRIC_HELP[k]
+    v = _num(metrics[k])
+    value = fmt.format(v) if math.isfinite(v) else str(v)
+    lines = [f"{_LABELS[k]:<18} {value:>10}  {text}"]
+    if k == "rmse" and "psnr_raw" in metrics:
+        lines.append(_rmse_note(metrics))
+    if k == "improvement_offsetfree_pct":
+        note = _baselines_note(metrics)
+        if note:
+            lines.append(note)
+    return lines
+
+
 def metric_lines(metrics: Mapping[str, float], warnings: list[str] | tuple[str, ...] = ()) -> list[str]:
     """The explained metrics, one per line (``label  value  explanation``), notes where two lines
     use different conventions (fitted PSNR/SSIM against the raw RMSE; the other SFS baselines
@@ -202,30 +255,7 @@ def metric_lines(metrics: Mapping[str, float], warnings: list[str] | tuple[str, 
     if degenerate[""]:
         lines.append(degenerate[""])
     for k in shown:
-        fmt, text = METRIC_HELP[k]
-        v = _num(metrics[k])
-        value = fmt.format(v) if math.isfinite(v) else str(v)
-        lines.append(f"{_LABELS[k]:<18} {value:>10}  {text}")
-        if k == "rmse" and "psnr_raw" in metrics:
-            raw = f"PSNR {_num(metrics['psnr_raw']):.2f} dB" + (
-                f", SSIM {_num(metrics['ssim_raw']):.3f}" if "ssim_raw" in metrics else ""
-            )
-            fitted = (
-                "SSIM/PSNR above: after a least-squares gain and offset to the camera's noise-free image"
-                if "psnr" in metrics
-                else "no fitted SSIM/PSNR: the reference is uniform, dark or not finite (degenerate_reference)"
-                if "degenerate_reference" in metrics
-                else "no fitted SSIM/PSNR: degenerate, see above"
-            )
-            lines.append(f"{'':<18} {'':>10}  ({fitted}; raw, as the RMSE: {raw})")
-        if k == "improvement_offsetfree_pct":
-            others = [
-                f"{words} {_num(metrics[rm]):.3g} mm ({_num(metrics[ip]):+.1f} %)"
-                for rm, ip, words in _OTHER_BASELINES
-                if rm in metrics and ip in metrics
-            ]
-            if others:
-                lines.append(f"{'':<18} {'':>10}  (other SFS baselines: {'; '.join(others)}; docs/paper.md, Table 3)")
+        lines += _metric_line(metrics, k)
     if degenerate["upscale_"]:
         at = next((i for i, s in enumerate(lines) if s.startswith(_LABELS["upscale_gain_db"])), len(lines))
         lines.insert(at, degenerate["upscale_"])
@@ -235,23 +265,48 @@ def metric_lines(metrics: Mapping[str, float], warnings: list[str] | tuple[str, 
     return lines
 
 
+def _sampled(record: Mapping[str, Any], res: Any) -> str:
+    """The head's note on a partial scan: the patterns measured of all, or the ratio asked."""
+    ratio = _num((((record.get("config", {}) or {}).get("scan")) or {}).get("ratio", 1.0))
+    if not (math.isfinite(ratio) and ratio < 1):
+        return ""
+    # what was measured, not 100 * ratio (1e-300 measured 1 pattern)
+    measured = ((record.get("info") or {}).get("source") or {}).get("patterns_measured")
+    if isinstance(measured, int) and not isinstance(measured, bool) and isinstance(res, int) and res > 0:
+        return f", {measured} of {res * res} patterns ({100 * measured / (res * res):.3g} %)"
+    return f", scan.ratio={ratio:.3g}"
+
+
+def _timings_line(t: Mapping[str, Any]) -> str:
+    """The stage times in ms, the total, and the build time when it is large enough to show."""
+    stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
+    line = f"  ms: {stages} | total {t.get('total', 0.0):.1f}"
+    build = t.get("build")
+    if isinstance(build, (int, float)) and build >= BUILD_SHOWN_MS:  # compiling kernels: not hidden
+        line += f" | build {build:.1f} before the stages, not in total (a first run compiles their kernels)"
+    return line
+
+
+def _out_line(out_dir: Path, warned: list[str]) -> str:
+    """The run's folder, and its summary picture where this run wrote one."""
+    unwritten = any(w.startswith("summary.png not written") for w in warned)  # an older file may be there
+    pic = (
+        "  (summary.png: truth, reconstruction, error)"
+        if (Path(out_dir) / "summary.png").exists() and not unwritten
+        else ""
+    )
+    return f"  -> {out_dir}{pic}"
+
+
 def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> str:
     """The multi-line summary of one run record (see the module docstring)."""
     choices = record.get("choices", {}) or {}
     cfg = record.get("config", {}) or {}
     meta = record.get("meta", {}) or {}
     res = (cfg.get("camera") or {}).get("resolution")
-    ratio = _num((cfg.get("scan") or {}).get("ratio", 1.0))
-    sampled = ""
-    if math.isfinite(ratio) and ratio < 1:  # what was measured, not 100 * ratio (1e-300 measured 1 pattern)
-        measured = ((record.get("info") or {}).get("source") or {}).get("patterns_measured")
-        if isinstance(measured, int) and not isinstance(measured, bool) and isinstance(res, int) and res > 0:
-            sampled = f", {measured} of {res * res} patterns ({100 * measured / (res * res):.3g} %)"
-        else:
-            sampled = f", scan.ratio={ratio:.3g}"
     head = (
         f"nirspi-run: scene={choices.get('scene')} scan={choices.get('scan')} "
-        f"solver={choices.get('solver')} {res}x{res}{sampled} seed={meta.get('seed')}"
+        f"solver={choices.get('solver')} {res}x{res}{_sampled(record, res)} seed={meta.get('seed')}"
     )
     lines = [head]
     if meta.get("status", "ok") != "ok":
@@ -261,21 +316,8 @@ def format_summary(record: Mapping[str, Any], out_dir: Path | None = None) -> st
     lines += ["  " + s for s in metric_lines(record.get("metrics", {}) or {}, warned)]
     t = record.get("timings_ms", {}) or {}
     if t:
-        stages = " | ".join(f"{k} {v:.1f}" for k, v in t.items() if k not in ("build", "total"))
-        line = f"  ms: {stages} | total {t.get('total', 0.0):.1f}"
-        build = t.get("build")
-        if isinstance(build, (int, float)) and build >= BUILD_SHOWN_MS:  # compiling kernels: not hidden
-            line += f" | build {build:.1f} before the stages, not in total (a first run compiles their kernels)"
-        lines.append(line)
-    for w in warned:
-        if not _LEFT_OUT.search(w):  # shown on the metric's own line
-            lines.append(f"  warning: {w}")
+        lines.append(_timings_line(t))
+    lines += [f"  warning: {w}" for w in warned if not _LEFT_OUT.search(w)]  # those shown on the metric's own line
     if out_dir is not None:
-        unwritten = any(w.startswith("summary.png not written") for w in warned)  # an older file may be there
-        pic = (
-            "  (summary.png: truth, reconstruction, error)"
-            if (Path(out_dir) / "summary.png").exists() and not unwritten
-            else ""
-        )
-        lines.append(f"  -> {out_dir}{pic}")
+        lines.append(_out_line(out_dir, warned))
     return "\n".join(lines)
