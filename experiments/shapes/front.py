@@ -20,8 +20,9 @@ Then it reads the records back with :func:`nirspi_pipe.load_results` and writes,
   averaging, surface) with, of ``metrics.chamfer_mm`` and ``metrics.depth_rmse_fused_mm``, the
   mean over the shapes of each shape's median over the seeds (each shape weighs the same), each
   shape's median and the smallest and largest job; the median over its jobs of the computing
-  time (below) and of ``timings_ms.total``; the jobs that ran ok out of the jobs swept; the error split by stage against the
-  configuration's ``sfs=truth`` row; and the front flags ``front_chamfer`` / ``front_depth``;
+  time (below) and of ``timings_ms.total``; the jobs that ran ok out of the jobs swept; the
+  error split by stage against the configuration's ``sfs=truth`` row; and the front flags
+  ``front_chamfer`` / ``front_depth``;
 * ``front.md``: the same as Markdown tables, one per condition (``front_members.md``: the
   front members only);
 * ``front.png``: error against time, one panel per (condition, metric), front members ringed
@@ -30,11 +31,13 @@ Then it reads the records back with :func:`nirspi_pipe.load_results` and writes,
 A configuration is on a front when no other configuration of its condition is at least as good in
 the error (mean of the shapes' medians), the median computing time (``timings_ms.total`` less
 ``timings_ms.scene`` and ``timings_ms.metrics``: the simulator's rendering of the truth and the
-scoring against it, which no camera runs; ms) and the iToF's averaging time (``itof.averaging_s``: acquisition time the computing time does not hold),
-and strictly better in one. The oracle rows (``sfs=truth``) are references for the split, never
+scoring against it, which no camera runs; ms) and the iToF's averaging time
+(``itof.averaging_s``: acquisition time the computing time does not hold), and strictly better
+in one. The oracle rows (``sfs=truth``) are references for the split, never
 on a front. A configuration with a failed job has no summary (never on a front).
 
-The default grid (≤ 10 minutes on an idle 2-core machine) is :data:`DEFAULT`; ``--full`` is
+The default grid is :data:`DEFAULT` (432 jobs, sized for about 10 minutes on an idle 2-core
+machine; what it took here: docs/mesh.md, *The 3D accuracy–time front*); ``--full`` is
 :data:`FULL` (hours).
 """
 
@@ -112,7 +115,7 @@ class Grid:
         return self.configurations() * len(self.shapes) * len(self.seeds) * len(self.conditions)
 
 
-#: ≤ 10 minutes on an idle 2-core machine (measured in docs/mesh.md's front section).
+#: Sized for about 10 minutes on an idle 2-core machine (what it took: docs/mesh.md's front section).
 DEFAULT = Grid(
     resolution=(32, 64, 128),
     sfs=("second_order", "perspective", "truth"),
