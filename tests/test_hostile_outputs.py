@@ -15,10 +15,11 @@ import pandas as pd
 import pytest
 
 from conftest import script
-from nirspi_pipe import records
+from nirspi_pipe import outputfiles
 from nirspi_pipe.app import jobs
 from nirspi_pipe.app.jobcomposer import ComposedJob
-from nirspi_pipe.records import RECORD_NAME, JobLock, OutputError, read_record, write_record
+from nirspi_pipe.outputfiles import JobLock, OutputError
+from nirspi_pipe.records import RECORD_NAME, read_record, write_record
 
 fork_only = pytest.mark.skipif(not hasattr(os, "fork"), reason="runners are forked")
 linux_only = pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="finds a file's name in /proc/self/fd")
@@ -62,7 +63,7 @@ def test_a_linked_folder_is_refused_and_a_linked_file_is_replaced(tmp_path: Path
     assert victim.read_text() == "keep"
 
     (real / "summary.png").symlink_to(victim)  # written in place by matplotlib: the link goes first
-    records.drop_links(real, ("summary.png", "mesh.ply"))
+    outputfiles.drop_links(real, ("summary.png", "mesh.ply"))
     assert not (real / "summary.png").exists() and victim.read_text() == "keep"
 
 
@@ -244,7 +245,7 @@ def test_a_job_whose_folder_cannot_be_written_fails_alone(tmp_path: Path, monkey
 
     def full_for_job1(folder: Path) -> int:
         if Path(folder).name == "job1":
-            raise records._write_failure(Path(folder) / "attempts.json", OSError(errno.ENOSPC, "No space left"))
+            raise outputfiles._write_failure(Path(folder) / "attempts.json", OSError(errno.ENOSPC, "No space left"))
         return real(folder)
 
     monkeypatch.setattr(launcher, "_execute", _fake_execute)

@@ -195,7 +195,7 @@ def test_the_input_hash_covers_regular_files_only(tmp_path: Path) -> None:
     (and are never opened to be hashed)."""
     import os
 
-    from nirspi_pipe.records import InputHasher
+    from nirspi_pipe.jobkey import InputHasher
 
     (tmp_path / "rec.npz").write_bytes(b"data")
     os.mkfifo(tmp_path / "fifo")

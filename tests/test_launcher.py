@@ -101,7 +101,7 @@ def test_a_job_locked_elsewhere_waits_and_runs(tmp_path: Path, monkeypatch: pyte
         [
             sys.executable,
             "-c",
-            "import sys, time; from nirspi_pipe.records import JobLock; "
+            "import sys, time; from nirspi_pipe.outputfiles import JobLock; "
             f"JobLock({str(tmp_path / 'job1')!r}).acquire(); print('held', flush=True); time.sleep(1.5)",
         ],
         stdout=subprocess.PIPE,

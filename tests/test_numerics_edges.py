@@ -31,8 +31,9 @@ from nirspi_pipe.errors import ConfigError, NumericalError
 from nirspi_pipe.execute import execute_job
 from nirspi_pipe.finite import drop_nonfinite, reason_for
 from nirspi_pipe.instantiate import plain_config
+from nirspi_pipe.jobkey import config_hash
 from nirspi_pipe.pipeline import _Clock, _recorded_warnings, run_pipeline
-from nirspi_pipe.records import config_hash, decode_nonfinite, dumps_strict
+from nirspi_pipe.strictjson import decode_nonfinite, dumps_strict
 from nirspi_pipe.types import Image2D
 
 FAST = ["camera.resolution=8", "output.images=false", "output.arrays=false"]

@@ -19,7 +19,7 @@ from nirspi_pipe.app.objective import (
     pareto_mask,
 )
 from nirspi_pipe.app.results import mark_pareto
-from nirspi_pipe.records import config_hash, job_key_of
+from nirspi_pipe.jobkey import config_hash, job_key_of
 
 
 def test_names_take_a_key_or_a_list_of_record_keys() -> None:

@@ -17,21 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from nirspi_pipe import records
+from nirspi_pipe import jobkey, outputfiles, provenance
 from nirspi_pipe.app.jobcomposer import expand_grid
 from nirspi_pipe.app.jobs import crash_message, run_sweep_job
 from nirspi_pipe.app.sweepfile import SweepFileError, load_sweep_file
-from nirspi_pipe.records import (
-    RECORD_NAME,
-    InputHasher,
-    JobLock,
-    OutputError,
-    code_identity,
-    input_files,
-    job_key_of,
-    read_record,
-    write_record,
-)
+from nirspi_pipe.jobkey import InputHasher, input_files, job_key_of
+from nirspi_pipe.outputfiles import JobLock, OutputError
+from nirspi_pipe.provenance import code_identity
+from nirspi_pipe.records import RECORD_NAME, read_record, write_record
 
 
 def _leftovers(folder: Path) -> list[str]:
@@ -92,7 +85,7 @@ def test_disk_full_is_one_line_and_leaves_the_old_record(tmp_path: Path, monkeyp
             self.fh.write(data[: len(data) // 2])  # half of it reaches the disk, then ENOSPC
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(records.os, "fdopen", Full)
+    monkeypatch.setattr(outputfiles.os, "fdopen", Full)
     with pytest.raises(OutputError) as info:
         write_record(tmp_path, {"meta": {"status": "ok"}, "metrics": {"a": 2.0}})
     message = str(info.value)
@@ -132,7 +125,7 @@ def test_cli_single_run_into_an_unwritable_place_is_one_line(cli) -> None:
 _HOLD = """
 import sys, time
 from pathlib import Path
-from nirspi_pipe.records import JobLock
+from nirspi_pipe.outputfiles import JobLock
 lock = JobLock(Path(sys.argv[1]))
 assert lock.acquire()
 print("held", flush=True)
@@ -172,7 +165,7 @@ def test_input_files_change_the_job_key(tmp_path: Path) -> None:
     hasher = InputHasher()
     key1 = job_key_of(config, hasher.hashes(config, base=tmp_path))
     assert key1 == job_key_of(config, InputHasher().hashes(config, base=tmp_path))  # deterministic
-    assert job_key_of({"a": 1}, {}) == records.config_hash({"a": 1})  # no inputs: the config hash
+    assert job_key_of({"a": 1}, {}) == jobkey.config_hash({"a": 1})  # no inputs: the config hash
     st = rec.stat()
     rec.write_bytes(b"other recording")  # same size and path, new content
     os.utime(rec, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
@@ -221,16 +214,16 @@ def test_provenance_never_runs_git_in_the_callers_directory(tmp_path: Path) -> N
         ["git", "rev-parse", "HEAD"], cwd=other, capture_output=True, text=True, env=env
     ).stdout.strip()
     marker.unlink(missing_ok=True)
-    code = "import json; from nirspi_pipe.records import code_identity; print(json.dumps(code_identity()))"
+    code = "import json; from nirspi_pipe.provenance import code_identity; print(json.dumps(code_identity()))"
     out = subprocess.run([sys.executable, "-c", code], cwd=other, capture_output=True, text=True, timeout=120, env=env)
     assert out.returncode == 0, out.stderr
     ident = json.loads(out.stdout)
     assert ident["git_sha"] != other_sha
     assert not marker.exists(), "git ran the caller's repository's fsmonitor hook"
     assert ident["source_hash"] and ident["version"]
-    pkg = records.package_root()
+    pkg = provenance.package_root()
     own = subprocess.run(["git", "-C", str(pkg), "rev-parse", "HEAD"], capture_output=True, text=True)
-    tracked = records._checkout_of(pkg) is not None
+    tracked = provenance._checkout_of(pkg) is not None
     assert ident["git_sha"] == (own.stdout.strip() if tracked else None)
     assert ident["code"] == (
         f"git:{ident['git_sha'][:12]}" + ("+dirty" if ident["git_dirty"] else "")
@@ -247,7 +240,7 @@ def test_git_runs_only_with_the_package_root(monkeypatch: pytest.MonkeyPatch) ->
         calls.append((list(cmd), k.get("cwd")))
         return real(cmd, *a, **k)
 
-    monkeypatch.setattr(records.subprocess, "run", spy)
+    monkeypatch.setattr(provenance.subprocess, "run", spy)
     code_identity.cache_clear()
     try:
         code_identity()
@@ -256,18 +249,18 @@ def test_git_runs_only_with_the_package_root(monkeypatch: pytest.MonkeyPatch) ->
     for cmd, cwd in calls:
         assert cmd[0] == "git" and cmd[1] == "-C" and "core.fsmonitor=false" in cmd
         root = Path(cmd[2])
-        assert cwd == root and records.package_root().is_relative_to(root)
+        assert cwd == root and provenance.package_root().is_relative_to(root)
 
 
 def test_a_copied_package_is_not_a_checkout(tmp_path: Path) -> None:
     """An installed copy (here: the package copied out of its checkout) gets no git SHA."""
     copy = tmp_path / "site-packages" / "nirspi_pipe"
-    shutil.copytree(records.package_root(), copy, ignore=shutil.ignore_patterns("__pycache__"))
-    assert records._checkout_of(copy) is None
+    shutil.copytree(provenance.package_root(), copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert provenance._checkout_of(copy) is None
     # inside an unrelated checkout, an untracked copy still is not part of it
     if _git_available():
         subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
-        assert records._checkout_of(copy) is None
+        assert provenance._checkout_of(copy) is None
 
 
 # -- crash records, sweep.json ------------------------------------------------------------------

@@ -66,7 +66,7 @@ def test_every_shipped_target_is_allowed_and_imports() -> None:
                     assert f"{kind.__module__}.{kind.__qualname__}" in PROJECT_TARGETS, (target, f.name)
 
 
-@pytest.mark.parametrize("target", [*ATTACKS, "nirspi_evil_module.Thing", "nirspi_pipe.records.atomic_write"])
+@pytest.mark.parametrize("target", [*ATTACKS, "nirspi_evil_module.Thing", "nirspi_pipe.outputfiles.atomic_write"])
 def test_a_target_off_the_list_is_refused_before_import(target: str, monkeypatch: pytest.MonkeyPatch) -> None:
     imported = []
     monkeypatch.setattr(targets.importlib, "import_module", lambda name: imported.append(name))

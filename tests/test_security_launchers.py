@@ -108,7 +108,7 @@ def test_the_input_hasher_reads_no_byte_of_a_file_over_the_read_budget(tmp_path:
     """A sparse 16 GB file (no disk used) costs no read: its entry says it was not hashed and
     gives its size; a file within the budget is hashed in full (every byte read once, then
     cached); a FIFO swapped in where a file was is an 'unreadable' entry, never a hang."""
-    from nirspi_pipe.records import InputHasher
+    from nirspi_pipe.jobkey import InputHasher
 
     sparse = tmp_path / "sparse.bin"
     with open(sparse, "wb") as fh:

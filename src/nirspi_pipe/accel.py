@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError, NirspiError
-from nirspi_pipe.records import dumps_strict
+from nirspi_pipe.strictjson import dumps_strict
 
 __all__ = [
     "DEVICE_KEYWORDS",

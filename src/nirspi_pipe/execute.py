@@ -24,17 +24,10 @@ from nirspi_pipe.figure import write_summary_figure
 from nirspi_pipe.finite import drop_nonfinite
 from nirspi_pipe.instantiate import plain_config
 from nirspi_pipe.mesh.outputs import write_mesh_outputs
+from nirspi_pipe.outputfiles import OutputError, atomic_write, drop_links, refuse_link
 from nirspi_pipe.pipeline import RunOutput, effective_seed, run_pipeline
-from nirspi_pipe.records import (
-    OutputError,
-    atomic_write,
-    drop_links,
-    new_record,
-    provenance,
-    refuse_link,
-    write_arrays,
-    write_record,
-)
+from nirspi_pipe.provenance import provenance
+from nirspi_pipe.records import new_record, write_arrays, write_record
 from nirspi_pipe.stages import ScanIndices, WarmsUp
 from nirspi_pipe.targets import allowed_targets, locate
 
@@ -60,7 +53,7 @@ def execute_job(
     """Run one job (``cfg``: a resolved config as plain data, or any mapping that reads as one)
     and write its record and arrays into ``out_dir``. Never raises for a failing pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
     traceback goes to ``error.txt``. Returns the record. Raises
-    :class:`nirspi_pipe.records.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
+    :class:`nirspi_pipe.outputfiles.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
     with the pipeline's ``RunOutput`` of a successful run (the Python API keeps the arrays).
     ``scan_indices`` resolves the scan option a recording names (see :func:`run_pipeline`)."""
     refuse_link(out_dir)  # nothing is written through a link (docs/hostile.md)

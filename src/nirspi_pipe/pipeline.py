@@ -19,7 +19,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError, NumericalError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
-from nirspi_pipe.records import config_hash
+from nirspi_pipe.jobkey import config_hash
 from nirspi_pipe.scene.render import forget_renders
 from nirspi_pipe.stages import Aimable, Itof, NeedsScene, Products, ReadsScanOptions, ScanIndices, check_stage
 from nirspi_pipe.types import Acquisition, Camera, Image2D, Mesh, PointCloud

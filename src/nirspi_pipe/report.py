@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from nirspi_pipe.records import atomic_write
+from nirspi_pipe.outputfiles import atomic_write
 
 __all__ = ["write_report"]
 

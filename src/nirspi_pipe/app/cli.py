@@ -34,7 +34,7 @@ from nirspi_pipe.app.hydranode import check_job
 from nirspi_pipe.app.plugins import activate, discover, format_report
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweepfile import SWEEP_FILE, SweepFileError
-from nirspi_pipe.records import OutputError, drop_links, refuse_link
+from nirspi_pipe.outputfiles import OutputError, drop_links, refuse_link
 from nirspi_pipe.safeio import sanitize_text
 from nirspi_pipe.summary import format_summary
 from nirspi_pipe.targets import trusted_paths

@@ -1,7 +1,7 @@
 """The jobs of a sweep, composed and keyed (:mod:`nirspi_pipe.app.sweeper`): the grid as Hydra's
 basic sweeper expands it (:func:`expand_grid`), a job's config as the sweeper composed it to key
 it and as the ``nirspi`` launcher runs it (:class:`ComposedJob`), its folder key
-(:func:`job_key`, :func:`nirspi_pipe.records.job_key_of`) and the override that puts it there
+(:func:`job_key`, :func:`nirspi_pipe.jobkey.job_key_of`) and the override that puts it there
 (:func:`subdir_override`); plain value overrides set on a composed base as Hydra sets them
 (:func:`set_plain`, :func:`resolve_plain`); why a job did not compose or was refused.
 """
@@ -17,7 +17,7 @@ from typing import Any, cast
 from omegaconf import OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
-from nirspi_pipe.records import InputHasher, job_key_of
+from nirspi_pipe.jobkey import InputHasher, job_key_of
 
 __all__ = [
     "ComposeFailure",
@@ -142,7 +142,7 @@ def composed_job(cfg: Any) -> ComposedJob:
 
 def job_key(job_cfg: Any, hasher: InputHasher | None = None) -> str:
     """The folder key of a composed job config: the hash of its resolved non-hydra part and of
-    the content of every input file it names (:func:`nirspi_pipe.records.job_key_of`)."""
+    the content of every input file it names (:func:`nirspi_pipe.jobkey.job_key_of`)."""
     resolved = _resolved(job_cfg)
     return job_key_of(resolved, (hasher or InputHasher()).hashes(resolved))
 

@@ -3,7 +3,7 @@
 Whatever the launcher (joblib workers, ``submitit_local`` subprocesses, SLURM tasks), the task
 function of a sweep calls :func:`run_sweep_job`, which
 
-1. takes the job folder's lock (:class:`nirspi_pipe.records.JobLock`), waiting if another sweep
+1. takes the job folder's lock (:class:`nirspi_pipe.outputfiles.JobLock`), waiting if another sweep
    writing into the same folder is running this very job; if another process completed it
    meanwhile (an ``ok`` record; with ``resume=false`` one newer than this sweep's ``sweep.json``),
    it is not run again, so two identical sweeps into one folder share the work;
@@ -35,19 +35,11 @@ from typing import Any
 from nirspi_pipe import execute
 from nirspi_pipe.app.configs import scan_indices
 from nirspi_pipe.instantiate import plain_config
-from nirspi_pipe.records import (
-    RECORD_NAME,
-    JobLock,
-    OutputError,
-    atomic_write,
-    code_identity,
-    dumps_strict,
-    new_record,
-    provenance,
-    read_record,
-    write_record,
-)
+from nirspi_pipe.outputfiles import JobLock, OutputError, atomic_write
+from nirspi_pipe.provenance import code_identity, provenance
+from nirspi_pipe.records import RECORD_NAME, new_record, read_record, write_record
 from nirspi_pipe.safeio import read_regular
+from nirspi_pipe.strictjson import dumps_strict
 
 __all__ = [
     "ATTEMPTS_NAME",

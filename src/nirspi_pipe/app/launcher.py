@@ -46,7 +46,7 @@ from nirspi_pipe.app.jobcomposer import ComposedJob, composed_job
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import objective_values
 from nirspi_pipe.app.sweepfile import format_progress
-from nirspi_pipe.records import OutputError, refuse_link
+from nirspi_pipe.outputfiles import OutputError, refuse_link
 
 __all__ = ["NirspiLauncherBase"]
 

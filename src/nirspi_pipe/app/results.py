@@ -32,18 +32,11 @@ from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import launcher_failures
 from nirspi_pipe.app.sweepfile import SweepFileError, load_sweep_file
 from nirspi_pipe.finite import drop_nonfinite
-from nirspi_pipe.records import (
-    RECORD_NAME,
-    OutputError,
-    atomic_write,
-    decode_nonfinite,
-    drop_links,
-    dumps_strict,
-    read_record,
-    refuse_link,
-)
+from nirspi_pipe.outputfiles import OutputError, atomic_write, drop_links, refuse_link
+from nirspi_pipe.records import RECORD_NAME, read_record
 from nirspi_pipe.report import write_report
 from nirspi_pipe.safeio import read_regular, sanitize_text
+from nirspi_pipe.strictjson import decode_nonfinite, dumps_strict
 from nirspi_pipe.tables import build_table
 
 __all__ = ["find_records", "records_to_frame", "collect", "CollectResults", "override_keys"]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from nirspi_pipe.app.objective import SECTIONS
-from nirspi_pipe.records import config_hash
+from nirspi_pipe.jobkey import config_hash
 
 __all__ = [
     "Dimension",

@@ -62,15 +62,10 @@ from nirspi_pipe.app.searchspace import (
 )
 from nirspi_pipe.app.storage import StorageError, shown_url, storage_url
 from nirspi_pipe.app.sweeper import NirspiSweeperBase
-from nirspi_pipe.records import (
-    RECORD_NAME,
-    InputHasher,
-    OutputError,
-    atomic_write,
-    dumps_strict,
-    job_key_of,
-    read_record,
-)
+from nirspi_pipe.jobkey import InputHasher, job_key_of
+from nirspi_pipe.outputfiles import OutputError, atomic_write
+from nirspi_pipe.records import RECORD_NAME, read_record
+from nirspi_pipe.strictjson import dumps_strict
 
 __all__ = ["SWEEPER_CONFIG", "StudySweeperBase", "register_config"]
 

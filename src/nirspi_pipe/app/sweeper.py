@@ -4,7 +4,7 @@ It expands the sweep like Hydra's ``basic`` sweeper (command-line sweeps plus
 ``hydra.sweeper.params``), using Hydra's public override parser, then for every job:
 
 * composes its config with Hydra's config loader and keys its output folder
-  (``hydra.sweep.subdir=<key>``) by :func:`nirspi_pipe.records.job_key_of`: the hash of the
+  (``hydra.sweep.subdir=<key>``) by :func:`nirspi_pipe.jobkey.job_key_of`: the hash of the
   resolved config, together with the content hash of every input file it names (recordings,
   meshes, images, weights), so the same job always lands in the same folder and a changed file
   reruns it;
@@ -65,18 +65,11 @@ from nirspi_pipe.app.jobcomposer import (
 )
 from nirspi_pipe.app.slurmshim import quiet_sacct_without_accounting
 from nirspi_pipe.app.sweepfile import SWEEP_FILE, ProgressWatcher, record_status
-from nirspi_pipe.records import (
-    RECORD_NAME,
-    InputHasher,
-    OutputError,
-    atomic_write,
-    config_hash,
-    dumps_strict,
-    job_key_of,
-    provenance,
-    refuse_link,
-    write_record,
-)
+from nirspi_pipe.jobkey import InputHasher, config_hash, job_key_of
+from nirspi_pipe.outputfiles import OutputError, atomic_write, refuse_link
+from nirspi_pipe.provenance import provenance
+from nirspi_pipe.records import RECORD_NAME, write_record
+from nirspi_pipe.strictjson import dumps_strict
 
 __all__ = ["NirspiSweeperBase", "launcher_failures"]
 

@@ -50,9 +50,9 @@ import numpy as np
 from nirspi_pipe.accel import write_table
 from nirspi_pipe.benchmarks import mesh3d
 from nirspi_pipe.patterns.orders import Zigzag
-from nirspi_pipe.records import dumps_strict
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.omp_opencl import opencl_context
+from nirspi_pipe.strictjson import dumps_strict
 from nirspi_pipe.types import Camera
 
 SKIP_NO_GPU = "SKIPPED (no GPU): "
