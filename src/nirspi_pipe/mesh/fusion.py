@@ -203,14 +203,9 @@ class ItofFusion:
             warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=3)
         return used, zr, pts[:, 2], sig, reasons
 
-    def metric_depth(self, depth: DepthMap, itof: ItofSample, camera: Camera) -> tuple[np.ndarray, np.ndarray, dict]:
-        """Alg. A3: the metric z-depth map ``(n, n)`` (metres, valid where the returned mask is
-        True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used, …}``.
-
-        Degrees of freedom by the number of valid anchors: 1 → the offset (the scale is the prior
-        ``Z̄/f``); 2 → offset and scale (with the prior); ≥ ``min_anchors_local`` (3) → also one
-        local offset per anchor region, shrunk towards 0 where SFS and iToF agree within their
-        combined uncertainty."""
+    def _valid_sfs(self, depth: DepthMap, camera: Camera) -> tuple[np.ndarray, np.ndarray, int]:
+        """Alg. A3's input: the SFS map as floats, its valid pixels (masked, finite, not spikes)
+        and the count of spikes removed; a map of the wrong shape or without a valid pixel fails."""
         zr_map = np.asarray(depth.depth_m, dtype=np.float64)
         n = camera.resolution
         if zr_map.shape != (n, n) or np.shape(depth.mask) != (n, n):
@@ -218,7 +213,7 @@ class ItofFusion:
         valid = np.asarray(depth.mask, dtype=bool) & np.isfinite(zr_map)
         bad = int((np.asarray(depth.mask, dtype=bool) & ~np.isfinite(zr_map)).sum())
         if bad:
-            warnings.warn(f"fusion: {bad} masked SFS pixels are not finite; dropped", stacklevel=3)
+            warnings.warn(f"fusion: {bad} masked SFS pixels are not finite; dropped", stacklevel=4)
         if not valid.any():
             raise NirspiError("fusion: the SFS depth map has no valid pixel (empty mask)")
         spikes = 0
@@ -226,9 +221,13 @@ class ItofFusion:
             unit = 1.0 if not depth.metric else float(np.median(zr_map[valid])) / camera.focal_px
             kept = despike(zr_map, valid, self.despike_k, unit)
             spikes, valid = int(valid.sum() - kept.sum()), kept
-        used, zr, z, sig, reasons = self._anchor_values(zr_map, valid, itof, camera)
-        prior_m = None if self.prior_distance_mm is None else self.prior_distance_mm * 1e-3
-        prior_sig = None if prior_m is None else self.prior_distance_rel * prior_m
+        return zr_map, valid, spikes
+
+    def _drop_uninformative(
+        self, used: np.ndarray, sig: np.ndarray, reasons: list[str], itof: ItofSample, prior_m: float | None
+    ) -> None:
+        """Marks unused (in place, warned, reason listed) the anchors whose σ makes their wrapped
+        phase about uniform over the ambiguity range; fails when no anchor and no prior are left."""
         wrap = float((itof.info or {}).get("ambiguity_range_m", np.inf))
         useless = sig * np.sqrt(12.0) >= wrap  # a wrapped phase this noisy is uniform over the range
         for k in np.flatnonzero(used & useless):
@@ -237,31 +236,43 @@ class ItofFusion:
                 f"uninformative: sigma {sig[k]:.3g} m >= the iToF's ambiguity range / sqrt(12) = "
                 f"{wrap / np.sqrt(12.0):.3g} m (its wrapped phase is then about uniform over the range)"
             )
-            warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=3)
+            warnings.warn(f"fusion: iToF spot {k} not used: {reasons[k]}", stacklevel=4)
         if not used.any() and prior_m is not None:
             warnings.warn(
                 "fusion: no usable iToF anchor; the depth is placed by the working-distance prior alone "
                 f"(fusion.prior_distance_mm={self.prior_distance_mm:g}) at the geometric scale",
-                stacklevel=3,
+                stacklevel=4,
             )
         elif not used.any():
             why = "; ".join(f"spot {k}: {r}" for k, r in enumerate(reasons)) or "the iToF sample has no spot"
             raise NirspiError(f"fusion: no valid iToF anchor on the SFS depth map ({why}); cannot make it metric")
-        idx = np.flatnonzero(used)
-        zr_u, z_u = zr[used], z[used]
+
+    def _scale_prior(self, count: int) -> float | None:
+        """The scale prior of a fit on ``count`` anchors: one anchor cannot fit a scale, so it gets one."""
+        return self.scale_prior_rel if count >= 2 else (self.scale_prior_rel or 0.2)
+
+    def _consistent_fit(
+        self,
+        zr_map: np.ndarray,
+        valid: np.ndarray,
+        zr_u: np.ndarray,
+        z_u: np.ndarray,
+        sig_u: np.ndarray,
+        focal: float | None,
+        prior_m: float | None,
+        prior_sig: float | None,
+    ) -> tuple[np.ndarray, dict[int, str], AnchorFit, np.ndarray, float]:
+        """The global fit on the consistent anchors: ``(keep, rejected, fit, eff_sigma, sfs_sigma)``,
+        ``eff_sigma`` each used anchor's σ with the SFS noise, ``sfs_sigma`` that noise in metres."""
         # the reference of the placement c and of the geometric scale c/f: the anchors' mean SFS
         # depth (one relative unit is a pixel pitch at the anchors' depth, as the old s0 = Z̄/f);
         # the map's median without anchors. Fixed for every fit below (leave-one-out included).
         ref_zr = float(np.mean(zr_u)) if len(zr_u) else float(np.median(zr_map[valid]))
-        focal = None if depth.metric else float(camera.focal_px)
-
-        def scale_prior(count: int) -> float | None:  # one anchor cannot fit a scale: use the prior
-            return self.scale_prior_rel if count >= 2 else (self.scale_prior_rel or 0.2)
 
         def fit_on(sig_all: np.ndarray) -> Callable[[np.ndarray], AnchorFit]:
             def fit(ix: np.ndarray) -> AnchorFit:
                 return fit_anchors(
-                    zr_u[ix], z_u[ix], sig_all[ix], ref_zr, focal, scale_prior(len(ix)), prior_m, prior_sig
+                    zr_u[ix], z_u[ix], sig_all[ix], ref_zr, focal, self._scale_prior(len(ix)), prior_m, prior_sig
                 )
 
             return fit
@@ -273,12 +284,44 @@ class ItofFusion:
         scale = c_guess / focal if focal is not None else 1.0
         for _ in range(2):
             sfs_sigma = scale * noise_rel  # metres
-            eff_all = np.sqrt(sig[used] ** 2 + sfs_sigma**2)
+            eff_all = np.sqrt(sig_u**2 + sfs_sigma**2)
             relief = scale * float(np.ptp(zr_map[valid]))  # metres: the SFS map's own depth extent
             keep, rejected, cur = consistent_anchors(
                 zr_u, z_u, eff_all, self.anchor_alpha, fit_on(eff_all), ref_zr, focal, relief
             )
             scale = cur.scale
+        return keep, rejected, cur, eff_all, sfs_sigma
+
+    def _local_offsets(
+        self, resid: np.ndarray, var: np.ndarray, pts_used: np.ndarray, camera: Camera
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each used anchor's shrunk offset and gain, and their blend over the image ``(n, n)``."""
+        # positive-part shrinkage: only the disagreement beyond the combined noise is applied
+        g = np.clip(1.0 - var / np.maximum(resid**2, 1e-300), 0.0, 1.0)
+        row_a, col_a = project_px(pts_used, camera)
+        n = camera.resolution
+        rows, cols = np.mgrid[0:n, 0:n]
+        w = anchor_weights(rows, cols, np.stack([row_a, col_a], axis=1), self.blend_px)
+        return g * resid, g, np.sum(w * (g * resid), axis=-1)  # not `@`: BLAS-free bits
+
+    def metric_depth(self, depth: DepthMap, itof: ItofSample, camera: Camera) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Alg. A3: the metric z-depth map ``(n, n)`` (metres, valid where the returned mask is
+        True) and the fit ``{scale, offset_m, region_offsets_m, anchors_used, …}``.
+
+        Degrees of freedom by the number of valid anchors: 1 → the offset (the scale is the prior
+        ``Z̄/f``); 2 → offset and scale (with the prior); ≥ ``min_anchors_local`` (3) → also one
+        local offset per anchor region, shrunk towards 0 where SFS and iToF agree within their
+        combined uncertainty."""
+        zr_map, valid, spikes = self._valid_sfs(depth, camera)
+        used, zr, z, sig, reasons = self._anchor_values(zr_map, valid, itof, camera)
+        prior_m = None if self.prior_distance_mm is None else self.prior_distance_mm * 1e-3
+        prior_sig = None if prior_m is None else self.prior_distance_rel * prior_m
+        self._drop_uninformative(used, sig, reasons, itof, prior_m)
+        idx = np.flatnonzero(used)
+        focal = None if depth.metric else float(camera.focal_px)
+        keep, rejected, cur, eff_all, sfs_sigma = self._consistent_fit(
+            zr_map, valid, zr[used], z[used], sig[used], focal, prior_m, prior_sig
+        )
         for j, why in rejected.items():
             used[idx[j]] = False
             reasons[idx[j]] = why
@@ -290,20 +333,14 @@ class ItofFusion:
         delta = np.zeros(len(pts))
         gains = np.zeros(len(pts))
         quality = self._quality(
-            cur, len(keep), len(rejected), scale_prior(len(keep)) is not None, prior_m, prior_sig, eff_sig
+            cur, len(keep), len(rejected), self._scale_prior(len(keep)) is not None, prior_m, prior_sig, eff_sig
         )
         # local offsets only where the anchors place the depth (not a prior) and are not flagged
         placed = float(quality.get("anchor_share", 1.0)) >= 0.5 and not quality["worse_than_sfs"]
         if self.local_offsets and placed and used.sum() >= self.min_anchors_local:
             resid = z[used] - (s * zr[used] + t)
-            var = eff_sig**2
-            # positive-part shrinkage: only the disagreement beyond the combined noise is applied
-            g = np.clip(1.0 - var / np.maximum(resid**2, 1e-300), 0.0, 1.0)
-            delta[used], gains[used] = g * resid, g
-            row_a, col_a = project_px(pts[used], camera)
-            rows, cols = np.mgrid[0:n, 0:n]
-            w = anchor_weights(rows, cols, np.stack([row_a, col_a], axis=1), self.blend_px)
-            z_m = z_m + np.sum(w * delta[used], axis=-1)  # not `@`: BLAS-free bits
+            delta[used], gains[used], blend = self._local_offsets(resid, eff_sig**2, pts[used], camera)
+            z_m = z_m + blend
         valid &= np.isfinite(z_m) & (z_m > 0)
         if not valid.any():
             raise NirspiError("fusion: the metric depth is not positive anywhere (bad anchors?)")
