@@ -61,7 +61,7 @@ def _rmse(z: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean((z - truth)[mask] ** 2)))
 
 
-def main(argv: list[str]) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="nirspi-bench sfs", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -78,7 +78,84 @@ def main(argv: list[str]) -> int:
         "longest diagonal on a GPU) and/or numbers; each is one opencl row",
     )
     parser.add_argument("--no-fmm", action="store_true", help="skip scikit-fmm (and its ratio columns)")
-    ns = parser.parse_args(argv)
+    return parser
+
+
+def _solvers(ns: argparse.Namespace) -> dict[str, Callable[..., SweepResult]]:
+    """The solvers to time by row name: numpy, and one OpenCL row per ``--local-sizes`` where
+    a device builds every scheme's kernels (its name printed)."""
+    solvers: dict[str, Callable[..., SweepResult]] = {"numpy": solve_numpy}
+    if "opencl" in ns.backends:
+        needed = {SOLVERS[label][0] for label in ns.schemes}
+        if all(opencl_available(scheme, ns.device) for scheme in needed):
+            print(f"OpenCL device: {device_name(ns.device)}")
+            for lsz in ns.local_sizes:
+                local = None if lsz == "device" else int(lsz)
+                key = "opencl" if lsz == "device" else f"opencl@{lsz}"
+                solvers[key] = functools.partial(solve_opencl, local_size=local, device=ns.device)
+    return solvers
+
+
+def _fmm_rows(
+    skfmm: Any, n: int, phi: np.ndarray, speed: np.ndarray, z_truth: tuple[np.ndarray, np.ndarray, float], repeat: int
+) -> dict[int, tuple[float, float]]:
+    """scikit-fmm's time and error per order (NaN without it), each printed as a row."""
+    z_true, mask, z_src = z_truth
+    refs = {2: (float("nan"), float("nan")), 1: (float("nan"), float("nan"))}
+    for order in (2, 1) if skfmm is not None else ():
+        t = median_time_s(lambda: skfmm.travel_time(phi, speed, order=order), repeat)
+        z = np.abs(np.asarray(skfmm.travel_time(phi, speed, order=order))) + z_src
+        refs[order] = (t, _rmse(z, z_true, mask))
+        print(f"{n:>4}^2 {'scikit-fmm order ' + str(order):<26} {t * 1e3:>9.2f} {'-':>6} {refs[order][1]:>8.3f}")
+    return refs
+
+
+def _solver_row(
+    n: int,
+    name: str,
+    run: Callable[[], SweepResult],
+    repeat: int,
+    truth: tuple[np.ndarray, np.ndarray],
+    refs: dict[int, tuple[float, float]],
+    best: dict[str, float] | None,
+) -> None:
+    """Times one solver, prints its row and records in ``best`` (None without scikit-fmm) whether
+    it meets the target against each scikit-fmm order."""
+    res = run()
+    t = median_time_s(run, repeat)
+    err = _rmse(res.z, *truth)
+    r2, r1 = t / refs[2][0], t / refs[1][0]
+    if best is not None:
+        for order, ratio in ((2, r2), (1, r1)):
+            key = f"{name} vs scikit-fmm order {order}"
+            meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
+            best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
+    print(
+        f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
+        f" {err / refs[2][1]:>7.3f}{'' if res.converged else '  (not converged)'}"
+    )
+
+
+def _size_rows(
+    n: int, ns: argparse.Namespace, solvers: dict[str, Callable[..., SweepResult]], skfmm: Any, best: dict[str, float]
+) -> None:
+    """Every row of one size: scikit-fmm's orders, then each backend's schemes."""
+    f, fixed, z_true, mask, phi, z_src = sphere_problem(n)
+    refs = _fmm_rows(skfmm, n, phi, 1.0 / f, (z_true, mask, z_src), ns.repeat)
+    problem = SweepProblem(f, fixed, np.where(fixed, z_true, BIG))
+    names = [k for b in ns.backends for k in solvers if k == b or k.startswith(b + "@")]
+    if "opencl" in ns.backends and not any(k.startswith("opencl") for k in solvers):
+        print(f"{n:>4}^2 {'opencl':<26} unavailable: no OpenCL device builds float64 kernels here")
+    for backend in names:
+        for label in ns.schemes:
+            scheme, slope = SOLVERS[label]
+            run = functools.partial(solvers[backend], problem, scheme, 1e-4, 8000, slope_average=slope)
+            repeat = 1 if scheme == "lax_friedrichs" else ns.repeat
+            _solver_row(n, f"{label}/{backend}", run, repeat, (z_true, mask), refs, best if skfmm is not None else None)
+
+
+def main(argv: list[str]) -> int:
+    ns = _parser().parse_args(argv)
     skfmm: Any = None
     if not ns.no_fmm:
         try:
@@ -91,15 +168,7 @@ def main(argv: list[str]) -> int:
                 "    pip install 'nirspi-pipe[bench]'    (or: pip install scikit-fmm), or pass --no-fmm"
             )
             return 2
-    solvers: dict[str, Callable[..., SweepResult]] = {"numpy": solve_numpy}
-    if "opencl" in ns.backends:
-        needed = {SOLVERS[label][0] for label in ns.schemes}
-        if all(opencl_available(scheme, ns.device) for scheme in needed):
-            print(f"OpenCL device: {device_name(ns.device)}")
-            for lsz in ns.local_sizes:
-                local = None if lsz == "device" else int(lsz)
-                key = "opencl" if lsz == "device" else f"opencl@{lsz}"
-                solvers[key] = functools.partial(solve_opencl, local_size=local, device=ns.device)
+    solvers = _solvers(ns)
     ok_cl = any(k.startswith("opencl") for k in solvers)
     header = (
         f"{'size':>6} {'solver':<26} {'ms':>9} {'sweeps':>6} {'rmse px':>8} {'t/fmm2':>7} {'t/fmm1':>7} {'e/fmm2':>7}"
@@ -107,39 +176,7 @@ def main(argv: list[str]) -> int:
     print(header)
     best: dict[str, float] = {}
     for n in ns.sizes:
-        f, fixed, z_true, mask, phi, z_src = sphere_problem(n)
-        speed = 1.0 / f
-        refs = {2: (float("nan"), float("nan")), 1: (float("nan"), float("nan"))}
-        for order in (2, 1) if skfmm is not None else ():
-            t = median_time_s(lambda: skfmm.travel_time(phi, speed, order=order), ns.repeat)
-            z = np.abs(np.asarray(skfmm.travel_time(phi, speed, order=order))) + z_src
-            refs[order] = (t, _rmse(z, z_true, mask))
-            print(f"{n:>4}^2 {'scikit-fmm order ' + str(order):<26} {t * 1e3:>9.2f} {'-':>6} {refs[order][1]:>8.3f}")
-        problem = SweepProblem(f, fixed, np.where(fixed, z_true, BIG))
-        names = [k for b in ns.backends for k in solvers if k == b or k.startswith(b + "@")]
-        if "opencl" in ns.backends and not ok_cl:
-            print(f"{n:>4}^2 {'opencl':<26} unavailable: no OpenCL device builds float64 kernels here")
-        for backend in names:
-            for label in ns.schemes:
-                scheme, slope = SOLVERS[label]
-                solve = solvers[backend]
-
-                def run():
-                    return solve(problem, scheme, 1e-4, 8000, slope_average=slope)
-
-                res = run()
-                t = median_time_s(run, 1 if scheme == "lax_friedrichs" else ns.repeat)
-                err = _rmse(res.z, z_true, mask)
-                r2, r1 = t / refs[2][0], t / refs[1][0]
-                name = f"{label}/{backend}"
-                for order, ratio in ((2, r2), (1, r1)) if skfmm is not None else ():
-                    key = f"{name} vs scikit-fmm order {order}"
-                    meets = ratio <= 2.0 and err <= refs[order][1] * (1 + 1e-9)
-                    best[key] = max(best.get(key, 0.0), 0.0 if meets else 1.0)
-                print(
-                    f"{n:>4}^2 {name:<26} {t * 1e3:>9.2f} {res.sweeps:>6} {err:>8.3f} {r2:>7.2f} {r1:>7.2f}"
-                    f" {err / refs[2][1]:>7.3f}{'' if res.converged else '  (not converged)'}"
-                )
+        _size_rows(n, ns, solvers, skfmm, best)
     if skfmm is not None:
         print("target: time <= 2x scikit-fmm at equal or better RMS depth error")
     for key, v in best.items():
