@@ -71,6 +71,8 @@ def markdown(groups: list[str] | None = None) -> str:
     seen: dict[str, str] = {}
     for group, option, path, target in option_targets(groups):
         cls = resolve(target, f"{group}.{path}._target_" if path else f"{group}._target_")
+        if cls is None and target.startswith("nirspi_pipe."):  # the project's own: never skipped silently
+            raise ImportError(f"conf/{group}/{option}.yaml: {target} does not import")
         if cls is None or not field_ranges(cls):
             continue
         key = f"{group}.{path}" if path else group

@@ -21,11 +21,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import Annotated
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht2, is_power_of_two
+from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.scene.objects import load_gray_image
 
 __all__ = [
@@ -149,14 +151,13 @@ class ScanOrderBase:
         ratio: fraction of the ``n²`` patterns measured, in (0, 1].
     """
 
-    ratio: float = 1.0
+    ratio: Annotated[float, Range(0.0, 1.0, "a fraction", lo_open=True)] = 1.0
 
     #: Whether ``order(n)[0]`` is always the DC (all-ones) pattern, index 0.
     dc_first = True
 
     def __post_init__(self) -> None:
-        if not 0.0 < float(self.ratio) <= 1.0:
-            raise ConfigError("ratio", self.ratio, "a fraction in (0, 1]")
+        check_ranges(self)
 
     def order(self, n: int) -> np.ndarray:
         """The full permutation of ``n²`` flat pattern indices (int64)."""
@@ -235,12 +236,7 @@ class Spiral(ScanOrderBase):
             (it is reached in the last shell).
     """
 
-    start: str = "corner"
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.start not in ("corner", "centre"):
-            raise ConfigError("start", self.start, "corner or centre")
+    start: Annotated[str, OneOf(("corner", "centre"))] = "corner"
 
     @property
     def dc_first(self) -> bool:  # type: ignore[override]
@@ -315,13 +311,8 @@ class Random(ScanOrderBase):
             so at low ratios the image mean is often unmeasured).
     """
 
-    seed: int = 0
+    seed: Annotated[int, Range(0, None, "an integer", integer=True)] = 0
     pin_dc: bool = False
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
-            raise ConfigError("seed", self.seed, "an integer >= 0")
 
     @property
     def dc_first(self) -> bool:  # type: ignore[override]

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from scipy.sparse.linalg import lsqr
 
-from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.solvers.common import checked_coefficients, measurement_operator
 from nirspi_pipe.types import Acquisition, Image2D
 
@@ -58,20 +59,13 @@ class LstsqSolver:
         damp: Tikhonov damping (0 = plain minimum-norm least squares), in the units of ``A``.
     """
 
-    atol: float = 1e-10
-    btol: float = 1e-10
-    iter_lim: int | None = None
-    damp: float = 0.0
+    atol: Annotated[float, Range(0.0, 1.0, "a tolerance", hi_open=True)] = 1e-10
+    btol: Annotated[float, Range(0.0, 1.0, "a tolerance", hi_open=True)] = 1e-10
+    iter_lim: Annotated[int | None, Range(1, None, "an integer", integer=True)] = None
+    damp: Annotated[float, Range(0.0, DAMP_MAX, "a damping")] = 0.0
 
     def __post_init__(self) -> None:
-        for key in ("atol", "btol"):
-            v = getattr(self, key)
-            if not (np.isfinite(v) and 0 <= v < 1):
-                raise ConfigError(key, v, "a tolerance in [0, 1)")
-        if self.iter_lim is not None and (not isinstance(self.iter_lim, (int, np.integer)) or self.iter_lim < 1):
-            raise ConfigError("iter_lim", self.iter_lim, "an integer >= 1, or null")
-        if not (np.isfinite(self.damp) and 0 <= self.damp <= DAMP_MAX):
-            raise ConfigError("damp", self.damp, f"a damping in [0, {DAMP_MAX:g}]")
+        check_ranges(self)
 
     def solve(self, acquisition: Acquisition) -> Image2D:
         y = checked_coefficients(acquisition, "lstsq")

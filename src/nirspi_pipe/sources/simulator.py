@@ -25,13 +25,14 @@ ideal one (``gain = 1``). ``Acquisition.coefficients()`` is therefore always rel
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
-from nirspi_pipe.physics.effects import Exposure, ForwardModel
+from nirspi_pipe.physics.forward import Exposure, ForwardModel
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.types import Acquisition, Medium, Scene
 
 __all__ = ["Simulator"]
@@ -78,17 +79,13 @@ class Simulator:
 
     # not a schema key: the simulator option sets it (source.effects: forward_model(...))
     effects: ForwardModel = field(default_factory=ForwardModel, metadata={"config": False})
-    pattern_rate_hz: float = 1000.0
-    dark_readings: int = 16
+    pattern_rate_hz: Annotated[float, Range(*PATTERN_RATE_HZ, "a rate in Hz")] = 1000.0
+    dark_readings: Annotated[int, Range(0, 100000, "an integer", integer=True)] = 16
 
     needs_scene: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
-        lo, hi = PATTERN_RATE_HZ
-        if not np.isfinite(self.pattern_rate_hz) or not lo <= self.pattern_rate_hz <= hi:
-            raise ConfigError("pattern_rate_hz", self.pattern_rate_hz, f"a rate in Hz in [{lo:g}, {hi:g}]")
-        if int(self.dark_readings) != self.dark_readings or not 0 <= self.dark_readings <= 100000:
-            raise ConfigError("dark_readings", self.dark_readings, "an integer from 0 to 100000")
+        check_ranges(self)
         if not isinstance(self.effects, ForwardModel):
             raise ConfigError(
                 "effects", self.effects, "a forward model (forward_model(...), conf/source/simulator.yaml)"

@@ -28,12 +28,13 @@ from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.ranges import OneOf, check_ranges
 from nirspi_pipe.safeio import read_npz, sanitize_text
 from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.base import as_finite_image, check_scale, finish
@@ -410,18 +411,13 @@ class FSRCNN:
     scale: int = 2
     weights: str | None = None
     clip: bool = True
-    backend: str = "numpy"
-    device: str = "auto"
-    tf32: bool = False
+    backend: Annotated[str, OneOf(BACKENDS)] = "numpy"
+    device: Annotated[str, OneOf(DEVICES)] = "auto"
+    tf32: Annotated[bool, OneOf((True, False), "true or false")] = False
 
     def __post_init__(self) -> None:
         check_scale(self.scale)
-        if self.backend not in BACKENDS:
-            raise ConfigError("backend", self.backend, ", ".join(BACKENDS))
-        if self.device not in DEVICES:
-            raise ConfigError("device", self.device, ", ".join(DEVICES))
-        if not isinstance(self.tf32, bool):
-            raise ConfigError("tf32", self.tf32, "true or false")
+        check_ranges(self)
         if self.backend == "torch":
             torch_device(self.device)  # torch installed, CUDA there if asked: fail at build time
         load_weights(int(self.scale), self.weights)  # fail at build time, not after the solver
