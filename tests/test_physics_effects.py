@@ -15,26 +15,19 @@ from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.budget import PhotonBudget
 from nirspi_pipe.physics.detector import IdealDetector, Photodiode
 from nirspi_pipe.physics.effects import (
-    BackgroundDrift,
-    BackgroundLight,
     Backscatter,
     DetectorReadout,
-    Effect,
-    Exposure,
     FogAttenuation,
     FogFluctuation,
     ForwardModel,
     GaussianNoise,
-    Illumination,
-    ImageState,
     LedDroop,
-    Readings,
     forward_model,
-    ideal_readout,
-    measure,
 )
 from nirspi_pipe.physics.fog import MeasuredFog, NoFog
 from nirspi_pipe.physics.light import Background
+from nirspi_pipe.physics.lighteffects import BackgroundDrift, BackgroundLight, Illumination
+from nirspi_pipe.physics.stagetypes import Effect, Exposure, ImageState, Readings, ideal_readout, measure
 from nirspi_pipe.scene.shapes import Plane
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.types import Camera

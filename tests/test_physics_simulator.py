@@ -15,8 +15,8 @@ from nirspi_pipe.patterns.hadamard import ifwht2, pattern
 from nirspi_pipe.physics.detector import IdealDetector, Photodiode
 from nirspi_pipe.physics.effects import ForwardModel, forward_model
 from nirspi_pipe.physics.fog import MeasuredFog, NoFog
-from nirspi_pipe.physics.forward import modulated_split
 from nirspi_pipe.physics.light import Background
+from nirspi_pipe.physics.splitmeasure import modulated_split
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.scene.shapes import Plane
 from nirspi_pipe.sources.simulator import Simulator

@@ -8,7 +8,7 @@ from hydra import compose, initialize_config_module
 
 from conftest import NOISE_FREE
 from nirspi_pipe.patterns.hadamard import fwht2
-from nirspi_pipe.physics.forward import split_measure
+from nirspi_pipe.physics.splitmeasure import split_measure
 from nirspi_pipe.pipeline import run_pipeline
 from nirspi_pipe.scene.objects import ImageTarget, Sphere
 from nirspi_pipe.sources.simulator import Simulator

@@ -11,8 +11,9 @@ from nirspi_rain import Rain, rain_extinction_per_m
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.metrics import ImageMetrics
 from nirspi_pipe.physics.budget import PhotonBudget
-from nirspi_pipe.physics.effects import Exposure, forward_model
+from nirspi_pipe.physics.effects import forward_model
 from nirspi_pipe.physics.fog import MeasuredFog
+from nirspi_pipe.physics.stagetypes import Exposure
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.scene.shapes import Plane
 from nirspi_pipe.solvers.fwht import FWHTSolver

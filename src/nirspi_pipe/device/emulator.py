@@ -2,7 +2,7 @@
 
 It renders a nirspi-pipe scene (any ``scene=`` option, plugins included), measures the
 requested Hadamard patterns in the split convention (noise-free readings from
-:func:`~nirspi_pipe.physics.forward.split_measure`, plus a constant background on both halves
+:func:`~nirspi_pipe.physics.splitmeasure.split_measure`, plus a constant background on both halves
 and optional Gaussian detector noise) and streams them back frame by frame.
 
 It listens on 127.0.0.1 only, serves at most ``--connections`` acquisitions, and stops by
@@ -40,7 +40,7 @@ from nirspi_pipe.device.protocol import (
     write_json_line,
 )
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.physics.forward import split_measure
+from nirspi_pipe.physics.splitmeasure import split_measure
 from nirspi_pipe.safeio import sanitize_text, short_repr
 from nirspi_pipe.types import Camera
 

@@ -8,13 +8,15 @@
   saturation, ADC).
 * :mod:`.timevarying` — background drift/flicker/wander and fog fluctuation (seeded).
 * :mod:`.range_model` — Algorithm A1 and the calibration of its free constants on Table 2.
-* :mod:`.forward` — the forward model's typed stages: the hand-offs (``ImageState``, ``Readings``,
+* :mod:`.stagetypes` — the forward model's typed stages: the hand-offs (``ImageState``, ``Readings``,
   ``Output``), the protocols of image, reading and output effects and of the read-out, the
-  measurement and the ideal read-out between them.
-* :mod:`.effects` — the built-in effects (illumination, fog attenuation, fog fluctuation and trend,
-  backscatter, LED droop, background light, drift, detector read-out, Gaussian noise), the
-  :class:`~.effects.ForwardModel` that holds them by stage, and :func:`~.effects.forward_model`;
-  it re-exports :mod:`.forward`, the import path for plugin effects.
+  measurement and the ideal read-out between them; the import path for plugin effects.
+* :mod:`.splitmeasure` — the split Hadamard measurement (``split_measure``, ``modulated_split``).
+* :mod:`.lighteffects` — the built-in effects of light: illumination (photon budget), background
+  light and its drift.
+* :mod:`.effects` — the other built-in effects (fog attenuation, fog fluctuation and trend,
+  backscatter, LED droop, detector read-out, Gaussian noise), the
+  :class:`~.effects.ForwardModel` that holds them by stage, and :func:`~.effects.forward_model`.
 
 The simulator (:mod:`nirspi_pipe.sources.simulator`) runs the forward model the runner built from
 the config.

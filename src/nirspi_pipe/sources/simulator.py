@@ -31,7 +31,8 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.physics.budget import PhotonBudget
-from nirspi_pipe.physics.forward import Exposure, ForwardModel
+from nirspi_pipe.physics.effects import ForwardModel
+from nirspi_pipe.physics.stagetypes import Exposure
 from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.types import Acquisition, Medium, Scene
 

@@ -11,7 +11,7 @@ Degradation (what :func:`spi_lowres` does, the same path as ``source=simulator``
 1. the camera pixel integrates radiance over its area: low-res = ``scale × scale`` block mean of
    the high-res radiance (:func:`~nirspi_pipe.upscale.base.block_mean`);
 2. every Hadamard pattern is measured in the split convention
-   (:func:`~nirspi_pipe.physics.forward.split_measure`) with Gaussian detector noise of
+   (:func:`~nirspi_pipe.physics.splitmeasure.split_measure`) with Gaussian detector noise of
    standard deviation ``noise_rel × (Σ radiance)/2`` on each reading, as the simulator does;
 3. the image is reconstructed by the exact fast inverse
    (:func:`~nirspi_pipe.solvers.fwht.zero_filled_inverse`).
@@ -26,7 +26,7 @@ import numpy as np
 
 from nirspi_pipe.metrics import fit_gain_offset
 from nirspi_pipe.patterns.hadamard import is_power_of_two
-from nirspi_pipe.physics.forward import split_measure
+from nirspi_pipe.physics.splitmeasure import split_measure
 from nirspi_pipe.scene.objects import Sphere, load_gray_image
 from nirspi_pipe.solvers.fwht import zero_filled_inverse
 from nirspi_pipe.types import Camera

@@ -22,7 +22,7 @@ from typing import ClassVar, Literal
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.physics.effects import Exposure, ImageState
+from nirspi_pipe.physics.stagetypes import Exposure, ImageState
 
 __all__ = ["Rain", "rain_extinction_per_m", "CARBONNEAU_K_DB_PER_KM", "CARBONNEAU_ALPHA"]
 

@@ -31,12 +31,14 @@ per-pixel contribution :meth:`ReferenceReadingEffect.reference_e` of the reading
 that change during the acquisition, background light (it cancels in the split difference), noise
 and the read-out are not in it; output effects never are.
 
-Plugin authors import these names from :mod:`nirspi_pipe.physics.effects` (docs/plugins.md §7).
+Plugin authors import these names from here (docs/plugins.md §7). The chain that runs the
+stages, :class:`~nirspi_pipe.physics.effects.ForwardModel`, and the built-in effects are in
+:mod:`nirspi_pipe.physics.effects`; the split measurement itself in
+:mod:`nirspi_pipe.physics.splitmeasure`. (This module was ``physics/forward.py``; issue 42 item 5.)
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -45,8 +47,8 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.patterns.hadamard import fwht2
 from nirspi_pipe.physics.budget import PhotonBudget
+from nirspi_pipe.physics.splitmeasure import modulated_split, split_measure
 
 __all__ = [
     "Exposure",
@@ -66,85 +68,7 @@ __all__ = [
     "stage_of",
     "measure",
     "ideal_readout",
-    "split_measure",
-    "modulated_split",
 ]
-
-
-def split_measure(radiance: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free split measurements of ``radiance`` for the given flat pattern indices.
-
-    Pattern ``P_k`` (±1) is shown as ``(1 + P_k)/2`` and ``(1 − P_k)/2``; with ``c_k = Σ P_k O``
-    (Eq. 1, α = 1) and ``S = Σ O`` the two readings are ``(S + c_k)/2`` and ``(S − c_k)/2``.
-    Units: radiance × pixels. Cost ``O(N log N)`` for all patterns at once.
-    """
-    coeffs = fwht2(radiance).ravel()[np.asarray(indices, dtype=np.int64)]
-    total = float(radiance.sum())
-    return 0.5 * (total + coeffs), 0.5 * (total - coeffs)
-
-
-def modulated_split(
-    base: np.ndarray, x: np.ndarray, c_pos: np.ndarray, c_neg: np.ndarray, indices: np.ndarray, tol: float = 1e-12
-) -> tuple[np.ndarray, np.ndarray]:
-    """Split readings of ``base ⊙ exp(−c x)`` where the scalar ``c`` changes per reading.
-
-    ``pos_k = Σ (1 + P_k)/2 ⊙ base ⊙ e^{−c_pos[k] x}``, ``neg_k`` likewise with ``(1 − P_k)/2``
-    and ``c_neg[k]``. This is how a fog density that fluctuates during the acquisition
-    (``β(t) = β f(t)``) acts on every pattern without building the patterns: around the
-    base-weighted mean ``x₀``, ``e^{−c x} = e^{−c x₀} Σ_j (−c)^j (x − x₀)^j / j!``, one transform per
-    term, truncated when the remainder bound is below ``tol`` (a handful of terms in practice).
-    When ``|c (x − x₀)|`` exceeds 8 the series is replaced by exact transforms at 65 levels of
-    ``c`` with linear interpolation between them.
-    """
-    idx = np.asarray(indices, dtype=np.int64)
-    c_pos = np.asarray(c_pos, dtype=np.float64)
-    c_neg = np.asarray(c_neg, dtype=np.float64)
-    w = np.abs(base)
-    x = np.where(w > 0, x, 0.0)
-    x0 = float((w * x).sum() / w.sum()) if w.sum() > 0 else 0.0
-    dx = np.where(w > 0, x - x0, 0.0)
-    cmax = float(max(np.abs(c_pos).max(initial=0.0), np.abs(c_neg).max(initial=0.0)))
-    amp = cmax * float(np.abs(dx).max(initial=0.0))
-    if amp <= 8.0:
-        pos = np.zeros(idx.size)
-        neg = np.zeros(idx.size)
-        term = base.astype(np.float64)
-        w_pos = np.ones(idx.size)  # (−c)^j, updated in place
-        w_neg = np.ones(idx.size)
-        j = 0
-        while True:
-            f = fwht2(term).ravel()[idx]
-            s = float(term.sum())
-            pos += w_pos * (s + f)
-            neg += w_neg * (s - f)
-            bound = amp ** (j + 1) / math.factorial(j + 1) * math.exp(amp)
-            if bound < tol or j >= 60:
-                break
-            j += 1
-            term = term * dx / j
-            w_pos *= -c_pos
-            w_neg *= -c_neg
-        pos *= 0.5
-        neg *= 0.5
-        return pos * np.exp(-c_pos * x0), neg * np.exp(-c_neg * x0)
-    both = np.concatenate([c_pos, c_neg])
-    levels = np.linspace(both.min(), both.max(), 65)
-    f_lv = np.empty((levels.size, idx.size))
-    s_lv = np.empty(levels.size)
-    for i, c in enumerate(levels):
-        img = base * np.exp(-c * x)
-        f_lv[i] = fwht2(img).ravel()[idx]
-        s_lv[i] = img.sum()
-
-    def interp(c: np.ndarray, sign: float) -> np.ndarray:
-        pos_in = np.clip(np.searchsorted(levels, c) - 1, 0, levels.size - 2)
-        t = (c - levels[pos_in]) / np.maximum(levels[pos_in + 1] - levels[pos_in], 1e-300)
-        k = np.arange(idx.size)
-        lo = 0.5 * (s_lv[pos_in] + sign * f_lv[pos_in, k])
-        hi = 0.5 * (s_lv[pos_in + 1] + sign * f_lv[pos_in + 1, k])
-        return (1 - t) * lo + t * hi
-
-    return interp(c_pos, 1.0), interp(c_neg, -1.0)
 
 
 # --------------------------------------------------------------------------------------------
