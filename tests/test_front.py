@@ -149,3 +149,12 @@ def test_a_failed_job_keeps_its_configuration_off_the_front(front):
     assert so["ok"] == 5 and so["jobs"] == 6
     assert math.isnan(so["chamfer_mm"]) and math.isnan(so["sfs_share_chamfer_mm"]) and not so["front_chamfer"]
     assert not table["front_chamfer"].any()
+
+
+def test_bad_arguments_get_one_line_and_run_nothing(front, tmp_path, capsys):
+    assert front.main(["--out", str(tmp_path / "o"), "--conditions", "fogg"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "grid.conditions" in err and "noise_free" in err
+    assert not (tmp_path / "o").exists()
+    with pytest.raises(SystemExit, match="no sweep folder"):
+        front.main(["--out", str(tmp_path / "empty"), "--tables-only"])

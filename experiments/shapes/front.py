@@ -1,7 +1,9 @@
 """The 3D accuracy–time front (issue 44, item 5): chamfer and fused depth error against time over
 the project's held-out shapes, noise-free and in the fog chamber.
 
-    nice python experiments/shapes/front.py --out DIR [--full] [--shapes vase,bowl] [--seeds 0-2]
+    nice python experiments/shapes/front.py --out DIR [--full] [--shapes vase,bowl] [--seeds 0-2] [overrides…]
+
+Other arguments are Hydra overrides for every job (``itof.ned_cm_per_sqrt_hz=0``, for example).
 
 Sweeps resolution × SFS variant (``sfs=truth``, the oracle depth, included) × anchoring (the iToF's
 averaging time ``itof.averaging_s``: 0.5 s is Table 1's σ = 1 cm per spot, 8 s a quarter of it) ×
