@@ -9,8 +9,10 @@ The text is the one the stage's own error prints (``allowed: …``), from the sa
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import sys
+import typing
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +58,20 @@ def option_targets(groups: list[str] | None = None) -> list[tuple[str, str, str,
     return rows
 
 
+def _nested(cls: Any) -> list[tuple[str, Any]]:
+    """``(field., dataclass)`` of the fields of ``cls`` that are themselves dataclasses with declared
+    ranges (the detector's photon ``budget``)."""
+    if not dataclasses.is_dataclass(cls):
+        return []
+    hints = typing.get_type_hints(cls, vars(sys.modules[cls.__module__]), include_extras=True)
+    out = []
+    for f in dataclasses.fields(cls):
+        hint = hints.get(f.name)
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint) and field_ranges(hint):
+            out.append((f"{f.name}.", hint))
+    return out
+
+
 def markdown(groups: list[str] | None = None) -> str:
     """The ranges of every option's keys, as markdown (docs/ranges.md)."""
     lines = [
@@ -82,7 +98,8 @@ def markdown(groups: list[str] | None = None) -> str:
             continue
         seen[target] = f"{group}={option}"
         lines += [title, "", f"`{target}`", ""]
-        lines += [f"- `{key}.{line.split(':', 1)[0]}`:{line.split(':', 1)[1]}" for line in describe(cls)]
+        for prefix, owner in [("", cls), *_nested(cls)]:
+            lines += [f"- `{key}.{prefix}{line.split(':', 1)[0]}`:{line.split(':', 1)[1]}" for line in describe(owner)]
         lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 

@@ -28,11 +28,12 @@ f/1.4, τ = 0.9, QE = 0.8 (≈ 1 A/W responsivity of InGaAs at 1550 nm).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.light import C_LIGHT, H_PLANCK
+from nirspi_pipe.ranges import Range, check_ranges
 
 __all__ = ["PhotonBudget"]
 
@@ -78,33 +79,19 @@ class PhotonBudget:
         f_number: f# of the receiving lens.
     """
 
-    led_count: int = 64
-    led_power_mw: float = 1.0
-    wavelength_nm: float = 1550.0
-    fov_half_deg: float = 10.0
-    lens_transmittance: float = 0.9
-    quantum_efficiency: float = 0.8
-    t_int_us: float = 150.0
-    a_pix_um2: float = 235.0
-    fill_factor: float = 0.38
-    f_number: float = 1.4
+    led_count: Annotated[int, Range(1, 1_000_000, "an integer number of LEDs", integer=True)] = 64
+    led_power_mw: Annotated[float, Range(*CLOSED_RANGES["led_power_mw"], "a power per LED in mW")] = 1.0
+    wavelength_nm: Annotated[float, Range(200.0, 20000.0, "a wavelength in nm", lo_open=True)] = 1550.0
+    fov_half_deg: Annotated[float, Range(*CLOSED_RANGES["fov_half_deg"], "a half angle in degrees")] = 10.0
+    lens_transmittance: Annotated[float, Range(FRACTION_MIN, 1.0, "a fraction")] = 0.9
+    quantum_efficiency: Annotated[float, Range(FRACTION_MIN, 1.0, "a fraction")] = 0.8
+    t_int_us: Annotated[float, Range(*CLOSED_RANGES["t_int_us"], "an integration time in µs")] = 150.0
+    a_pix_um2: Annotated[float, Range(*CLOSED_RANGES["a_pix_um2"], "an area in µm²")] = 235.0
+    fill_factor: Annotated[float, Range(FRACTION_MIN, 1.0, "a fraction")] = 0.38
+    f_number: Annotated[float, Range(0.3, 100.0, "an f-number", lo_open=True)] = 1.4
 
     def __post_init__(self) -> None:
-        if int(self.led_count) != self.led_count or not 1 <= self.led_count <= 1_000_000:
-            raise ConfigError("led_count", self.led_count, "an integer number of LEDs >= 1")
-        positive = {
-            "wavelength_nm": (200.0, 20000.0),
-            "f_number": (0.3, 100.0),
-        }
-        for key, (lo, hi) in positive.items():
-            v = getattr(self, key)
-            if not np.isfinite(v) or not lo < v <= hi:
-                raise ConfigError(key, v, f"a value in ({lo:g}, {hi:g}]")
-        for key, (lo, hi) in {**CLOSED_RANGES, **{k: (FRACTION_MIN, 1.0) for k in FRACTIONS}}.items():
-            v = getattr(self, key)
-            if not np.isfinite(v) or not lo <= v <= hi:
-                what = "a fraction" if key in FRACTIONS else "a value"
-                raise ConfigError(key, v, f"{what} in [{lo:g}, {hi:g}]")
+        check_ranges(self)
 
     @property
     def led_power_w(self) -> float:
