@@ -96,6 +96,44 @@ def _metrics(record: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
+def _other_baselines(record: Mapping[str, Any], m: Mapping[str, float], free: bool) -> str | None:
+    """The header's line of the SFS baselines not drawn (median placed, the fusion's global fit)."""
+    others = []
+    if free and "depth_rmse_sfs_mm" in m:
+        dist = ((record.get("config", {}) or {}).get("scene") or {}).get("distance_mm")
+        at = f" at {float(dist):g} mm" if isinstance(dist, (int, float)) else " at the working distance"
+        pct = f" ({m['improvement_pct']:+.1f} %)" if "improvement_pct" in m else ""
+        others.append(f"median placed{at} {m['depth_rmse_sfs_mm']:.3g} mm{pct}")
+    if "depth_rmse_sfs_fit_mm" in m:
+        pct = f" ({m['improvement_fit_pct']:+.1f} %)" if "improvement_fit_pct" in m else ""
+        others.append(f"the fusion's iToF global fit {m['depth_rmse_sfs_fit_mm']:.3g} mm{pct}")
+    return "other SFS baselines (record.json, not drawn): " + "; ".join(others) if others else None
+
+
+def _depth_lines(record: Mapping[str, Any], m: Mapping[str, float], depth_grid: int | None) -> list[str]:
+    """The header's 3D lines: SFS and fused depth RMSE with Eq. 17's improvement, and the
+    other baselines; none without a fused depth."""
+    if "depth_rmse_fused_mm" not in m:
+        return []
+    free = "depth_rmse_sfs_offsetfree_mm" in m
+    base, imp = (
+        ("depth_rmse_sfs_offsetfree_mm", "improvement_offsetfree_pct")
+        if free
+        else ("depth_rmse_sfs_mm", "improvement_pct")
+    )
+    grid = f" on the {depth_grid}×{depth_grid} grid" if depth_grid else ""
+    pixels = f" ({m['depth_pixels']:.0f} object pixels)" if "depth_pixels" in m else ""
+    depth = f"depth RMSE{grid}{pixels}: "
+    if base in m:
+        what = "best constant offset" if free else "camera geometry only"
+        depth += f"SFS {m[base]:.3g} mm (Alg. A2, {what}) → "
+    depth += f"fused {m['depth_rmse_fused_mm']:.3g} mm (Alg. A3)"
+    if imp in m:
+        depth += f": Eq. 17 improvement {m[imp]:+.1f} %"
+    others = _other_baselines(record, m, free)
+    return [depth] if others is None else [depth, others]
+
+
 def _title(record: Mapping[str, Any], depth_grid: int | None = None) -> str:
     """The header: the run, its 2D scores, its 3D scores (on ``depth_grid``², the grid the
     record's depth RMSEs were computed on) and the active effects, numbers as in the record."""
@@ -107,35 +145,7 @@ def _title(record: Mapping[str, Any], depth_grid: int | None = None) -> str:
     if scores and "psnr_raw" in m:
         raw = f"raw PSNR {m['psnr_raw']:.2f} dB" + (f", RMSE {m['rmse']:.3g}" if "rmse" in m else "")
         scores.append(f"(after a least-squares gain and offset; {raw})")
-    lines = [head + ("   " + "  ".join(scores) if scores else "")]
-    if "depth_rmse_fused_mm" in m:
-        free = "depth_rmse_sfs_offsetfree_mm" in m
-        base, imp = (
-            ("depth_rmse_sfs_offsetfree_mm", "improvement_offsetfree_pct")
-            if free
-            else ("depth_rmse_sfs_mm", "improvement_pct")
-        )
-        grid = f" on the {depth_grid}×{depth_grid} grid" if depth_grid else ""
-        pixels = f" ({m['depth_pixels']:.0f} object pixels)" if "depth_pixels" in m else ""
-        depth = f"depth RMSE{grid}{pixels}: "
-        if base in m:
-            what = "best constant offset" if free else "camera geometry only"
-            depth += f"SFS {m[base]:.3g} mm (Alg. A2, {what}) → "
-        depth += f"fused {m['depth_rmse_fused_mm']:.3g} mm (Alg. A3)"
-        if imp in m:
-            depth += f": Eq. 17 improvement {m[imp]:+.1f} %"
-        lines.append(depth)
-        others = []
-        if free and "depth_rmse_sfs_mm" in m:
-            dist = ((record.get("config", {}) or {}).get("scene") or {}).get("distance_mm")
-            at = f" at {float(dist):g} mm" if isinstance(dist, (int, float)) else " at the working distance"
-            pct = f" ({m['improvement_pct']:+.1f} %)" if "improvement_pct" in m else ""
-            others.append(f"median placed{at} {m['depth_rmse_sfs_mm']:.3g} mm{pct}")
-        if "depth_rmse_sfs_fit_mm" in m:
-            pct = f" ({m['improvement_fit_pct']:+.1f} %)" if "improvement_fit_pct" in m else ""
-            others.append(f"the fusion's iToF global fit {m['depth_rmse_sfs_fit_mm']:.3g} mm{pct}")
-        if others:
-            lines.append("other SFS baselines (record.json, not drawn): " + "; ".join(others))
+    lines = [head + ("   " + "  ".join(scores) if scores else ""), *_depth_lines(record, m, depth_grid)]
     effects = [" ".join(line.split()) for line in effects_lines(record)]
     return "\n".join([*lines, *effects])
 
@@ -184,9 +194,7 @@ def draw_summary(
         run_depth_truth,
     )
 
-    drawn: dict[str, float] = {}
-    recon = np.asarray(products.image.data, dtype=np.float64)
-    n = recon.shape[0]
+    n = np.asarray(products.image.data).shape[0]
     extent, xlabel = _extent_mm(products, n)
     truth = products.truth
     m = _metrics(record)
@@ -204,6 +212,29 @@ def draw_summary(
     fig = plt.figure(figsize=(4.2 * ncols, sum(heights) + title_in), dpi=SUMMARY_DPI, layout="constrained")
     grid = fig.add_gridspec(len(heights), ncols, height_ratios=heights)
     r0 = [fig.add_subplot(grid[0, c]) for c in range(ncols)]
+    drawn = _radiance_row(fig, r0, products, m, (extent, xlabel))
+    if three_d:
+        assert dtruth is not None
+        row = [fig.add_subplot(grid[1, c]) for c in range(ncols)]
+        drawn.update(_depth_row(fig, row, dtruth, compared, extent, xlabel))
+        if mesh_view:
+            _mesh_panel(fig, grid[2, :], mesh_png, dtruth.camera.resolution)
+    fig.suptitle(title, fontsize=9, x=0.01, ha="left")
+    fig.canvas.draw()  # lay out now: the caller may read the artists' extents
+    return fig, drawn
+
+
+def _radiance_row(
+    fig: Any, r0: list[Any], products: Products, m: Mapping[str, float], axes: tuple[list[float], str]
+) -> dict[str, float]:
+    """The first row: ground truth, reconstruction, their error and (with four columns) the
+    upscaled image; returns the numbers drawn (the raw ``rmse``, :func:`draw_summary`)."""
+    extent, xlabel = axes
+    drawn: dict[str, float] = {}
+    recon = np.asarray(products.image.data, dtype=np.float64)
+    n = recon.shape[0]
+    truth = products.truth
+    up = products.upscaled
     unit = "radiance (white target = 1)"
     if truth is not None:
         _show(fig, r0[0], truth.radiance, f"ground truth, {n}×{n}", unit, extent, xlabel, vmin=0.0, vmax=1.0)
@@ -229,7 +260,7 @@ def draw_summary(
         )
     else:
         r0[2].axis("off")
-    if ncols == 4:
+    if len(r0) == 4:
         if up is not None:
             k = up.data.shape[0]
             score = f", PSNR {m['upscale_psnr']:.2f} dB" if "upscale_psnr" in m else ""
@@ -239,25 +270,21 @@ def draw_summary(
         else:
             r0[3].axis("off")
             r0[3].text(0.5, 0.5, "no upscaling\n(upscale=null)", ha="center", va="center", fontsize=9)
-    if three_d:
-        assert dtruth is not None
-        row = [fig.add_subplot(grid[1, c]) for c in range(ncols)]
-        drawn.update(_depth_row(fig, row, dtruth, compared, extent, xlabel))
-        if mesh_view:
-            import matplotlib.image as mpimg  # start-up: loads matplotlib, PIL, cycler (215 ms here)
+    return drawn
 
-            ax = fig.add_subplot(grid[2, :])
-            ax.imshow(mpimg.imread(str(mesh_png)))
-            ax.axis("off")
-            g = dtruth.camera.resolution
-            ax.set_title(
-                f"final mesh (left) and true surface on the {g}×{g} grid (right), seen from beside the camera; "
-                "ruler in mm at the object",
-                fontsize=9,
-            )
-    fig.suptitle(title, fontsize=9, x=0.01, ha="left")
-    fig.canvas.draw()  # lay out now: the caller may read the artists' extents
-    return fig, drawn
+
+def _mesh_panel(fig: Any, cell: Any, mesh_png: Any, g: int) -> None:
+    """The third row: the rendered mesh view (``mesh.png``) across the figure's width."""
+    import matplotlib.image as mpimg  # start-up: loads matplotlib, PIL, cycler (215 ms here)
+
+    ax = fig.add_subplot(cell)
+    ax.imshow(mpimg.imread(str(mesh_png)))
+    ax.axis("off")
+    ax.set_title(
+        f"final mesh (left) and true surface on the {g}×{g} grid (right), seen from beside the camera; "
+        "ruler in mm at the object",
+        fontsize=9,
+    )
 
 
 def _depth_row(fig: Any, row: Any, truth: Any, compared: Any, extent: list[float], xlabel: str) -> dict[str, float]:
