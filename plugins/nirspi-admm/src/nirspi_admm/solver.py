@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from scipy.fft import dctn, idctn
 from scipy.sparse.linalg import LinearOperator, cg
 
-from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import fwht
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.solvers.common import data_scale, measurement_operator
 from nirspi_pipe.solvers.fista_tv import choose_weight
 from nirspi_pipe.types import Acquisition, Image2D
@@ -171,27 +172,15 @@ class ADMMTVSolver:
     weight, 0 for exact data at full sampling, at least ``lam_floor`` when undersampled).
     """
 
-    tv_weight: float | str = "auto"
-    lam_floor: float = 0.02
-    rho: float = 1.0
-    max_iter: int = 300
-    tol: float = 1e-4
+    tv_weight: Annotated[float | str, Range(0.0, None, "a weight", also=("auto",))] = "auto"
+    lam_floor: Annotated[float, Range(0.0, None, "a weight")] = 0.02
+    rho: Annotated[float, Range(0.0, None, "a penalty", lo_open=True)] = 1.0
+    max_iter: Annotated[int, Range(1, None, "an integer", integer=True)] = 300
+    tol: Annotated[float, Range(0.0, 1.0, "a relative tolerance", lo_open=True, hi_open=True)] = 1e-4
     nonneg: bool = True
 
     def __post_init__(self) -> None:
-        if isinstance(self.tv_weight, str):
-            if self.tv_weight != "auto":
-                raise ConfigError("tv_weight", self.tv_weight, "auto, or a weight >= 0")
-        elif not np.isfinite(self.tv_weight) or self.tv_weight < 0:
-            raise ConfigError("tv_weight", self.tv_weight, "auto, or a weight >= 0")
-        if not np.isfinite(self.lam_floor) or self.lam_floor < 0:
-            raise ConfigError("lam_floor", self.lam_floor, "a weight >= 0")
-        if not np.isfinite(self.rho) or self.rho <= 0:
-            raise ConfigError("rho", self.rho, "a penalty > 0")
-        if int(self.max_iter) < 1:
-            raise ConfigError("max_iter", self.max_iter, "an integer >= 1")
-        if not 0 < self.tol < 1:
-            raise ConfigError("tol", self.tol, "a relative tolerance in (0, 1)")
+        check_ranges(self)
 
     def solve(self, acquisition: Acquisition) -> Image2D:
         """Reconstruct relative radiance from ``acquisition.coefficients()``."""

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 
-from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.physics.stagetypes import Exposure, ImageState
+from nirspi_pipe.ranges import Range, check_ranges
 
 __all__ = ["Rain", "rain_extinction_per_m", "CARBONNEAU_K_DB_PER_KM", "CARBONNEAU_ALPHA"]
 
@@ -48,18 +48,17 @@ class Rain:
         extent_mm: length of the rainy path from the camera, mm (.inf: all the way).
     """
 
-    rate_mm_per_h: float = 10.0
-    extent_mm: float = 350.0
+    rate_mm_per_h: Annotated[float, Range(0.0, 500.0, "a rain rate in mm/h")] = 10.0
+    extent_mm: Annotated[
+        float, Range(0.0, None, "a path length in mm", lo_open=True, finite=False, note=".inf: unbounded")
+    ] = 350.0
 
     name: ClassVar[str] = "rain"
     domain: ClassVar[Literal["image"]] = "image"  # an image effect: forward_model places it after the fog
     in_reference: ClassVar[bool] = True  # a steady attenuation: in the reference the metrics score against
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.rate_mm_per_h) or not 0.0 <= self.rate_mm_per_h <= 500.0:
-            raise ConfigError("rate_mm_per_h", self.rate_mm_per_h, "a rain rate in mm/h in [0, 500]")
-        if not self.extent_mm > 0:
-            raise ConfigError("extent_mm", self.extent_mm, "a path length in mm > 0 (.inf: unbounded)")
+        check_ranges(self)  # the ranges declared above: one-line ConfigError naming the key
 
     @property
     def extinction_per_m(self) -> float:
