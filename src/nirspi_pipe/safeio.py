@@ -185,9 +185,9 @@ def max_safe_reading(n_readings: int, n_pixels: int) -> float:
 # NPZ
 
 
-def _npy_header(fh: Any, key: str, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
-    """Parse a ``.npy`` header from a file-like ``fh`` with bounded reads (never allocates more
-    than the header) and check it: non-negative integer shape, a plain non-object dtype."""
+def _npy_header_text(fh: Any, key: str, where: str) -> tuple[bytes, int]:
+    """The raw header dict text of a ``.npy`` stream and the header's full length in bytes
+    (magic, length field and text), read with bounded reads."""
     magic = fh.read(8)
     if len(magic) != 8 or magic[:6] != b"\x93NUMPY":
         raise UnsafeInputError(f"{where}: key '{key}': not a .npy array (bad magic)")
@@ -206,32 +206,56 @@ def _npy_header(fh: Any, key: str, where: str) -> tuple[tuple[int, ...], bool, n
     text = fh.read(hlen)
     if len(text) != hlen:
         raise UnsafeInputError(f"{where}: key '{key}': truncated .npy header")
+    return text, 8 + len(hlen_bytes) + hlen
+
+
+def _npy_header_dict(text: bytes, key: str, where: str) -> dict:
+    """The header's dict, parsed as a literal: exactly descr, fortran_order and shape."""
     try:
         d = ast.literal_eval(text.decode("latin1"))
     except (ValueError, SyntaxError, MemoryError, RecursionError, TypeError):
         raise UnsafeInputError(f"{where}: key '{key}': unreadable .npy header") from None
     if not isinstance(d, dict) or set(d) != {"descr", "fortran_order", "shape"}:
         raise UnsafeInputError(f"{where}: key '{key}': .npy header must have descr, fortran_order and shape")
-    shape = d["shape"]
-    if (
-        not isinstance(shape, tuple)
-        or len(shape) > 32
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
-    ):
-        raise UnsafeInputError(f"{where}: key '{key}': shape {short_repr(shape)} is not a tuple of integers >= 0")
-    if not isinstance(d["fortran_order"], bool):
-        raise UnsafeInputError(f"{where}: key '{key}': fortran_order must be True or False")
+    return d
+
+
+def _npy_dtype(descr: Any, key: str, where: str) -> np.dtype:
+    """The header's dtype: a plain number or string dtype, never one holding Python objects."""
     try:
-        dtype = np.lib.format.descr_to_dtype(d["descr"])
+        dtype = np.lib.format.descr_to_dtype(descr)
     except (TypeError, ValueError):
-        raise UnsafeInputError(f"{where}: key '{key}': dtype {short_repr(d['descr'])} is not a numpy dtype") from None
+        raise UnsafeInputError(f"{where}: key '{key}': dtype {short_repr(descr)} is not a numpy dtype") from None
     if dtype.hasobject:
         raise UnsafeInputError(
             f"{where}: key '{key}': holds pickled Python objects, which are never loaded (store numbers or strings)"
         )
     if dtype.fields is not None or dtype.subdtype is not None or dtype.itemsize == 0:
         raise UnsafeInputError(f"{where}: key '{key}': dtype {dtype} is not a plain number or string dtype")
-    return shape, d["fortran_order"], dtype, 8 + len(hlen_bytes) + hlen
+    return dtype
+
+
+def _is_shape(shape: Any) -> bool:
+    """A tuple of at most 32 integers >= 0 (bools are not integers here)."""
+    return (
+        isinstance(shape, tuple)
+        and len(shape) <= 32
+        and all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in shape)
+    )
+
+
+def _npy_header(fh: Any, key: str, where: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """Parse a ``.npy`` header from a file-like ``fh`` with bounded reads (never allocates more
+    than the header) and check it: non-negative integer shape, a plain non-object dtype."""
+    text, length = _npy_header_text(fh, key, where)
+    d = _npy_header_dict(text, key, where)
+    shape = d["shape"]
+    if not _is_shape(shape):
+        raise UnsafeInputError(f"{where}: key '{key}': shape {short_repr(shape)} is not a tuple of integers >= 0")
+    if not isinstance(d["fortran_order"], bool):
+        raise UnsafeInputError(f"{where}: key '{key}': fortran_order must be True or False")
+    dtype = _npy_dtype(d["descr"], key, where)
+    return shape, d["fortran_order"], dtype, length
 
 
 def _readinto(fh: Any, buf: np.ndarray, key: str, where: str) -> None:
