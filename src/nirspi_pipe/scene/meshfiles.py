@@ -118,7 +118,39 @@ def _fan(polys: list[list[int]] | np.ndarray) -> np.ndarray:
 # PLY
 
 
-def _ply_header(data: bytes, where: str) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]], int]:
+_PlyElements = list[tuple[str, int, list[tuple[str, ...]]]]
+
+
+def _ply_format(tok: list[str], line: str, no: int, where: str) -> str:
+    """A header's ``format`` line: its format, one of the three PLY allows."""
+    if len(tok) != 3 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise _fail(
+            where,
+            f"header line {no}: format {sanitize_text(line, 60)!r} is not allowed; "
+            "allowed: ascii, binary_little_endian, binary_big_endian",
+        )
+    return tok[1]
+
+
+def _ply_property(tok: list[str], line: str, no: int, elements: _PlyElements, where: str) -> None:
+    """A header's ``property`` line, appended to the last element's properties."""
+    if not elements:
+        raise _fail(where, f"header line {no}: property before any element")
+    if len(tok) == 3 and tok[1] in _PLY_TYPES:
+        elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
+    elif len(tok) == 5 and tok[1] == "list" and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES:
+        if _PLY_TYPES[tok[2]][0] == "f":
+            raise _fail(where, f"header line {no}: a list count must be an integer type")
+        elements[-1][2].append((tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
+    else:
+        raise _fail(
+            where,
+            f"header line {no}: unreadable property {sanitize_text(line, 60)!r} "
+            f"(types: {', '.join(sorted(_PLY_TYPES))})",
+        )
+
+
+def _ply_header(data: bytes, where: str) -> tuple[str, _PlyElements, int]:
     if not data.startswith(b"ply"):
         raise _fail(where, "not a PLY file (it must start with 'ply')")
     m = re.search(rb"end_header[ \t]*\r?\n", data[:_MAX_HEADER])
@@ -126,38 +158,19 @@ def _ply_header(data: bytes, where: str) -> tuple[str, list[tuple[str, int, list
         raise _fail(where, f"no 'end_header' line in the first {_MAX_HEADER} bytes")
     lines = data[: m.start()].decode("ascii", errors="replace").splitlines()[1:]
     fmt = None
-    elements: list[tuple[str, int, list[tuple[str, ...]]]] = []
+    elements: _PlyElements = []
     for no, line in enumerate(lines, start=2):
         tok = line.split()
         if not tok or tok[0] in ("comment", "obj_info"):
             continue
         if tok[0] == "format":
-            if len(tok) != 3 or tok[1] not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                raise _fail(
-                    where,
-                    f"header line {no}: format {sanitize_text(line, 60)!r} is not allowed; "
-                    "allowed: ascii, binary_little_endian, binary_big_endian",
-                )
-            fmt = tok[1]
+            fmt = _ply_format(tok, line, no, where)
         elif tok[0] == "element":
             if len(tok) != 3 or not tok[2].isdigit():
                 raise _fail(where, f"header line {no}: expected 'element NAME COUNT', got {sanitize_text(line, 60)!r}")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property":
-            if not elements:
-                raise _fail(where, f"header line {no}: property before any element")
-            if len(tok) == 3 and tok[1] in _PLY_TYPES:
-                elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
-            elif len(tok) == 5 and tok[1] == "list" and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES:
-                if _PLY_TYPES[tok[2]][0] == "f":
-                    raise _fail(where, f"header line {no}: a list count must be an integer type")
-                elements[-1][2].append((tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
-            else:
-                raise _fail(
-                    where,
-                    f"header line {no}: unreadable property {sanitize_text(line, 60)!r} "
-                    f"(types: {', '.join(sorted(_PLY_TYPES))})",
-                )
+            _ply_property(tok, line, no, elements, where)
         else:
             raise _fail(where, f"header line {no}: unknown keyword {sanitize_text(tok[0], 30)!r}")
     if fmt is None:
@@ -165,8 +178,9 @@ def _ply_header(data: bytes, where: str) -> tuple[str, list[tuple[str, int, list
     return fmt, elements, m.end()
 
 
-def _ply(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
-    fmt, elements, pos = _ply_header(data, where)
+def _ply_check_elements(elements: _PlyElements, where: str) -> list[str]:
+    """The element names, once there is a vertex element with x, y, z and a face element
+    with a list of vertex indices."""
     names = [e[0] for e in elements]
     if "vertex" not in names or "face" not in names:
         raise _fail(where, f"needs 'vertex' and 'face' elements, has {', '.join(names) or 'none'}")
@@ -176,8 +190,11 @@ def _ply(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
     fprops = elements[names.index("face")][2]
     if not any(p[0] in ("vertex_indices", "vertex_index") and p[1] == "list" for p in fprops):
         raise _fail(where, "element 'face' needs a list property vertex_indices")
-    body = len(data) - pos
-    # Declared counts against the bytes present, before anything is allocated.
+    return names
+
+
+def _ply_check_sizes(fmt: str, elements: _PlyElements, body: int, where: str) -> None:
+    """Declared counts against the ``body`` bytes present, before anything is allocated."""
     need = 0
     for name, count, props in elements:
         if fmt == "ascii":
@@ -193,6 +210,13 @@ def _ply(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
                 f"header declares {count} {name} element(s) needing at least {need} bytes, "
                 f"the file holds {body} after its header (truncated or a hostile header)",
             )
+
+
+def _ply(data: bytes, where: str, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    fmt, elements, pos = _ply_header(data, where)
+    names = _ply_check_elements(elements, where)
+    body = len(data) - pos
+    _ply_check_sizes(fmt, elements, body, where)
     nv = elements[names.index("vertex")][1]
     nf = elements[names.index("face")][1]
     check_budget(nv * 3 * 8 + nf * 3 * 8 * 2, f"{nv} vertices and {nf} faces", where, limit)
@@ -313,9 +337,42 @@ def _corners(corners: object, r: int, where: str) -> list[int]:
     return c
 
 
-def _ply_ascii(
-    body: bytes, elements: list[tuple[str, int, list[tuple[str, ...]]]], where: str
-) -> tuple[np.ndarray, np.ndarray]:
+def _ply_ascii_vertices(rows: list[bytes], count: int, props: list[tuple[str, ...]], where: str) -> np.ndarray:
+    """The ASCII vertex rows' x, y, z columns ``(count, 3)``."""
+    if any(p[1] == "list" for p in props):
+        raise _fail(where, "element 'vertex': list properties are not supported")
+    vals = _numbers(b" ".join(rows), count * len(props), where, "vertex")
+    cols = [p[0] for p in props]
+    table = vals.reshape(count, len(props))
+    return table[:, [cols.index(c) for c in "xyz"]]
+
+
+def _ply_ascii_face(row: bytes, props: list[tuple[str, ...]], li: int) -> list[int]:
+    """One ASCII face row's corners (``li``: the index property's place); ValueError or
+    IndexError when the row does not read."""
+    tok = row.split()
+    skip = 0
+    for p in props[:li]:  # scalar or list properties before the indices
+        skip += 1 + int(tok[skip]) if p[1] == "list" else 1
+    k = int(tok[skip])
+    if not 3 <= k <= _MAX_POLYGON or len(tok) < skip + 1 + k:
+        raise ValueError
+    return [int(t) for t in tok[skip + 1 : skip + 1 + k]]
+
+
+def _ply_ascii_faces(rows: list[bytes], props: list[tuple[str, ...]], where: str) -> np.ndarray:
+    """The ASCII face rows, fan-triangulated."""
+    li = next(i for i, p in enumerate(props) if p[1] == "list" and p[0] in ("vertex_indices", "vertex_index"))
+    polys = []
+    for r, row in enumerate(rows):
+        try:
+            polys.append(_ply_ascii_face(row, props, li))
+        except (ValueError, IndexError):
+            raise _fail(where, f"face {r}: unreadable row {sanitize_text(row.decode('latin1'), 60)!r}") from None
+    return _fan(polys)
+
+
+def _ply_ascii(body: bytes, elements: _PlyElements, where: str) -> tuple[np.ndarray, np.ndarray]:
     lines = [ln for ln in body.split(b"\n") if ln.strip()]
     at = 0
     out: dict[str, np.ndarray] = {}
@@ -325,30 +382,9 @@ def _ply_ascii(
         rows = lines[at : at + count]
         at += count
         if name == "vertex":
-            if any(p[1] == "list" for p in props):
-                raise _fail(where, "element 'vertex': list properties are not supported")
-            vals = _numbers(b" ".join(rows), count * len(props), where, "vertex")
-            cols = [p[0] for p in props]
-            table = vals.reshape(count, len(props))
-            out["vertex"] = table[:, [cols.index(c) for c in "xyz"]]
+            out["vertex"] = _ply_ascii_vertices(rows, count, props, where)
         elif name == "face":
-            li = next(i for i, p in enumerate(props) if p[1] == "list" and p[0] in ("vertex_indices", "vertex_index"))
-            polys = []
-            for r, row in enumerate(rows):
-                tok = row.split()
-                try:
-                    skip = 0
-                    for p in props[:li]:  # scalar or list properties before the indices
-                        skip += 1 + int(tok[skip]) if p[1] == "list" else 1
-                    k = int(tok[skip])
-                    if not 3 <= k <= _MAX_POLYGON or len(tok) < skip + 1 + k:
-                        raise ValueError
-                    polys.append([int(t) for t in tok[skip + 1 : skip + 1 + k]])
-                except (ValueError, IndexError):
-                    raise _fail(
-                        where, f"face {r}: unreadable row {sanitize_text(row.decode('latin1'), 60)!r}"
-                    ) from None
-            out["face"] = _fan(polys)
+            out["face"] = _ply_ascii_faces(rows, props, where)
     return out["vertex"], out["face"]
 
 
