@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nirspi_pipe.hardcases import Case, Outcome, check_bounds, load_cases, record_problems, run_case
+from nirspi_pipe.hardcases.catalogue import Case, Outcome, check_bounds, load_cases, record_problems
+from nirspi_pipe.hardcases.check import run_case
 
 CASES = load_cases()
 
@@ -67,7 +68,7 @@ def test_a_refusal_must_name_the_key_the_user_set() -> None:
 
 
 def test_command_line_refuses_unknown_ids_and_partial_docs(capsys: pytest.CaptureFixture[str]) -> None:
-    from nirspi_pipe.hardcases import main
+    from nirspi_pipe.hardcases.check import main
 
     assert main(["no-such-case"]) == 2
     assert "unknown case ids ['no-such-case']" in capsys.readouterr().err
