@@ -10,7 +10,8 @@ from typing import Any
 
 import pytest
 
-from nirspi_pipe.backends import REGISTRY, Backend, Family, Tolerance, violations
+from nirspi_pipe.backends.harness import Backend, Family, Tolerance, violations
+from nirspi_pipe.backends.registry import REGISTRY
 
 
 def _cases() -> list[Any]:

@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from nirspi_pipe.backends import blob_problem, sfs_second_order_problems, smooth_problem
+from nirspi_pipe.backends.sfs import blob_problem, sfs_second_order_problems, smooth_problem
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.sfs import opencl as ocl
 from nirspi_pipe.sfs.models import LaxFriedrichsSFS

@@ -15,7 +15,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from nirspi_pipe.backends import sfs_first_order_problems
+from nirspi_pipe.backends.sfs import sfs_first_order_problems
 from nirspi_pipe.sfs import opencl as ocl
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult, solve_numpy
 
