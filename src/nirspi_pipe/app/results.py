@@ -136,7 +136,7 @@ def records_to_frame(records: list[tuple[str, dict[str, Any]]]) -> pd.DataFrame:
             row[g] = choices.get(g)
         config = rec.get("config", {})
         for p in params:
-            row[p] = decode_nonfinite(_lookup(config, p))  # ".inf" in a record is inf (records.py)
+            row[p] = decode_nonfinite(_lookup(config, p))  # ".inf" in a record is inf (strictjson.py)
         _flatten("metrics", rec.get("metrics"), row)
         _flatten("timings_ms", rec.get("timings_ms"), row)
         _flatten("derived", rec.get("derived"), row)
