@@ -98,24 +98,41 @@ def _fog_flag(frame: pd.DataFrame) -> pd.Series:
     return frame.get("derived.beta_per_m", pd.Series(0.0, index=frame.index)).fillna(0.0) > 0
 
 
-def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
-    """Build Table 2 from a sweep's results into ``out_dir`` (see the module docstring)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    need = [
-        "scene.reflectance",
-        "scene.distance_mm",
-        "derived.measured_signal_e",
-        "derived.measured_noise_e",
-        "derived.range_max_m",
-    ]
-    missing = [c for c in need if c not in frame]
-    if missing:
-        raise ValueError(f"table2 needs columns {missing}: run `nirspi-run -m +experiment=table2`")
-    df = frame[frame["status"] == "ok"].copy() if "status" in frame else frame.copy()
-    df["fogged"] = _fog_flag(df)
+_NEEDED = (
+    "scene.reflectance",
+    "scene.distance_mm",
+    "derived.measured_signal_e",
+    "derived.measured_noise_e",
+    "derived.range_max_m",
+)
+
+
+def _group_fit(g: pd.DataFrame, good: pd.DataFrame) -> tuple[float, dict] | None:
+    """One (fog, reflectance) group's LSM maximum distance and its fits, from its unsaturated
+    runs ``good``; None where the fit fails."""
+    led = int(good.get("derived.led_count", pd.Series([64])).iloc[0]) if len(good) else 64
+    try:
+        z_max, fit = lsm_max_distance(
+            good["scene.distance_mm"].to_numpy() * 1e-3,
+            good["derived.measured_signal_e"].to_numpy(),
+            good["derived.measured_noise_e"].to_numpy(),
+            led,
+        )
+    except ValueError:
+        return None
+    return z_max, {
+        "chamber": _chamber_fit(good),
+        "fit": fit,
+        "data": good,
+        "led": led,
+        "beta": float(g["derived.beta_per_m"].median()),
+    }
+
+
+def _our_rows(df: pd.DataFrame) -> tuple[dict[str, dict[float, float]], dict[tuple[bool, float], dict]]:
+    """Our maximum distances per row and reflectance (theory and the LSM fit), and the fits by
+    (fogged, reflectance)."""
     sat = df.get("derived.saturated_patterns", pd.Series(0, index=df.index)).fillna(0)
-    paper = paper_table2()
     ours: dict[str, dict[float, float]] = {r: {} for r in ROWS}
     fits: dict[tuple[bool, float], dict] = {}
     for fogged in (False, True):
@@ -125,26 +142,16 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             if g.empty:
                 continue
             ours[f"theory_{tag}"][refl] = float(np.median(g["derived.range_max_m"]))
-            good = g[sat.loc[g.index] == 0]
-            led = int(good.get("derived.led_count", pd.Series([64])).iloc[0]) if len(good) else 64
-            try:
-                z_max, fit = lsm_max_distance(
-                    good["scene.distance_mm"].to_numpy() * 1e-3,
-                    good["derived.measured_signal_e"].to_numpy(),
-                    good["derived.measured_noise_e"].to_numpy(),
-                    led,
-                )
-            except ValueError:
+            found = _group_fit(g, g[sat.loc[g.index] == 0])
+            if found is None:
                 continue
-            ours[f"measured_{tag}"][refl] = z_max
-            fits[(fogged, refl)] = {
-                "chamber": _chamber_fit(good),
-                "fit": fit,
-                "data": good,
-                "led": led,
-                "beta": float(g["derived.beta_per_m"].median()),
-            }
+            ours[f"measured_{tag}"][refl], fits[(fogged, refl)] = found
+    return ours, fits
 
+
+def _comparison(ours: dict[str, dict[float, float]]) -> pd.DataFrame:
+    """Table 2: our rows (cm), the paper's, and the difference (%)."""
+    paper = paper_table2()
     cols: dict[str, list[float]] = {}
     for refl in REFLECTANCES:
         cols[f"R={refl} (cm)"] = [round(100 * ours[r].get(refl, np.nan), 2) for r in ROWS]
@@ -154,9 +161,11 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
         cols[f"diff R={refl} (%)"] = [
             round(100 * (ours[r].get(refl, np.nan) - paper[r][refl]) / paper[r][refl], 2) for r in ROWS
         ]
-    table = pd.DataFrame(cols, index=pd.Index(list(ROWS), name="row"))
-    table.to_csv(out_dir / "table2.csv")
-    (out_dir / "table2.md").write_text(_markdown(table, fits))
+    return pd.DataFrame(cols, index=pd.Index(list(ROWS), name="row"))
+
+
+def _write_betas(fits: dict[tuple[bool, float], dict], path: Path) -> None:
+    """``table2_beta.csv``: the true and fitted extinction per (fog, reflectance)."""
     pd.DataFrame(
         [
             {
@@ -170,7 +179,23 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             }
             for (fogged, refl), v in sorted(fits.items())
         ]
-    ).to_csv(out_dir / "table2_beta.csv", index=False, float_format="%.6g")
+    ).to_csv(path, index=False, float_format="%.6g")
+
+
+def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
+    """Build Table 2 from a sweep's results into ``out_dir`` (see the module docstring)."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    missing = [c for c in _NEEDED if c not in frame]
+    if missing:
+        raise ValueError(f"table2 needs columns {missing}: run `nirspi-run -m +experiment=table2`")
+    df = frame[frame["status"] == "ok"].copy() if "status" in frame else frame.copy()
+    df["fogged"] = _fog_flag(df)
+    ours, fits = _our_rows(df)
+    table = _comparison(ours)
+    table.to_csv(out_dir / "table2.csv")
+    (out_dir / "table2.md").write_text(_markdown(table, fits))
+    _write_betas(fits, out_dir / "table2_beta.csv")
     _plot_fits(fits, out_dir / "table2_fit.png")
     betas = sorted({round(v["beta"], 6) for v in fits.values() if v["beta"] > 0})
     _plot_contrast(betas[0] if betas else None, out_dir / "figure6_contrast.png")
