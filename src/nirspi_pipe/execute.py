@@ -22,7 +22,7 @@ from nirspi_pipe import safeio  # noqa: F401 - the records' writers import it on
 from nirspi_pipe.errors import ConfigError, NirspiError
 from nirspi_pipe.figure import write_summary_figure
 from nirspi_pipe.finite import drop_nonfinite
-from nirspi_pipe.instantiate import plain_config
+from nirspi_pipe.instantiate import Plan, plain_config
 from nirspi_pipe.mesh.outputs import write_mesh_outputs
 from nirspi_pipe.outputfiles import OutputError, atomic_write, drop_links, refuse_link
 from nirspi_pipe.pipeline import RunOutput, effective_seed, run_pipeline
@@ -50,20 +50,22 @@ def execute_job(
     on_output: Any = None,
     scan_indices: ScanIndices | None = None,
 ) -> dict[str, Any]:
-    """Run one job (``cfg``: a resolved config as plain data, or any mapping that reads as one)
-    and write its record and arrays into ``out_dir``. Never raises for a failing pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
+    """Run one job (``cfg``: the job's :class:`~nirspi_pipe.instantiate.Plan`, made by the front
+    end at its boundary; or a resolved config as plain data, or any mapping that reads as one,
+    converted here once into a plan) and write its record and arrays into ``out_dir``. Never raises for a failing pipeline: the failure is recorded (``meta.status = "failed"``, ``meta.error``) and the full
     traceback goes to ``error.txt``. Returns the record. Raises
     :class:`nirspi_pipe.outputfiles.OutputError` (one line) only when the record cannot be written. ``on_output``, when given, is called
     with the pipeline's ``RunOutput`` of a successful run (the Python API keeps the arrays).
     ``scan_indices`` resolves the scan option a recording names (see :func:`run_pipeline`)."""
     refuse_link(out_dir)  # nothing is written through a link (docs/hostile.md)
-    config = plain_config(cfg)
+    plan = Plan.of(cfg)  # the one conversion (none when the front end made the plan)
+    config = plan.config
     started = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     record = new_record(config, choices, overrides, job_num, attempt, seed=_seed_or_none(config), started=started)
     t0 = time.perf_counter()
     output = None
     try:
-        output = run_pipeline(config, scan_indices=scan_indices)
+        output = run_pipeline(plan, scan_indices=scan_indices)
     except Exception as exc:  # noqa: BLE001 - a failed job is data, not a crash
         record["meta"]["error"] = one_line(exc)
         record["meta"]["warnings"] = list(getattr(exc, "nirspi_warnings", []))
@@ -191,7 +193,7 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
     failed: list[str] = []
     seen: set[tuple[str, str]] = set()
     for config in configs:
-        for target, params in _stage_nodes(plain_config(config)):
+        for target, params in _stage_nodes(config if isinstance(config, dict) else plain_config(config)):
             key = (target, json.dumps(params, sort_keys=True, default=repr))
             if target not in allowed or key in seen:
                 continue

@@ -14,14 +14,14 @@ import functools
 import inspect
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from functools import lru_cache
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.targets import check_targets, locate, resolve
+from nirspi_pipe.targets import check_target, find_targets, locate
 
-__all__ = ["EFFECT_GROUPS", "accepted_keys", "build", "check_types", "plain_config", "user_key"]
+__all__ = ["EFFECT_GROUPS", "Plan", "accepted_keys", "build", "check_types", "plain_config", "user_key"]
 
 
 #: Config groups that are built inside another node (``source.effects.fog: ${fog}``): an error
@@ -53,6 +53,66 @@ def user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     return (full_key, False) if full_key.startswith(key + ".") else (key, False)
 
 
+class Plan(Mapping[str, Any]):
+    """One job's resolved configuration as plain data, converted once (:meth:`of`), whose
+    ``_target_`` strings are checked against the allow-list once (:meth:`check`: one walk, before
+    anything is imported) and whose classes are imported once (:meth:`resolve`).
+
+    The front ends make it at the boundary (the app from its composed config; the runner from
+    whatever it is handed, when that is not a plan already); :func:`build` and
+    :func:`check_types` take it, so building a job's stages neither converts its nodes again
+    nor checks a target again (issue 42: before, one default job through
+    :func:`nirspi_pipe.execute.execute_job` made 28 conversions, 60 allow-list checks and 40
+    imports by string for its 24 targets; now 1, 24 and 12: tests/test_one_plan.py). A plan owns its ``config``: nothing
+    changes it after it is made. It reads as the mapping it holds (so :func:`plain_config` of a
+    plan is a copy of its config)."""
+
+    __slots__ = ("_checked", "_classes", "config", "path")
+
+    def __init__(self, config: Any, path: str = "") -> None:
+        self.config = config  # plain data (plain_config's), not copied
+        self.path = path
+        self._checked: frozenset[Any] | None = None
+        self._classes: dict[str, Any] = {}
+
+    def __getitem__(self, key: str) -> Any:
+        return self.config[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.config)
+
+    def __len__(self) -> int:
+        return len(self.config)
+
+    @classmethod
+    def of(cls, cfg: Any, path: str = "") -> Plan:
+        """``cfg`` itself when it is a plan, else a plan of ``cfg`` as plain data (one conversion,
+        :func:`plain_config`; an OmegaConf node's interpolations resolve here)."""
+        return cfg if isinstance(cfg, Plan) else cls(plain_config(cfg), path)
+
+    def check(self) -> Plan:
+        """Every target of the plan against the allow-list (:func:`nirspi_pipe.targets.check_target`
+        on each place :func:`nirspi_pipe.targets.find_targets` names, as ``check_targets``),
+        the first time it is called; a refusal is the one-line :class:`ConfigError` naming its key."""
+        if self._checked is None:
+            passed = set()
+            for key, target in find_targets(self.config, self.path):  # one walk, as check_targets
+                check_target(target, key)
+                passed.add(target)
+            self._checked = frozenset(passed)
+        return self
+
+    def resolve(self, target: Any, key: str) -> Any:
+        """:func:`nirspi_pipe.targets.resolve` with this plan's checks: a target :meth:`check` passed
+        is not checked again (any other is, first); each class is imported once per plan."""
+        if self._checked is None or not isinstance(target, str) or target not in self._checked:
+            check_target(target, key)
+        name = str(target)
+        if name not in self._classes:
+            self._classes[name] = locate(name)
+        return self._classes[name]
+
+
 class _BuildFailure(Exception):
     """A stage constructor raised while building the node at ``path`` (the innermost one)."""
 
@@ -65,7 +125,7 @@ class _BuildFailure(Exception):
 _RESERVED = ("_target_", "_recursive_", "_partial_", "_convert_", "_args_")
 
 
-def _instantiate(node: Any, path: str) -> Any:
+def _instantiate(node: Any, path: str, plan: Plan) -> Any:
     """``hydra.utils.instantiate(node, _convert_="all")`` for a resolved plain container: every
     dict with a ``_target_`` becomes ``target(**children)`` (``_recursive_: false`` passes the
     children as they are, ``_partial_: true`` gives a ``functools.partial``), other dicts and lists
@@ -74,22 +134,25 @@ def _instantiate(node: Any, path: str) -> Any:
     here, timing both on the ten stage nodes of one composed job (a sweep ran beside it); a paper sweep builds
     432 jobs. ``tests/test_config.py`` builds every shipped option through it."""
     if isinstance(node, list):
-        return [_instantiate(v, f"{path}.{i}") for i, v in enumerate(node)]
+        return [_instantiate(v, f"{path}.{i}", plan) for i, v in enumerate(node)]
     if not isinstance(node, dict):
         return node
     recursive = node.get("_recursive_", True) is not False
     kwargs = {
-        str(k): (_instantiate(v, f"{path}.{k}") if recursive else v) for k, v in node.items() if k not in _RESERVED
+        str(k): (_instantiate(v, f"{path}.{k}", plan) if recursive else v)
+        for k, v in node.items()
+        if k not in _RESERVED
     }
     target = node.get("_target_")
     if target is None:
         return kwargs
     try:
-        fn = resolve(target, f"{path}._target_")  # the allow-list (nirspi_pipe.targets), then the import
+        fn = plan.resolve(target, f"{path}._target_")  # the allow-list (nirspi_pipe.targets), then the import
         if fn is None:
             raise ImportError(f"Error locating target '{target}': no such module or attribute")
         args = [
-            (_instantiate(v, f"{path}._args_.{i}") if recursive else v) for i, v in enumerate(node.get("_args_", []))
+            (_instantiate(v, f"{path}._args_.{i}", plan) if recursive else v)
+            for i, v in enumerate(node.get("_args_", []))
         ]
         if node.get("_partial_", False):
             return functools.partial(fn, *args, **kwargs)
@@ -100,19 +163,23 @@ def _instantiate(node: Any, path: str) -> Any:
         raise _BuildFailure(exc, path, node) from exc
 
 
-def build(node: Any, key: str) -> Any:
+def build(node: Any, key: str, plan: Plan | None = None) -> Any:
     """Instantiate one config node (``_target_``) recursively, turning errors into one-line
-    messages. ``node`` is a config node or its resolved plain container.
+    messages. ``node`` is a config node or its resolved plain container; with ``plan``, it is a
+    node of ``plan.config`` (plain already), and its targets are those the plan checked: it is
+    neither converted nor checked again. Without, it is converted and its targets checked once.
 
     A :class:`ConfigError` raised by the stage is re-raised with its key prefixed by the node it
     came from, so the user sees ``scene.reflectance=1.5 is not allowed; allowed: …`` (and
     ``fog.beta_per_m=…`` for the fog model that ``source.effects`` builds).
     """
-    plain = plain_config(node)
-    check_targets(plain, key)  # every target of the node is allowed, before anything is imported
-    check_types(plain, key)
+    if plan is None:
+        plan = Plan.of(node, key)
+        node = plan.config
+    plan.check()  # every target of the plan is allowed, before anything is imported (once per plan)
+    check_types(node, key, plan)
     try:
-        return _instantiate(plain, key)
+        return _instantiate(node, key, plan)
     except _BuildFailure as failure:
         inner = failure.inner
         where, absolute = user_key(failure.path, key)
@@ -165,12 +232,13 @@ def _scalar_fields(fn: Any) -> tuple[tuple[str, tuple[type, ...] | None], ...]:
     return tuple((name, _scalar_kinds(hints.get(name))) for name in names)
 
 
-def check_types(node: Any, key: str) -> None:
+def check_types(node: Any, key: str, plan: Plan | None = None) -> None:
     """Scalar fields of every ``_target_`` class in ``node`` (a config node or its resolved plain
     container) have their annotated type; a string for a number (``scene.distance_mm=abc``) is a
     one-line :class:`ConfigError` naming the key and the annotated type (``a number``). The
     annotations are the source of types; a value of the right type is judged by the stage's own
-    range check when it is built. Targets must be allowed (:func:`nirspi_pipe.targets.check_targets`);
+    range check when it is built. With ``plan``, ``node`` is a node of ``plan.config`` (plain, its
+    targets checked and imported through the plan). Targets must be allowed (:func:`nirspi_pipe.targets.check_targets`);
     a target whose annotations cannot be read raises ``TypeError`` naming it (a bug of the target,
     not of the config)."""
 
@@ -187,7 +255,7 @@ def check_types(node: Any, key: str) -> None:
         target = sub.get("_target_")
         if not isinstance(target, str):
             return
-        fn = resolve(target, f"{path}._target_")  # allowed before it is imported
+        fn = checked.resolve(target, f"{path}._target_")  # allowed before it is imported
         if fn is None:
             return  # not importable: building it says so, naming the key
         try:
@@ -199,7 +267,11 @@ def check_types(node: Any, key: str) -> None:
                 where, _ = user_key(f"{path}.{name}", key)
                 raise ConfigError(where, sub[name], _type_text(kinds), absolute=True)
 
-    walk(plain_config(node), key)
+    if plan is None:
+        plan = Plan.of(node, key)
+        node = plan.config
+    checked = plan
+    walk(node, key)
 
 
 def accepted_keys(node: Any) -> str:

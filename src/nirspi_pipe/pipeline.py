@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError, NirspiError, NumericalError
-from nirspi_pipe.instantiate import EFFECT_GROUPS, build, check_types, plain_config
+from nirspi_pipe.instantiate import EFFECT_GROUPS, Plan, build, check_types, plain_config
 from nirspi_pipe.jobkey import config_hash
 from nirspi_pipe.scene.render import forget_renders
 from nirspi_pipe.stages import Aimable, Itof, NeedsScene, Products, ReadsScanOptions, ScanIndices, check_stage
@@ -28,6 +28,7 @@ __all__ = [
     "EFFECT_GROUPS",
     "MODEL_OF_NOTHING",
     "STAGE_GROUPS",
+    "Plan",
     "RunOutput",
     "build",
     "build_stages",
@@ -78,14 +79,15 @@ class RunOutput:
     warnings: list[str] = field(default_factory=list)
 
 
-def build_stages(cfg: Mapping[str, Any]) -> dict[str, Any]:
+def build_stages(cfg: Mapping[str, Any], plan: Plan | None = None) -> dict[str, Any]:
     """Instantiate every enabled stage group of ``cfg`` (absent or null groups are skipped), each
-    checked against its group's protocol (:func:`nirspi_pipe.stages.check_stage`)."""
+    checked against its group's protocol (:func:`nirspi_pipe.stages.check_stage`). With ``plan``,
+    ``cfg`` is ``plan.config`` and the stages are built from the plan (:func:`build`)."""
     stages: dict[str, Any] = {}
     for group in STAGE_GROUPS:
         node = cfg.get(group)
         if node is not None:
-            stages[group] = build(node, group)
+            stages[group] = build(node, group, plan)
             check_stage(group, stages[group], node.get("_target_") if isinstance(node, Mapping) else None)
     return stages
 
@@ -237,16 +239,18 @@ def effective_seed(cfg: Mapping[str, Any]) -> int:
     resolved config (so every job of a sweep gets its own, reproducible noise)."""
     seed = cfg.get("seed", 0)
     if seed is None:
-        return int(config_hash(plain_config(cfg))[:8], 16)
+        return int(config_hash(cfg if isinstance(cfg, dict) else plain_config(cfg))[:8], 16)
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError("seed", seed, "an integer >= 0, or null (derived from the config)")
     return seed
 
 
-def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = None) -> RunOutput:
+def run_pipeline(cfg: Mapping[str, Any] | Plan, *, scan_indices: ScanIndices | None = None) -> RunOutput:
     """Run one configuration end to end and return its products, metrics and timings (ms).
-    ``cfg`` is the resolved config as plain data (any mapping that reads as one works: it is
-    read through ``get`` and ``[]``). ``scan_indices(order, ratio, n)`` resolves the scan option
+    ``cfg`` is the job's :class:`~nirspi_pipe.instantiate.Plan`, or its resolved config as plain
+    data (any mapping that reads as one works), converted here once into a plan. Each
+    ``_target_`` is checked against the allow-list once, before the first stage is built, and
+    the stages are built from the plan without converting or checking again. ``scan_indices(order, ratio, n)`` resolves the scan option
     a recording names in its pattern spec; the config layer passes
     :func:`nirspi_pipe.app.configs.scan_indices`. A source that needs it and gets none fails
     with a one-line error naming ``source``.
@@ -255,18 +259,21 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
     exceptions are bugs or numerical failures and propagate unchanged.
     """
     forget_renders(files_only=True)  # a scene read from a file is rendered afresh by each run
-    seed = effective_seed(cfg)
+    plan = Plan.of(cfg)  # one conversion, unless the caller made the plan
+    config: Mapping[str, Any] = plan.config
+    seed = effective_seed(config)
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
     for group, nothing in MODEL_OF_NOTHING.items():
-        if group in cfg and cfg[group] is None:
+        if group in config and config[group] is None:
             raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
     with _recorded_warnings() as caught:
         clock = _Clock(caught)
         with clock.stage("build"):
-            camera: Camera = build(cfg["camera"], "camera")
-            stages = build_stages(cfg)
+            plan.check()  # every target, once, before anything is imported
+            camera: Camera = build(config["camera"], "camera", plan)
+            stages = build_stages(config, plan)
         for required in ("source", "scan", "solver"):
             if required not in stages:
                 raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
@@ -299,11 +306,11 @@ def run_pipeline(cfg: Mapping[str, Any], *, scan_indices: ScanIndices | None = N
             itof = clock.call("itof", _measure_itof, stages["itof"], shaded, grid, truth, acq, rngs["itof"])
         if "fusion" in stages:
             if depth is None:
-                raise ConfigError("fusion", cfg.get("fusion"), "null unless an sfs stage is set")
+                raise ConfigError("fusion", config.get("fusion"), "null unless an sfs stage is set")
             cloud = clock.call("fusion", stages["fusion"].fuse, depth, itof, grid)
         if "surface" in stages:
             if cloud is None:
-                raise ConfigError("surface", cfg.get("surface"), "null unless a fusion stage is set")
+                raise ConfigError("surface", config.get("surface"), "null unless a fusion stage is set")
             mesh = clock.call("surface", stages["surface"].reconstruct, cloud)
 
         products = Products(truth, acq, image, upscaled, depth, itof, cloud, mesh)

@@ -34,6 +34,8 @@ from nirspi_pipe.app.hydranode import check_job
 from nirspi_pipe.app.plugins import activate, discover, format_report
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweepfile import SWEEP_FILE, SweepFileError
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.instantiate import Plan
 from nirspi_pipe.outputfiles import OutputError, drop_links, refuse_link
 from nirspi_pipe.safeio import sanitize_text
 from nirspi_pipe.summary import format_summary
@@ -49,8 +51,11 @@ _EXIT_CONFIG = 2
 def _hydra_task(cfg: Any) -> None:
     hc = HydraConfig.get()
     try:  # the second gate: the Hydra node this job received, whatever launched it (issue 41)
-        check_job(hc, cfg)
-    except Refused as exc:  # a sweep stops here: its other jobs would receive the same node
+        check_job(hc)
+        # the job's one conversion to plain data, each target checked once: the runner builds
+        # from this plan without converting or checking again (issue 42, tests/test_one_plan.py)
+        plan = Plan.of(cfg).check()
+    except (Refused, ConfigError) as exc:  # a sweep stops here: its other jobs would receive the same node
         print(f"nirspi-run: error: job refused: {exc}", file=sys.stderr)
         raise SystemExit(_EXIT_CONFIG) from None
     out_dir = Path(hc.runtime.output_dir)
@@ -67,7 +72,7 @@ def _hydra_task(cfg: Any) -> None:
         ours = "nirspi" in str(hc.sweeper.get("_target_", ""))  # keyed folders (basic: numbered)
         record = run_sweep_job(
             execute_job,
-            cfg,
+            plan,
             out_dir,
             choices,
             overrides,
@@ -77,7 +82,7 @@ def _hydra_task(cfg: Any) -> None:
         )
     else:
         try:
-            record = execute_job(cfg, out_dir, choices, overrides, job_num=job_num)
+            record = execute_job(plan, out_dir, choices, overrides, job_num=job_num)
         except OutputError as exc:
             print(f"nirspi-run: error: {exc}", file=sys.stderr)
             raise SystemExit(1) from None

@@ -1,0 +1,120 @@
+"""One checked plan (issue 42, items 1 and 6): a job's config is converted to plain data once and
+each of its ``_target_`` strings is checked against the allow-list once; the stages are built
+from that plan without converting a node or checking a target again.
+
+Before (at cf90d56 and still at 5911ebf), one default job made 29 conversions (``plain_config``
+calls from outside itself) and 123 allow-list checks in the runner for its 24 targets: every
+``build`` and ``check_types`` converted its node again and checked its targets again."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import nirspi_pipe.instantiate as instantiate
+import nirspi_pipe.targets as targets
+from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.execute import execute_job
+from nirspi_pipe.instantiate import Plan, plain_config
+
+#: A default job at a tiny resolution (the defaults' 24 ``_target_`` nodes).
+DEFAULT = ["camera.resolution=16", "output.images=false"]
+
+
+class Counts:
+    """Calls of the allow-list check, of the converter (outermost calls only) and of the import
+    by string, counted through the module attributes every caller reads."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.checks = 0
+        self.conversions = 0
+        self.imports = 0
+        self._depth = 0
+        check, convert, locate = targets.check_target, instantiate.plain_config, targets.locate
+
+        def counted_check(target: Any, key: str) -> None:
+            self.checks += 1
+            check(target, key)
+
+        def counted_convert(node: Any) -> Any:
+            self.conversions += self._depth == 0
+            self._depth += 1
+            try:
+                return convert(node)
+            finally:
+                self._depth -= 1
+
+        def counted_locate(target: str) -> Any:
+            self.imports += 1
+            return locate(target)
+
+        for module in (targets, instantiate):
+            monkeypatch.setattr(module, "check_target", counted_check, raising=False)
+            monkeypatch.setattr(module, "locate", counted_locate, raising=False)
+        monkeypatch.setattr(instantiate, "plain_config", counted_convert)
+
+
+@pytest.fixture(scope="module")
+def composed() -> Any:
+    from nirspi_pipe.app.api import compose
+
+    cfg, _ = compose(DEFAULT)
+    return cfg
+
+
+def _targets(config: Any) -> list[str]:
+    return [v for _, v in targets.find_targets(config, "")]
+
+
+def test_a_default_job_checks_each_target_once_and_converts_once(
+    composed: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    n_targets = len(_targets(plain_config(composed)))
+    counts = Counts(monkeypatch)
+    record = execute_job(composed, tmp_path, {}, DEFAULT)  # the composed OmegaConf node, as Hydra hands it
+    assert record["meta"]["status"] == "ok", record["meta"].get("error")
+    assert counts.conversions == 1
+    assert counts.checks == n_targets <= 30
+    assert counts.imports == len(set(_targets(plain_config(composed))))  # each class imported once
+
+
+def test_a_plan_made_at_the_boundary_is_neither_converted_nor_checked_again(
+    composed: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    plan = Plan.of(composed).check()  # what a front end does at its boundary
+    counts = Counts(monkeypatch)
+    record = execute_job(plan, tmp_path, {}, DEFAULT)
+    assert record["meta"]["status"] == "ok", record["meta"].get("error")
+    assert (counts.conversions, counts.checks) == (0, 0)
+
+
+def test_the_plan_is_checked_before_anything_is_built(
+    composed: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A refused target anywhere in the plan (here the metrics' copy of the source) fails the job
+    with the allow-list's one line naming its key before any stage class is imported or built."""
+    config = plain_config(composed)
+    config["metrics"]["source"]["_target_"] = "os.system"
+    counts = Counts(monkeypatch)
+    record = execute_job(config, tmp_path, {}, DEFAULT)
+    assert counts.imports == 0
+    assert record["meta"]["status"] == "failed"
+    assert record["meta"]["error"].startswith("metrics.source._target_='os.system' is not allowed; allowed:")
+
+
+def test_a_plan_rechecks_a_target_it_did_not_check(composed: Any) -> None:
+    """The plan skips the check only for the strings its own walk passed."""
+    plan = Plan.of(composed).check()
+    with pytest.raises(ConfigError, match=r"^solver\._target_='os\.system' is not allowed"):
+        plan.resolve("os.system", "solver._target_")
+    assert plan.resolve("nirspi_pipe.solvers.fwht.FWHTSolver", "solver._target_").__name__ == "FWHTSolver"
+
+
+def test_a_node_built_alone_is_converted_and_checked_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    node = {"_target_": "nirspi_pipe.types.Camera", "resolution": 8}
+    counts = Counts(monkeypatch)
+    camera = instantiate.build(node, "camera")
+    assert camera.resolution == 8
+    assert (counts.conversions, counts.checks, counts.imports) == (1, 1, 1)
