@@ -173,6 +173,16 @@ def backscatter(gain: float, radiance: Any, beta_per_m: Any, z_m: Any) -> np.nda
     return gain * np.asarray(radiance) * (1.0 - transmittance(beta_per_m, z_m))
 
 
+#: The keys both fog models share, with their declared ranges (:mod:`nirspi_pipe.ranges`).
+ExtentMm = Annotated[
+    float, Range(0.0, None, "a fog path length in mm", lo_open=True, finite=False, note=".inf for unbounded fog")
+]
+BackscatterGain = Annotated[float, Range(0.0, None, "a factor")]
+FluctuationRel = Annotated[float, Range(0.0, 1.0, "a relative standard deviation")]
+FluctuationTimeS = Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)]
+TrendRel = Annotated[float, Range(-0.9, 10.0, "a relative change of the density over the acquisition")]
+
+
 @dataclass(frozen=True)
 class NoFog:
     """``fog=none``: clear air. The simulator drops it: no Mie call, no fog array, no cost."""
@@ -218,13 +228,11 @@ class MieFog:
     wavelength_nm: Annotated[float, Range(200.0, 20000.0, "a wavelength in nm")] = 1550.0
     index_real: Annotated[float, Range(1.0, 4.0, "a real refractive index")] = WATER_INDEX_1550NM.real
     index_imag: Annotated[float, Range(0.0, 10.0, "an imaginary index k")] = WATER_INDEX_1550NM.imag
-    extent_mm: Annotated[
-        float, Range(0.0, None, "a fog path length in mm", lo_open=True, finite=False, note=".inf for unbounded fog")
-    ] = 350.0
-    backscatter_gain: Annotated[float, Range(0.0, None, "a factor")] = 0.01
-    fluctuation_rel: Annotated[float, Range(0.0, 1.0, "a relative standard deviation")] = 0.0
-    fluctuation_time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)] = 0.05
-    trend_rel: Annotated[float, Range(-0.9, 10.0, "a relative change of the density over the acquisition")] = 0.0
+    extent_mm: ExtentMm = 350.0
+    backscatter_gain: BackscatterGain = 0.01
+    fluctuation_rel: FluctuationRel = 0.0
+    fluctuation_time_s: FluctuationTimeS = 0.05
+    trend_rel: TrendRel = 0.0
 
     active = True
 
@@ -292,13 +300,11 @@ class MeasuredFog:
     """
 
     beta_per_m: Annotated[float, Range(0.0, None, "an extinction coefficient in 1/m")] = 1.0
-    extent_mm: Annotated[
-        float, Range(0.0, None, "a fog path length in mm", lo_open=True, finite=False, note=".inf for unbounded fog")
-    ] = 350.0
-    backscatter_gain: Annotated[float, Range(0.0, None, "a factor")] = 0.01
-    fluctuation_rel: Annotated[float, Range(0.0, 1.0, "a relative standard deviation")] = 0.0
-    fluctuation_time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True)] = 0.05
-    trend_rel: Annotated[float, Range(-0.9, 10.0, "a relative change of the density over the acquisition")] = 0.0
+    extent_mm: ExtentMm = 350.0
+    backscatter_gain: BackscatterGain = 0.01
+    fluctuation_rel: FluctuationRel = 0.0
+    fluctuation_time_s: FluctuationTimeS = 0.05
+    trend_rel: TrendRel = 0.0
     single_scattering_albedo: Annotated[float, Range(0.0, 1.0, "a value")] = 1.0
 
     active = True

@@ -349,18 +349,13 @@ def _effective_scheme(scheme: str, shape: tuple[int, int]) -> str:
 
 
 @dataclass(frozen=True)
-class LaxFriedrichsSFS:
-    """SFS ``lax_friedrichs``: orthographic Lambertian SFS, light at the camera (Alg. A2, fixed).
+class SweepingSFS:
+    """The keys and checks every sweeping SFS option shares (:class:`LaxFriedrichsSFS` and its
+    reflectance variants, :class:`PerspectiveSFS`); a subclass adds its scheme and its
+    ``effective_backend``. Keys: ``backend`` (numpy, opencl or auto), the sweeps' ``tol`` (pixels)
+    and ``max_sweeps``, the ``albedo`` (auto or a reflectance), ``min_intensity`` (object pixels),
+    ``source_tol`` (singular points), ``median_px`` (a median filter) and the OpenCL ``device``."""
 
-    Solves the eikonal ``|∇z| = F = sqrt(1/I² − 1)`` (I normalised by the albedo; the printed
-    Alg. A2 line 17 puts Z where I belongs) with ``z = 0`` at the singular points ``I = 1`` by
-    Kao–Osher–Qian Lax–Friedrichs fast sweeping (``scheme: lax_friedrichs``), by the Godunov
-    upwind update (``scheme: godunov``, much faster for this equation) or by second-order upwind
-    sweeping (``scheme: second_order``, with ``slope_average`` ``cos2`` or ``node``; see
-    :mod:`nirspi_pipe.sfs.second_order`). Depth in pixel pitches.
-    """
-
-    scheme: Annotated[str, OneOf(SCHEMES)] = "lax_friedrichs"
     backend: Annotated[str, OneOf(BACKENDS)] = "numpy"
     tol: Annotated[float, Range(0.0, None, "a tolerance in pixels", lo_open=True)] = 1e-4
     max_sweeps: Annotated[int, Range(4, None, "an integer", integer=True)] = 4000
@@ -368,10 +363,6 @@ class LaxFriedrichsSFS:
     min_intensity: Annotated[float, Range(0.0, 1.0, "a normalised radiance", lo_open=True, hi_open=True)] = 0.05
     source_tol: Annotated[float, Range(0.0, 0.5, "a value", hi_open=True)] = 1e-3
     median_px: Annotated[int, Range(0, None, "0 (off) or an odd window size in pixels", integer=True)] = 0
-    # Not in the generated config schema (only sfs=second_order, which sets it, reads it): the
-    # configs, job keys and derived seeds of the other SFS options stay as they were.
-    slope_average: Annotated[str, OneOf(SLOPE_AVERAGES)] = field(default="cos2", metadata={"config": False})
-    singular: Annotated[str, OneOf(SINGULAR_CHOICES)] = "maximal"
     device: str = "auto"
 
     @classmethod
@@ -383,6 +374,28 @@ class LaxFriedrichsSFS:
         _check_common(self)
         _check_device(self)
         self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
+
+    def effective_backend(self, size: int = 64) -> str:
+        raise NotImplementedError  # each scheme resolves its own back end
+
+
+@dataclass(frozen=True)
+class LaxFriedrichsSFS(SweepingSFS):
+    """SFS ``lax_friedrichs``: orthographic Lambertian SFS, light at the camera (Alg. A2, fixed).
+
+    Solves the eikonal ``|∇z| = F = sqrt(1/I² − 1)`` (I normalised by the albedo; the printed
+    Alg. A2 line 17 puts Z where I belongs) with ``z = 0`` at the singular points ``I = 1`` by
+    Kao–Osher–Qian Lax–Friedrichs fast sweeping (``scheme: lax_friedrichs``), by the Godunov
+    upwind update (``scheme: godunov``, much faster for this equation) or by second-order upwind
+    sweeping (``scheme: second_order``, with ``slope_average`` ``cos2`` or ``node``; see
+    :mod:`nirspi_pipe.sfs.second_order`). Depth in pixel pitches.
+    """
+
+    scheme: Annotated[str, OneOf(SCHEMES)] = "lax_friedrichs"
+    # Not in the generated config schema (only sfs=second_order, which sets it, reads it): the
+    # configs, job keys and derived seeds of the other SFS options stay as they were.
+    slope_average: Annotated[str, OneOf(SLOPE_AVERAGES)] = field(default="cos2", metadata={"config": False})
+    singular: Annotated[str, OneOf(SINGULAR_CHOICES)] = "maximal"
 
     def effective_backend(self, size: int = 64) -> str:
         """The back end a solve of image side ``size`` uses: ``auto`` is ``opencl`` when a device
@@ -492,7 +505,7 @@ class PhongSFS(LaxFriedrichsSFS):
 
 
 @dataclass(frozen=True)
-class PerspectiveSFS:
+class PerspectiveSFS(SweepingSFS):
     """SFS ``perspective``: perspective Lambertian SFS with a point light at the optical centre
     (Prados & Faugeras 2005), our camera's geometry.
 
@@ -508,24 +521,6 @@ class PerspectiveSFS:
 
     falloff: Annotated[bool, OneOf((True, False), "true or false")] = True
     scheme: Annotated[str, OneOf(("lax_friedrichs",))] = "lax_friedrichs"
-    backend: Annotated[str, OneOf(BACKENDS)] = "numpy"
-    tol: Annotated[float, Range(0.0, None, "a tolerance in pixels", lo_open=True)] = 1e-4
-    max_sweeps: Annotated[int, Range(4, None, "an integer", integer=True)] = 4000
-    albedo: float | str = "auto"
-    min_intensity: Annotated[float, Range(0.0, 1.0, "a normalised radiance", lo_open=True, hi_open=True)] = 0.05
-    source_tol: Annotated[float, Range(0.0, 0.5, "a value", hi_open=True)] = 1e-3
-    median_px: Annotated[int, Range(0, None, "0 (off) or an odd window size in pixels", integer=True)] = 0
-    device: str = "auto"
-
-    @classmethod
-    def warm_up(cls, params: Mapping[str, Any]) -> None:
-        """:func:`_warm_up_opencl` (:class:`nirspi_pipe.stages.WarmsUp`)."""
-        _warm_up_opencl(str(params.get("backend", cls.backend)))
-
-    def __post_init__(self) -> None:
-        _check_common(self)
-        _check_device(self)
-        self.effective_backend()  # build the OpenCL kernel now, never inside a timed solve
 
     def effective_backend(self, size: int = 64) -> str:
         """The back end a solve of image side ``size`` uses (``auto``: as
