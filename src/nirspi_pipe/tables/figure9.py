@@ -144,6 +144,88 @@ def _per_object(df: pd.DataFrame, scores: dict[str, str]) -> tuple[pd.DataFrame,
     return pd.DataFrame(rows), (pd.concat(fams, ignore_index=True) if fams else pd.DataFrame())
 
 
+def _object_cell(o: pd.DataFrame, scan: str, k: float, scores: dict[str, str]) -> str:
+    """One per-object cell: each score's mean ± standard error and the seed count, or n/a."""
+    r = o[(o["scan"] == scan) & (o["klux"] == k)]
+    if r.empty:
+        return "n/a"
+    r0 = r.iloc[0]
+    return (
+        " / ".join(fmt_scored(r0[f"{key}_mean"], r0[f"{key}_se"], r0[f"{key}_degenerate"], r0["n"]) for key in scores)
+        + f" (n={int(r0['n'])})"
+    )
+
+
+def _object_section(
+    scene: str, objects: pd.DataFrame, claims: pd.DataFrame, levels: list[float], scores: dict[str, str]
+) -> list[str]:
+    """One object's table (scan by light level) and its replicated rankings."""
+    o = objects[objects["scene"] == scene]
+    lines = [
+        f"### {scene}",
+        "",
+        "| scan | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
+        "|---|" + "---:|" * len(levels),
+    ]
+    for scan in SCANS:
+        cells = [_object_cell(o, scan, k, scores) for k in levels]
+        lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
+    c = claims[claims["scene"] == scene]
+    notes = [
+        f"{k:g} kLux, {key}: {ranking_note(f)}"
+        for (k, key), f in c.groupby(["klux", "score"], sort=False)
+        if ranking_note(f) != "none"
+    ]
+    return [
+        *lines,
+        "",
+        "Replicated rankings (Holm over the six pairs, both seed halves): "
+        + ("; ".join(notes) if notes else "none")
+        + ".",
+        "",
+    ]
+
+
+def _sphere_line(objects: pd.DataFrame, scan: str, klux: float, p: pd.Series, scores: dict[str, str]) -> str | None:
+    """Our sphere's scores at the paper's quoted condition, with the difference to the paper's
+    PSNR; None without a sphere row or a quoted PSNR."""
+    sph = (
+        objects[(objects["scene"] == "sphere") & (objects["scan"] == scan) & (objects["klux"] == klux)]
+        if len(objects)
+        else objects
+    )
+    if not (len(sph) and "psnr_db" in p and np.isfinite(p["psnr_db"])):
+        return None
+    r0 = sph.iloc[0]
+    return (
+        f"Ours, sphere, {SCAN_LABELS.get(scan, scan)}, {klux:g} kLux: "
+        + ", ".join(
+            f"{SCORE_LABELS[k]} "
+            + fmt_scored(r0[f"{k}_mean"], r0[f"{k}_se"], r0[f"{k}_degenerate"], r0["n"])
+            + (
+                f" dB ({r0[f'{k}_mean'] - p['psnr_db']:+.2f} dB from the paper's {p['psnr_db']:g})"
+                if np.isfinite(r0[f"{k}_mean"])
+                else ""
+            )
+            for k in scores
+        )
+        + "."
+    )
+
+
+def _paper_lines(paper: pd.DataFrame, objects: pd.DataFrame, scores: dict[str, str]) -> list[str]:
+    """The paper's quoted values (text of §7), each followed by our sphere's at that condition."""
+    lines: list[str] = []
+    for (scan, klux), p in paper.iterrows():
+        vals = ", ".join(f"{k} = {p[k]:g}" for k in ("ssim", "psnr_db") if np.isfinite(p.get(k, np.nan)))
+        if vals:
+            lines += ["", f"Paper (text of §7): {SCAN_LABELS.get(scan, scan)} at {klux:g} kLux: {vals}."]
+            ours = _sphere_line(objects, scan, klux, p, scores)
+            if ours is not None:
+                lines.append(ours)
+    return lines
+
+
 def _markdown(
     table: pd.DataFrame,
     frame: pd.DataFrame,
@@ -164,42 +246,7 @@ def _markdown(
             "",
         ]
         for scene in _order(list(objects["scene"].unique())):
-            o = objects[objects["scene"] == scene]
-            lines += [
-                f"### {scene}",
-                "",
-                "| scan | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
-                "|---|" + "---:|" * len(levels),
-            ]
-            for scan in SCANS:
-                cells = []
-                for k in levels:
-                    r = o[(o["scan"] == scan) & (o["klux"] == k)]
-                    if r.empty:
-                        cells.append("n/a")
-                        continue
-                    r0 = r.iloc[0]
-                    cells.append(
-                        " / ".join(
-                            fmt_scored(r0[f"{key}_mean"], r0[f"{key}_se"], r0[f"{key}_degenerate"], r0["n"])
-                            for key in scores
-                        )
-                        + f" (n={int(r0['n'])})"
-                    )
-                lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
-            c = claims[claims["scene"] == scene]
-            notes = [
-                f"{k:g} kLux, {key}: {ranking_note(f)}"
-                for (k, key), f in c.groupby(["klux", "score"], sort=False)
-                if ranking_note(f) != "none"
-            ]
-            lines += [
-                "",
-                "Replicated rankings (Holm over the six pairs, both seed halves): "
-                + ("; ".join(notes) if notes else "none")
-                + ".",
-                "",
-            ]
+            lines += _object_section(scene, objects, claims, levels, scores)
     lines += [
         "## Pooled over the objects (the previous figure; mixes four ceilings)",
         "",
@@ -215,31 +262,7 @@ def _markdown(
             + fmt_scored(r["psnr_db_mean"], r["psnr_db_std"], r["psnr_db_degenerate"], r["n"])
         ),
     )
-    for (scan, klux), p in paper.iterrows():
-        vals = ", ".join(f"{k} = {p[k]:g}" for k in ("ssim", "psnr_db") if np.isfinite(p.get(k, np.nan)))
-        if vals:
-            lines += ["", f"Paper (text of §7): {SCAN_LABELS.get(scan, scan)} at {klux:g} kLux: {vals}."]
-            sph = (
-                objects[(objects["scene"] == "sphere") & (objects["scan"] == scan) & (objects["klux"] == klux)]
-                if len(objects)
-                else objects
-            )
-            if len(sph) and "psnr_db" in p and np.isfinite(p["psnr_db"]):
-                r0 = sph.iloc[0]
-                lines.append(
-                    f"Ours, sphere, {SCAN_LABELS.get(scan, scan)}, {klux:g} kLux: "
-                    + ", ".join(
-                        f"{SCORE_LABELS[k]} "
-                        + fmt_scored(r0[f"{k}_mean"], r0[f"{k}_se"], r0[f"{k}_degenerate"], r0["n"])
-                        + (
-                            f" dB ({r0[f'{k}_mean'] - p['psnr_db']:+.2f} dB from the paper's {p['psnr_db']:g})"
-                            if np.isfinite(r0[f"{k}_mean"])
-                            else ""
-                        )
-                        for k in scores
-                    )
-                    + "."
-                )
+    lines += _paper_lines(paper, objects, scores)
     lines += ["", f"Rows: {conditions_note(df)}; {failures_note(frame, df)}"]
     note = degenerate_note(
         df, {**{SCORE_LABELS[k]: c for k, c in SCORES.items()}, **{f"pooled {k}": c for k, c in _pooled(df).items()}}
