@@ -85,36 +85,54 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-docs", action="store_true", help="write docs/hardcases.md (every case)")
     parser.add_argument("--out", type=Path, default=None, help="default: docs/hardcases.md of this clone")
     ns = parser.parse_args(argv)
-    if ns.write_docs and ns.ids:  # checked first: the run takes minutes
-        print(f"{_PROG}: --write-docs runs every case; give no ids", file=sys.stderr)
-        return 2
-    if ns.write_docs and ns.out is None:
-        clone = find_clone()
-        if clone is None:
-            print(f"{_PROG}: not in a clone of nirspi-pipe; give --out FILE", file=sys.stderr)
-            return 2
-        ns.out = clone / "docs" / "hardcases.md"
+    refusal = _docs_target(ns)
     cases = load_cases()
-    if ns.ids:
+    if refusal is None and ns.ids:
         unknown = sorted(set(ns.ids) - {c.id for c in cases})
-        if unknown:
-            print(f"{_PROG}: unknown case ids {unknown}", file=sys.stderr)
-            return 2
+        refusal = f"unknown case ids {unknown}" if unknown else None
         cases = [c for c in cases if c.id in ns.ids]
+    if refusal is not None:
+        print(f"{_PROG}: {refusal}", file=sys.stderr)
+        return 2
     outcomes = []
     for case in cases:
         o = run_case(case)
         outcomes.append(o)
-        tag = "holds" if o.holds else ("pending" if case.pending else "FAILS")
-        got = ", ".join(f"{lhs(b)}={fmt(v)}" for b, v, _ in o.measured) or o.message[:120]
-        print(
-            f"{tag:7s} {o.seconds:6.2f}s {o.cpu_seconds:6.2f}cpu {case.id}: {got}"
-            + ("" if o.holds else f"  [{'; '.join(o.problems)[:300]}]")
-        )
+        print(_progress_line(o))
     if ns.write_docs:
-        wall, cpu = sum(o.seconds for o in outcomes), sum(o.cpu_seconds for o in outcomes)
-        load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
-        stamp = f"{docs_stamp()} The cases took {wall:.0f} s ({cpu:.0f} s of CPU) in one process; load average {load} after."
-        ns.out.write_text(render(outcomes, stamp), encoding="utf-8")
-        print(f"wrote {ns.out}")
+        _write_docs(outcomes, ns.out)
     return 0 if all(o.holds or o.case.pending for o in outcomes) else 1
+
+
+def _docs_target(ns: argparse.Namespace) -> str | None:
+    """Why ``--write-docs`` cannot run as asked (None when it can, or is not asked); sets
+    ``ns.out`` to docs/hardcases.md of this clone when it is not given. Checked first: the run
+    takes minutes."""
+    if ns.write_docs and ns.ids:
+        return "--write-docs runs every case; give no ids"
+    if ns.write_docs and ns.out is None:
+        clone = find_clone()
+        if clone is None:
+            return "not in a clone of nirspi-pipe; give --out FILE"
+        ns.out = clone / "docs" / "hardcases.md"
+    return None
+
+
+def _progress_line(o: Outcome) -> str:
+    """One case's line: its status, time, id and measured values (or message), its problems."""
+    tag = "holds" if o.holds else ("pending" if o.case.pending else "FAILS")
+    got = ", ".join(f"{lhs(b)}={fmt(v)}" for b, v, _ in o.measured) or o.message[:120]
+    return f"{tag:7s} {o.seconds:6.2f}s {o.cpu_seconds:6.2f}cpu {o.case.id}: {got}" + (
+        "" if o.holds else f"  [{'; '.join(o.problems)[:300]}]"
+    )
+
+
+def _write_docs(outcomes: list[Outcome], out: Path) -> None:
+    """Write docs/hardcases.md (:func:`~nirspi_pipe.hardcases.render.render`) with the run's stamp."""
+    wall, cpu = sum(o.seconds for o in outcomes), sum(o.cpu_seconds for o in outcomes)
+    load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
+    stamp = (
+        f"{docs_stamp()} The cases took {wall:.0f} s ({cpu:.0f} s of CPU) in one process; load average {load} after."
+    )
+    out.write_text(render(outcomes, stamp), encoding="utf-8")
+    print(f"wrote {out}")
