@@ -228,29 +228,26 @@ def test_a_job_loads_nothing_its_stages_warm_up_did_not(overrides: list[str]) ->
     assert late == [], f"loaded by the job after the warm-up: {late}"
 
 
-def test_warm_up_is_called_per_distinct_target_and_reports_failures() -> None:
+def test_warm_up_is_called_per_distinct_target_and_reports_failures(monkeypatch: pytest.MonkeyPatch) -> None:
     """``warm_up`` calls a class's hook once per distinct parameters, reads nested targets, never
     imports a target outside the allow-list, and reports a failing hook as a line."""
     from nirspi_pipe.execute import warm_up
     from nirspi_pipe.sfs.models import LaxFriedrichsSFS
 
     calls: list[dict[str, object]] = []
-    original = LaxFriedrichsSFS.__dict__["warm_up"]
-    try:
-        LaxFriedrichsSFS.warm_up = classmethod(lambda cls, params: calls.append(dict(params)))  # type: ignore[assignment,method-assign]
-        node = {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "numpy"}
-        failed = warm_up(
-            [{"sfs": node}, {"sfs": dict(node)}, {"a": [{"b": {**node, "tol": 0.1}}]}, {"x": {"_target_": "os.system"}}]
-        )
-        assert failed == [] and calls == [{"backend": "numpy"}, {"backend": "numpy", "tol": 0.1}]
+    # monkeypatch restores the class as it was (its hook is inherited from SweepingSFS)
+    monkeypatch.setattr(LaxFriedrichsSFS, "warm_up", classmethod(lambda cls, params: calls.append(dict(params))))
+    node = {"_target_": "nirspi_pipe.sfs.models.LaxFriedrichsSFS", "backend": "numpy"}
+    failed = warm_up(
+        [{"sfs": node}, {"sfs": dict(node)}, {"a": [{"b": {**node, "tol": 0.1}}]}, {"x": {"_target_": "os.system"}}]
+    )
+    assert failed == [] and calls == [{"backend": "numpy"}, {"backend": "numpy", "tol": 0.1}]
 
-        def boom(cls: type, params: object) -> None:
-            raise RuntimeError("no compiler")
+    def boom(cls: type, params: object) -> None:
+        raise RuntimeError("no compiler")
 
-        LaxFriedrichsSFS.warm_up = classmethod(boom)  # type: ignore[assignment,method-assign]
-        assert warm_up([{"sfs": node}]) == ["nirspi_pipe.sfs.models.LaxFriedrichsSFS: RuntimeError: no compiler"]
-    finally:
-        LaxFriedrichsSFS.warm_up = original  # type: ignore[method-assign]
+    monkeypatch.setattr(LaxFriedrichsSFS, "warm_up", classmethod(boom))
+    assert warm_up([{"sfs": node}]) == ["nirspi_pipe.sfs.models.LaxFriedrichsSFS: RuntimeError: no compiler"]
 
 
 _RUNNER_FIRST_SOLVE = r"""
