@@ -381,80 +381,97 @@ class Metrics3D:
         depth = products.depth
         if fine:
             truth = depth_truth(truth, depth, self.scene)
-        cam = truth.camera
-        tmask = truth.mask & np.isfinite(truth.depth_m)
         cloud, mesh = products.cloud, products.mesh
-        z_geom, z_sfs = _sfs_depths(truth, depth, cloud)
+        _, z_sfs = _sfs_depths(truth, depth, cloud)
         if z_sfs is not None:
-            sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
-            faces = grid_triangles(sfs_valid)
-            if len(faces):
-                sfs_cam = cam if z_sfs.shape[0] == cam.resolution else cam.resampled(z_sfs.shape[0])
-                verts = back_project(np.where(sfs_valid, z_sfs, 0.0), sfs_cam).reshape(-1, 3)
-                out.update(
-                    {
-                        k: v
-                        for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
-                        if k in ("skewness_sfs_mean", "skewness_sfs_p95")
-                    }
-                )
-                out.update(skewness_candidates(verts, faces, "cand_sfs"))
+            out.update(_sfs_skewness(truth.camera, z_sfs))
         compared = compared_depths(truth, depth, cloud)
         if compared is not None:
-            both, z_base, z_sfs, z_fused = compared
-            if both.any():
-                fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
-                before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline
-                after = rmse(z_fused[both], truth.depth_m[both])
-                offset = float(np.mean(truth.depth_m[both] - z_base[both]))  # least-squares constant
-                free = rmse(z_base[both] + offset, truth.depth_m[both])  # offset-free baseline
-                out.update(
-                    depth_rmse_sfs_mm=before * 1e3,
-                    depth_rmse_sfs_offsetfree_mm=free * 1e3,
-                    sfs_offset_mm=offset * 1e3,
-                    depth_rmse_sfs_fit_mm=fit * 1e3,
-                    depth_rmse_fused_mm=after * 1e3,
-                    depth_pixels=float(both.sum()),
-                )
-                # skewness candidates: |statistical skewness| of the depth errors (docs/paper.md)
-                for key, z in (("cand_sfs_error_stat", z_sfs), ("cand_mesh_error_stat", z_fused)):
-                    val = abs(sample_skewness(z[both] - truth.depth_m[both]))
-                    if np.isfinite(val):
-                        out[key] = val
-                if before > 0 and fit > 0:
-                    out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
-                    out["improvement_fit_pct"] = improvement_rate(fit, after)
-                    if free > 0:
-                        out["improvement_offsetfree_pct"] = improvement_rate(free, after)
-                else:
-                    warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=2)
-            else:
-                warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=2)
+            out.update(_depth_scores(truth, compared))
         if mesh is not None and len(mesh.faces):
-            out.update(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
-            out.update(
-                {
-                    k: v
-                    for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items()
-                    if np.isfinite(v)
-                }
-            )
-            if tmask.any():
-                pitch = truth.distance_m / cam.focal_px
-                spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
-                rng = np.random.default_rng(0)  # fixed: a metric must not vary between runs
-                t_verts = back_project(np.where(tmask, truth.depth_m, 0.0), cam).reshape(-1, 3)
-                t_faces = grid_triangles(tmask)
-                # the truth grid is already sampled at the pixel pitch: its vertices and face
-                # centroids are enough (and deterministic)
-                truth_pts = (
-                    np.concatenate([t_verts[np.unique(t_faces)], t_verts[t_faces].mean(axis=1)])
-                    if len(t_faces)
-                    else t_verts[tmask.ravel()]
-                )
-                mesh_pts = sample_surface(mesh.vertices_m, mesh.faces, spacing, rng)
-                chamfer, hausdorff = surface_distances(mesh_pts, truth_pts)
-                out.update(chamfer_mm=chamfer * 1e3, hausdorff_mm=hausdorff * 1e3)
+            out.update(self._mesh_scores(truth, mesh))
         elif mesh is not None:
             warnings.warn("metrics: the mesh has no face; no skewness or surface distance", stacklevel=2)
         return out
+
+    def _mesh_scores(self, truth: Any, mesh: Any) -> dict[str, float]:
+        """The mesh's equiangle skewness (summary and candidates) and, where the truth has
+        pixels, its chamfer and Hausdorff distances to the true surface (mm)."""
+        out = dict(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
+        out.update(
+            {k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items() if np.isfinite(v)}
+        )
+        cam = truth.camera
+        tmask = truth.mask & np.isfinite(truth.depth_m)
+        if tmask.any():
+            pitch = truth.distance_m / cam.focal_px
+            spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
+            rng = np.random.default_rng(0)  # fixed: a metric must not vary between runs
+            t_verts = back_project(np.where(tmask, truth.depth_m, 0.0), cam).reshape(-1, 3)
+            t_faces = grid_triangles(tmask)
+            # the truth grid is already sampled at the pixel pitch: its vertices and face
+            # centroids are enough (and deterministic)
+            truth_pts = (
+                np.concatenate([t_verts[np.unique(t_faces)], t_verts[t_faces].mean(axis=1)])
+                if len(t_faces)
+                else t_verts[tmask.ravel()]
+            )
+            mesh_pts = sample_surface(mesh.vertices_m, mesh.faces, spacing, rng)
+            chamfer, hausdorff = surface_distances(mesh_pts, truth_pts)
+            out.update(chamfer_mm=chamfer * 1e3, hausdorff_mm=hausdorff * 1e3)
+        return out
+
+
+def _sfs_skewness(cam: Camera, z_sfs: np.ndarray) -> dict[str, float]:
+    """The SFS depth map's grid mesh: its mean and 95th-percentile equiangle skewness and the
+    skewness candidates; empty when no face has three valid pixels."""
+    sfs_valid = np.isfinite(z_sfs) & (z_sfs > 0)
+    faces = grid_triangles(sfs_valid)
+    if not len(faces):
+        return {}
+    sfs_cam = cam if z_sfs.shape[0] == cam.resolution else cam.resampled(z_sfs.shape[0])
+    verts = back_project(np.where(sfs_valid, z_sfs, 0.0), sfs_cam).reshape(-1, 3)
+    out = {
+        k: v
+        for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
+        if k in ("skewness_sfs_mean", "skewness_sfs_p95")
+    }
+    out.update(skewness_candidates(verts, faces, "cand_sfs"))
+    return out
+
+
+def _depth_scores(truth: Any, compared: tuple[np.ndarray, ...]) -> dict[str, float]:
+    """Eq. (16)'s depth RMSEs (mm) of the SFS baselines and the fused depth on the pixels they
+    share, Eq. (17)'s improvements and the error skewness candidates; warns (for the caller of
+    :meth:`Metrics3D.compute`) where no pixel is shared or the baseline's RMSE is 0."""
+    out: dict[str, float] = {}
+    both, z_base, z_sfs, z_fused = compared
+    if not both.any():
+        warnings.warn("metrics: no pixel where truth, SFS and fused depth all exist", stacklevel=3)
+        return out
+    fit = rmse(z_sfs[both], truth.depth_m[both])  # Eq. (16), global-fit baseline
+    before = rmse(z_base[both], truth.depth_m[both])  # Eq. (16), geometric baseline
+    after = rmse(z_fused[both], truth.depth_m[both])
+    offset = float(np.mean(truth.depth_m[both] - z_base[both]))  # least-squares constant
+    free = rmse(z_base[both] + offset, truth.depth_m[both])  # offset-free baseline
+    out.update(
+        depth_rmse_sfs_mm=before * 1e3,
+        depth_rmse_sfs_offsetfree_mm=free * 1e3,
+        sfs_offset_mm=offset * 1e3,
+        depth_rmse_sfs_fit_mm=fit * 1e3,
+        depth_rmse_fused_mm=after * 1e3,
+        depth_pixels=float(both.sum()),
+    )
+    # skewness candidates: |statistical skewness| of the depth errors (docs/paper.md)
+    for key, z in (("cand_sfs_error_stat", z_sfs), ("cand_mesh_error_stat", z_fused)):
+        val = abs(sample_skewness(z[both] - truth.depth_m[both]))
+        if np.isfinite(val):
+            out[key] = val
+    if before > 0 and fit > 0:
+        out["improvement_pct"] = improvement_rate(before, after)  # Eq. (17)
+        out["improvement_fit_pct"] = improvement_rate(fit, after)
+        if free > 0:
+            out["improvement_offsetfree_pct"] = improvement_rate(free, after)
+    else:
+        warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=3)
+    return out
