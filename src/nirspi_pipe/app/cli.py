@@ -154,6 +154,30 @@ def run(argv: list[str] | None = None) -> None:
 _HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
 
 
+def _hydra_folder(cfg: Any, multirun: bool, key: str) -> Path | None:
+    """The run or sweep folder Hydra will use, or None where it is named only when Hydra starts
+    (the clock's default) or by a resolver only a running app has."""
+    node = OmegaConf.to_container(cfg.hydra, resolve=False)
+    raw = str(((node.get("sweep" if multirun else "run") if isinstance(node, dict) else None) or {}).get("dir"))
+    if "${now:" in raw:  # the default: named by the clock when Hydra starts, so a folder made now would be
+        return None  # another one (an empty folder left beside the run's, issue 41); a new folder holds no link
+    try:
+        return Path(str(OmegaConf.select(cfg.hydra, key, throw_on_missing=True)))
+    except Exception:  # noqa: BLE001 - a resolver only a running app has: a folder Hydra makes
+        return None
+
+
+def _drop_hydra_links(one: Path) -> None:
+    """In ``one``: a ``.hydra`` or ``*.log`` that is a link, and links among ``.hydra``'s files, removed."""
+    try:
+        names = [e.name for e in os.scandir(one) if e.is_symlink() and (e.name == ".hydra" or e.name.endswith(".log"))]
+    except OSError:
+        return
+    drop_links(one, tuple(names))
+    if (one / ".hydra").is_dir():
+        drop_links(one / ".hydra", _HYDRA_FILES)
+
+
 def _hydra_files_without_links(cfg: Any, multirun: bool) -> None:
     """Before Hydra runs: the run folder (``hydra.run.dir``) or the sweep folder
     (``hydra.sweep.dir``) is refused when it is a symbolic link (:class:`OutputError`); in it
@@ -162,34 +186,21 @@ def _hydra_files_without_links(cfg: Any, multirun: bool) -> None:
     link, never its target), so Hydra writes new files there instead of writing through them.
     A link planted *during* the run is not defended (docs/hostile.md)."""
     key = "sweep.dir" if multirun else "run.dir"
-    node = OmegaConf.to_container(cfg.hydra, resolve=False)
-    raw = str(((node.get("sweep" if multirun else "run") if isinstance(node, dict) else None) or {}).get("dir"))
-    if "${now:" in raw:  # the default: named by the clock when Hydra starts, so a folder made now would be
-        return  # another one (an empty folder left beside the run's, issue 41); a new folder holds no link
-    try:
-        folder = Path(str(OmegaConf.select(cfg.hydra, key, throw_on_missing=True)))
-    except Exception:  # noqa: BLE001 - a resolver only a running app has: a folder Hydra makes
+    folder = _hydra_folder(cfg, multirun, key)
+    if folder is None:
         return
-    refuse_link(folder, f"{'sweep' if multirun else 'output'} folder (hydra.{key})")
+    what = "sweep" if multirun else "output"
+    refuse_link(folder, f"{what} folder (hydra.{key})")
     try:  # Hydra creates it first thing, with a traceback when it cannot
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OutputError(
-            f"cannot create the {'sweep' if multirun else 'output'} folder {sanitize_text(folder, 300)} "
-            f"(hydra.{key}): {exc.strerror or exc}"
+            f"cannot create the {what} folder {sanitize_text(folder, 300)} (hydra.{key}): {exc.strerror or exc}"
         ) from None
     drop_links(folder, ("multirun.yaml",) if multirun else ())
     folders = [Path(d) for d, _, _ in os.walk(folder)] if multirun else [folder]  # os.walk follows no link
     for one in folders:
-        try:
-            names = [
-                e.name for e in os.scandir(one) if e.is_symlink() and (e.name == ".hydra" or e.name.endswith(".log"))
-            ]
-        except OSError:
-            continue
-        drop_links(one, tuple(names))
-        if (one / ".hydra").is_dir():
-            drop_links(one / ".hydra", _HYDRA_FILES)
+        _drop_hydra_links(one)
 
 
 def _refuse(exc: Exception) -> NoReturn:
