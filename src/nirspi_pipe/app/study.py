@@ -45,6 +45,7 @@ import socket
 import sys
 import time
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,32 @@ def _alive(host: Any, pid: Any) -> bool:
     except PermissionError:
         return True
     return True
+
+
+def _import_optuna() -> Any:
+    """The optuna module; without it, one line naming the extra to install and exit (2)."""
+    try:
+        # optional dependency: pip install '.[optuna]'
+        import optuna
+    except ImportError as exc:
+        print(
+            f"nirspi-run: error: hydra/sweeper=optuna needs Optuna ({exc}); pip install '.[optuna]'",
+            file=sys.stderr,
+        )
+        raise SystemExit(2) from None
+    return optuna
+
+
+@dataclass(frozen=True)
+class _Batch:
+    """What every batch of one study's trials shares: its folder, start, storage and space."""
+
+    sweep_dir: Path
+    started: float
+    url: str
+    dims: list[Dimension]
+    fixed: list[str]
+    names: list[str]
 
 
 class StudySweeperBase(NirspiSweeperBase):
@@ -263,16 +290,38 @@ class StudySweeperBase(NirspiSweeperBase):
             raise SystemExit(2 if isinstance(exc, StorageError) else 1) from None
 
     def _study(self, sweep_dir: Path, arguments: list[str]) -> Any:
+        optuna = _import_optuna()
+        names, directions = self._objectives()
+        study_name = self.study_name if self.study_name is not None else sweep_dir.name
+        url = storage_url(self.storage, sweep_dir, study_name)
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
+        dims, fixed = self._space([f"{k}={v}" for k, v in self.params.items()] + list(arguments))
+        study = self._open_study(optuna, study_name, url, directions)
+        started = time.time()
+        self._check_objectives(sweep_dir, names, dims, fixed)
+        done_before = self._counted(study)
+        to_run = max(0, self.n_trials - done_before)
+        print(
+            f"nirspi-run: study {study_name!r} in {shown_url(url)}: {done_before} of {self.n_trials} trials "
+            f"finished or running, {to_run} to run"
+            + (f", {self.repeats} repeats each (median)" if self.repeats > 1 else ""),
+            flush=True,
+        )
+        self._write_sweep_file(sweep_dir, study, started, url)
+        running: list[tuple[Any, list[tuple[str, list[str]]]]] = []  # the batch in flight, for an interrupt
+        batch = _Batch(sweep_dir, started, url, dims, fixed, names)
         try:
-            # optional dependency: pip install '.[optuna]'
-            import optuna
-        except ImportError as exc:
-            print(
-                f"nirspi-run: error: hydra/sweeper=optuna needs Optuna ({exc}); pip install '.[optuna]'",
-                file=sys.stderr,
-            )
-            raise SystemExit(2) from None
+            while (room := self.n_trials - self._counted(study)) > 0:
+                self._run_batch(study, batch, room, running)
+        except KeyboardInterrupt:
+            self._interrupted(study, running, names, sweep_dir, url)
+        self._write_sweep_file(sweep_dir, study, started, url)
+        self._write_results(study, sweep_dir, len(names))
+        return []
 
+    def _objectives(self) -> tuple[list[str], list[str]]:
+        """The objective's record keys and their directions; without an objective, exits (2)."""
         names = objective_names(self.config.get("objective"))
         raw_direction = (
             OmegaConf.to_container(self.direction) if OmegaConf.is_config(self.direction) else self.direction
@@ -281,12 +330,11 @@ class StudySweeperBase(NirspiSweeperBase):
         if not names:  # the results callback refused it already (sweep_objective); kept for direct use
             print("nirspi-run: error: hydra/sweeper=optuna needs objective=<record key>", file=sys.stderr)
             raise SystemExit(2)
-        study_name = self.study_name if self.study_name is not None else sweep_dir.name
-        url = storage_url(self.storage, sweep_dir, study_name)
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write(sweep_dir / "multirun.yaml", OmegaConf.to_yaml(self.config))
+        return names, directions
 
-        params = [f"{k}={v}" for k, v in self.params.items()] + list(arguments)
+    def _space(self, params: list[str]) -> tuple[list[Dimension], list[str]]:
+        """The search space of the overrides: its dimensions (the last of a name wins) and the
+        fixed overrides; one that cannot be sampled exits (2), before anything runs."""
         dims: list[Dimension] = []
         fixed: list[str] = []
         try:
@@ -300,7 +348,11 @@ class StudySweeperBase(NirspiSweeperBase):
         except Exception as exc:  # noqa: BLE001 - a space that cannot be sampled: nothing runs
             print(f"nirspi-run: error: the search space cannot be sampled: {str(exc).splitlines()[0]}", file=sys.stderr)
             raise SystemExit(2) from None
+        return dims, fixed
 
+    def _open_study(self, optuna: Any, study_name: str, url: str, directions: list[str]) -> Any:
+        """The study, created or loaded (a resumed one with its sampler reseeded); a database that
+        cannot be opened, or a study with other directions, is a :class:`StorageError`."""
         optuna.logging.set_verbosity(optuna.logging.WARNING)
         logging.getLogger("alembic").setLevel(logging.WARNING)  # "setup plugin ..." lines of a new database
         with warnings.catch_warnings():
@@ -327,56 +379,50 @@ class StudySweeperBase(NirspiSweeperBase):
                 f"hydra.sweeper.direction={directions} differs from the study {study_name!r} in {shown_url(url)} "
                 f"({told}); allowed: the study's directions, or another study_name / hydra.sweep.dir"
             )
-        started = time.time()
-        self._check_objectives(sweep_dir, names, dims, fixed)
-        done_before = self._counted(study)
-        to_run = max(0, self.n_trials - done_before)
-        print(
-            f"nirspi-run: study {study_name!r} in {shown_url(url)}: {done_before} of {self.n_trials} trials "
-            f"finished or running, {to_run} to run"
-            + (f", {self.repeats} repeats each (median)" if self.repeats > 1 else ""),
-            flush=True,
-        )
-        sweep_file = sweep_dir / "sweep.json"
-        self._write_sweep_file(sweep_dir, study, started, url)
-        running: list[tuple[Any, list[tuple[str, list[str]]]]] = []
-        try:
-            while True:
-                room = self.n_trials - self._counted(study)
-                if room <= 0:
+        return study
+
+    def _ask_trials(
+        self, study: Any, batch: _Batch, room: int, running: list[tuple[Any, list[tuple[str, list[str]]]]]
+    ) -> list[list[str]]:
+        """Asks up to ``n_jobs`` trials (at most ``room``), appended to ``running``; their overrides."""
+        trial_ov: list[list[str]] = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for i in range(min(self.n_jobs, room)):
+                # recounted before each ask: other workers on this study ask too
+                if i and self._counted(study) >= self.n_trials:
                     break
-                running = []
-                trial_ov: list[list[str]] = []
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    for i in range(min(self.n_jobs, room)):
-                        # recounted before each ask: other workers on this study ask too
-                        if i and self._counted(study) >= self.n_trials:
-                            break
-                        trial = study.ask()
-                        values = [d.suggest(trial) for d in dims]
-                        ov = [*fixed, *(f"{d.name}={as_override_value(v)}" for d, v in zip(dims, values, strict=True))]
-                        trial.set_user_attr("overrides", ov)
-                        trial.set_user_attr("worker", [_HOST, os.getpid()])
-                        running.append((trial, []))
-                        trial_ov.append(ov)
-                jobs, composed, errors = self._prepare_trials(sweep_dir, trial_ov)
-                for i, (trial, _) in enumerate(running):
-                    trial.set_user_attr("jobs", [k for k, _ in jobs[i]])
-                    running[i] = (trial, jobs[i])
-                self._write_sweep_file(sweep_dir, study, started, url)
-                # each folder once: trials asked together may share a configuration, and two runs of
-                # one folder at once clobber each other's record (the sweeping process holds both locks)
-                unique = list({key: (key, ov) for js in jobs for key, ov in js}.values())
-                self._run_jobs(sweep_dir, sweep_file, unique, composed)
-                for (trial, trial_jobs), error in zip(running, errors, strict=True):
-                    self._tell(study, trial, trial_jobs, names, sweep_dir, error)
-                running = []
-        except KeyboardInterrupt:
-            self._interrupted(study, running, names, sweep_dir, url)
-        self._write_sweep_file(sweep_dir, study, started, url)
-        self._write_results(study, sweep_dir, len(names))
-        return []
+                trial = study.ask()
+                values = [d.suggest(trial) for d in batch.dims]
+                ov = [
+                    *batch.fixed,
+                    *(f"{d.name}={as_override_value(v)}" for d, v in zip(batch.dims, values, strict=True)),
+                ]
+                trial.set_user_attr("overrides", ov)
+                trial.set_user_attr("worker", [_HOST, os.getpid()])
+                running.append((trial, []))
+                trial_ov.append(ov)
+        return trial_ov
+
+    def _run_batch(
+        self, study: Any, batch: _Batch, room: int, running: list[tuple[Any, list[tuple[str, list[str]]]]]
+    ) -> None:
+        """Asks a batch of trials (kept in ``running`` while in flight), runs their jobs, tells them."""
+        running.clear()
+        trial_ov = self._ask_trials(study, batch, room, running)
+        sweep_dir = batch.sweep_dir
+        jobs, composed, errors = self._prepare_trials(sweep_dir, trial_ov)
+        for i, (trial, _) in enumerate(running):
+            trial.set_user_attr("jobs", [k for k, _ in jobs[i]])
+            running[i] = (trial, jobs[i])
+        self._write_sweep_file(sweep_dir, study, batch.started, batch.url)
+        # each folder once: trials asked together may share a configuration, and two runs of
+        # one folder at once clobber each other's record (the sweeping process holds both locks)
+        unique = list({key: (key, ov) for js in jobs for key, ov in js}.values())
+        self._run_jobs(sweep_dir, sweep_dir / "sweep.json", unique, composed)
+        for (trial, trial_jobs), error in zip(running, errors, strict=True):
+            self._tell(study, trial, trial_jobs, batch.names, sweep_dir, error)
+        running.clear()
 
     def _sampler_for_resume(self, n_before: int) -> Any:
         """For a study that already holds trials, the configured sampler with ``seed`` + the number
