@@ -32,7 +32,7 @@ import signal
 import sys
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any
@@ -175,30 +175,8 @@ class NirspiLauncherBase(Launcher):
         gc.freeze()  # the runners' garbage collector then leaves the parent's objects (and pages) alone
         log.info("prewarmed in %.2f s; %d jobs, %d at a time", time.perf_counter() - t0, len(items), self.workers)
         pool = _RunnerPool(items, min(self.workers, len(items)), self.timeout_s)
-        pending = deque(range(len(items)))
-        deferred: list[int] = []  # another process holds the folder's lock: waited for at the end
         try:
-            while pending or deferred or pool.busy:
-                while pool.has_idle() and (pending or (deferred and not pool.busy)):
-                    if pending:
-                        i = pending.popleft()
-                        claimed = claim(i, wait=False)
-                        if claimed is None:
-                            deferred.append(i)
-                            continue
-                    else:
-                        i = deferred.pop(0)
-                        claimed = claim(i, wait=True)
-                    assert claimed is not None  # wait=True always claims
-                    if isinstance(claimed, dict):
-                        finished(i, claimed)
-                    elif claimed.done is not None:
-                        finished(i, claimed.finish(None))
-                    else:
-                        pool.dispatch(i, claimed)
-                if pool.busy:
-                    for i, claimed, status, late in pool.wait():
-                        finished(i, claimed.finish(status, self.timeout_s if late else None))
+            _schedule(pool, len(items), claim, finished, self.timeout_s)
         except BaseException:
             for _i, claimed, status, _late in pool.kill():
                 claimed.finish(status)
@@ -209,6 +187,45 @@ class NirspiLauncherBase(Launcher):
             gc.unfreeze()
         progress.flush()
         return _returns(items, records)
+
+
+def _next_job(
+    pool: _RunnerPool, pending: deque[int], deferred: list[int], claim: Callable[[int, bool], Any], finished: Callable
+) -> None:
+    """Claims the next job (a pending one without waiting; else a deferred one, waiting for its
+    lock) and dispatches it to an idle runner; a job already done or unwritable is finished here;
+    one locked elsewhere is deferred."""
+    if pending:
+        i = pending.popleft()
+        claimed = claim(i, False)
+        if claimed is None:
+            deferred.append(i)
+            return
+    else:
+        i = deferred.pop(0)
+        claimed = claim(i, True)
+    assert claimed is not None  # wait=True always claims
+    if isinstance(claimed, dict):
+        finished(i, claimed)
+    elif claimed.done is not None:
+        finished(i, claimed.finish(None))
+    else:
+        pool.dispatch(i, claimed)
+
+
+def _schedule(
+    pool: _RunnerPool, n: int, claim: Callable[[int, bool], Any], finished: Callable, timeout_s: float | None
+) -> None:
+    """Runs the jobs ``0 .. n-1`` on the pool: idle runners get the pending jobs, then (when no
+    runner is busy) those deferred because another process held their folder's lock."""
+    pending = deque(range(n))
+    deferred: list[int] = []  # another process holds the folder's lock: waited for at the end
+    while pending or deferred or pool.busy:
+        while pool.has_idle() and (pending or (deferred and not pool.busy)):
+            _next_job(pool, pending, deferred, claim, finished)
+        if pool.busy:
+            for i, claimed, status, late in pool.wait():
+                finished(i, claimed.finish(status, timeout_s if late else None))
 
 
 def _returns(items: list[tuple[Path, int, ComposedJob]], records: list[dict[str, Any] | None]) -> list[JobReturn]:
