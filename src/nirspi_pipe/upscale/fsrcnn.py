@@ -270,29 +270,30 @@ def save_weights(path: str | Path, weights: FsrcnnWeights) -> None:
     np.savez_compressed(path, **arrays)
 
 
-def _read_weights(path: str | Path) -> FsrcnnWeights:
-    """Read and check a weights file: bounded NPZ reading (:func:`nirspi_pipe.safeio.read_npz`,
-    weights are small: 64 MB at most), then every array's shape against the architecture, so a
-    hostile file fails here with one line instead of deep inside the forward pass."""
-    z = read_npz(path, str(path), budget=64 << 20, mmap=False)
+def _weight_array(z: dict[str, np.ndarray], key: str, ndim: int) -> np.ndarray:
+    """``z[key]``, once it is an ``ndim``-D numeric array with finite values."""
+    if key not in z:
+        raise ValueError(f"key '{key}' missing")
+    a = z[key]
+    if a.dtype.kind not in "fiub" or a.ndim != ndim:
+        raise ValueError(f"key '{key}': expected a {ndim}-D numeric array, got {a.dtype} of shape {a.shape}")
+    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
+        raise ValueError(f"key '{key}': non-finite values")
+    return np.asarray(a)
 
-    def get(key: str, ndim: int) -> np.ndarray:
-        if key not in z:
-            raise ValueError(f"key '{key}' missing")
-        a = z[key]
-        if a.dtype.kind not in "fiub" or a.ndim != ndim:
-            raise ValueError(f"key '{key}': expected a {ndim}-D numeric array, got {a.dtype} of shape {a.shape}")
-        if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-            raise ValueError(f"key '{key}': non-finite values")
-        return np.asarray(a)
 
+def _conv_layers(z: dict[str, np.ndarray]) -> tuple[list[ConvLayer], int]:
+    """The convolution layers ``conv{i}_w/_b/_a``, each following the previous one's channels
+    (from 1), and the last layer's output channels."""
     n = sum(1 for k in z if k.startswith("conv") and k.endswith("_w"))
     if not 2 <= n <= 64:
         raise ValueError(f"{n} conv layers (expected 2-64: conv0_w, conv1_w, ...)")
     layers = []
     channels = 1
     for i in range(n):
-        w, b, a = get(f"conv{i}_w", 4), get(f"conv{i}_b", 1), get(f"conv{i}_a", 1)
+        w = _weight_array(z, f"conv{i}_w", 4)
+        b = _weight_array(z, f"conv{i}_b", 1)
+        a = _weight_array(z, f"conv{i}_a", 1)
         out, cin, k1, k2 = w.shape
         if cin != channels or k1 != k2 or k1 % 2 != 1 or b.shape != (out,) or a.shape != (out,):
             raise ValueError(
@@ -301,25 +302,45 @@ def _read_weights(path: str | Path) -> FsrcnnWeights:
             )
         layers.append(ConvLayer(w, b, a))
         channels = out
-    deconv_w, deconv_b = get("deconv_w", 4), get("deconv_b", 1)
-    if deconv_w.shape != (channels, 1, DECONV_KERNEL, DECONV_KERNEL) or deconv_b.shape != (1,):
-        raise ValueError(
-            f"key 'deconv_w': shape {deconv_w.shape}, expected {(channels, 1, DECONV_KERNEL, DECONV_KERNEL)}"
-        )
+    return layers, channels
+
+
+def _weight_scalars(z: dict[str, np.ndarray]) -> dict[str, Any]:
+    """``scale`` (an integer 2-8), ``residual`` and ``border`` (an integer 0-64)."""
     scalars = {}
     for key in ("scale", "residual", "border"):
-        v = get(key, 0)
+        v = _weight_array(z, key, 0)
         scalars[key] = v.item()
     if not (isinstance(scalars["scale"], int) and 2 <= scalars["scale"] <= 8):
         raise ValueError(f"key 'scale': {scalars['scale']!r} is not an integer 2-8")
     if not (isinstance(scalars["border"], int) and 0 <= scalars["border"] <= 64):
         raise ValueError(f"key 'border': {scalars['border']!r} is not an integer 0-64")
+    return scalars
+
+
+def _weight_meta(z: dict[str, np.ndarray]) -> Any:
+    """The ``meta`` JSON string's value ({} without one)."""
     meta_raw = z.get("meta")
-    meta: Any = {}
-    if meta_raw is not None:
-        if meta_raw.dtype.kind not in "US" or meta_raw.ndim != 0:
-            raise ValueError("key 'meta': expected a JSON string")
-        meta = json.loads(str(meta_raw.item()))
+    if meta_raw is None:
+        return {}
+    if meta_raw.dtype.kind not in "US" or meta_raw.ndim != 0:
+        raise ValueError("key 'meta': expected a JSON string")
+    return json.loads(str(meta_raw.item()))
+
+
+def _read_weights(path: str | Path) -> FsrcnnWeights:
+    """Read and check a weights file: bounded NPZ reading (:func:`nirspi_pipe.safeio.read_npz`,
+    weights are small: 64 MB at most), then every array's shape against the architecture, so a
+    hostile file fails here with one line instead of deep inside the forward pass."""
+    z = read_npz(path, str(path), budget=64 << 20, mmap=False)
+    layers, channels = _conv_layers(z)
+    deconv_w, deconv_b = _weight_array(z, "deconv_w", 4), _weight_array(z, "deconv_b", 1)
+    if deconv_w.shape != (channels, 1, DECONV_KERNEL, DECONV_KERNEL) or deconv_b.shape != (1,):
+        raise ValueError(
+            f"key 'deconv_w': shape {deconv_w.shape}, expected {(channels, 1, DECONV_KERNEL, DECONV_KERNEL)}"
+        )
+    scalars = _weight_scalars(z)
+    meta = _weight_meta(z)
     return FsrcnnWeights(
         scale=int(scalars["scale"]),
         layers=tuple(layers),
