@@ -343,6 +343,19 @@ def check_job(hydra_cfg: Any, job_cfg: Any = None) -> None:
 
     ``hydra_cfg`` is the job's ``hydra`` node as OmegaConf (``HydraConfig.get()``), attached to
     its config so that ``${hydra.job.num}`` resolves."""
+    node = _job_node(hydra_cfg)
+    _check_job_time_keys(node)
+    if comparable_leaves(node) not in APPROVED:
+        full = {**node, "job": {**(node.get("job") or {}), "num": "???", "id": "???"}}
+        check_hydra_node(full)
+    check_node_paths(hydra_cfg)
+    if job_cfg is not None:
+        _check_job_targets(job_cfg)
+
+
+def _job_node(hydra_cfg: Any) -> dict[str, Any]:
+    """The job's Hydra node as plain data, once the overrides re-applied to the job
+    (``hydra.overrides.hydra`` and ``.task``) set nothing Hydra fills nor place a group under it."""
     raw = OmegaConf.to_container(hydra_cfg, resolve=False)
     if not isinstance(raw, dict):
         raise Refused("the job's Hydra node is not a mapping; allowed: the node Hydra composes")
@@ -350,22 +363,26 @@ def check_job(hydra_cfg: Any, job_cfg: Any = None) -> None:
     listed = node.get("overrides") or {}
     texts = [str(t) for k in ("hydra", "task") for t in (listed.get(k) or [])] if isinstance(listed, dict) else []
     check_override_places([parse_override_cached(t) for t in texts])
+    return node
+
+
+def _check_job_time_keys(node: dict[str, Any]) -> None:
+    """The job's number, id, mode and folder, checked by kind."""
     leaves = flat_leaves(node)
     for key in _JOB_TIME_KEYS:
         kind = kind_of(key)
         problem = check_kind(kind, key, leaves.get(key), node) if kind and key in leaves else None
         if problem:
             raise Refused(f"hydra.{key}={short_value(leaves.get(key))} is not allowed; allowed: {problem}")
-    if comparable_leaves(node) not in APPROVED:
-        full = {**node, "job": {**(node.get("job") or {}), "num": "???", "id": "???"}}
-        check_hydra_node(full)
-    check_node_paths(hydra_cfg)
-    if job_cfg is not None:
-        job = job_cfg if isinstance(job_cfg, dict) else OmegaConf.to_container(job_cfg, resolve=False)
-        try:
-            check_targets({k: v for k, v in job.items() if k != "hydra"} if isinstance(job, dict) else job)
-        except ConfigError as exc:
-            raise Refused(str(exc)) from None
+
+
+def _check_job_targets(job_cfg: Any) -> None:
+    """Every ``_target_`` of the job's part of its config (all but ``hydra``) on the allow-list."""
+    job = job_cfg if isinstance(job_cfg, dict) else OmegaConf.to_container(job_cfg, resolve=False)
+    try:
+        check_targets({k: v for k, v in job.items() if k != "hydra"} if isinstance(job, dict) else job)
+    except ConfigError as exc:
+        raise Refused(str(exc)) from None
 
 
 def refuse_job(cfg: Any) -> None:
