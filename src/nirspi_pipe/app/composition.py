@@ -105,20 +105,14 @@ def compose_config(config_name: str, overrides: list[str]) -> Any:
 _RUNTIME_KEYS = frozenset({"version", "version_base", "cwd", "config_sources", "output_dir", "choices"})
 
 
-def check_filled_by_hydra(
-    hydra_node: dict[str, Any], overrides: list[str], known_choices: dict[str, Any] | None = None
-) -> None:
-    """:class:`Refused` unless ``hydra.overrides`` and ``hydra.runtime`` of a composed node are
-    exactly what Hydra fills from ``overrides``: ``overrides.hydra`` the input lines of the Hydra
-    overrides, ``overrides.task`` the others, in order; ``runtime`` only Hydra's own keys, its
-    ``output_dir`` unset, and (``known_choices``: Hydra's defaults list) no group choice that
-    Hydra did not make."""
+def _check_overrides_node(got: Any, overrides: list[str]) -> None:
+    """``hydra.overrides`` exactly what Hydra fills from ``overrides``: ``hydra`` the input lines
+    of the Hydra overrides, ``task`` the others, in order."""
     parsed = parse_overrides(overrides)
     want = {
         "hydra": [ov.input_line for ov in parsed if ov.is_hydra_override()],
         "task": [ov.input_line for ov in parsed if not ov.is_hydra_override()],
     }
-    got = hydra_node.get("overrides") or {}
     if not isinstance(got, dict) or set(got) != set(want) or any(got[k] != want[k] for k in want):
         extra = [str(v) for k in want for v in (got.get(k) or []) if v not in want[k]] if isinstance(got, dict) else []
         shown = f" (it holds {short_value(extra[0])})" if extra else ""
@@ -126,7 +120,11 @@ def check_filled_by_hydra(
             f"hydra.overrides differs from the command line{shown}: it is not allowed in a config or an "
             "override; allowed: Hydra fills it from the command line (set each key by its own override)"
         )
-    runtime = hydra_node.get("runtime") or {}
+
+
+def _check_runtime_node(runtime: Any, known_choices: dict[str, Any] | None) -> None:
+    """``hydra.runtime``: only Hydra's own keys, its ``output_dir`` unset, and no group choice
+    outside ``known_choices`` (when given)."""
     extra_keys = sorted(set(runtime) - _RUNTIME_KEYS) if isinstance(runtime, dict) else ["runtime"]
     if extra_keys or runtime.get("output_dir") != "???":
         key = f"hydra.runtime.{extra_keys[0]}" if extra_keys else "hydra.runtime.output_dir"
@@ -138,6 +136,18 @@ def check_filled_by_hydra(
                 f"hydra.runtime.choices.{planted[0]} is not allowed: Hydra fills hydra.runtime itself "
                 "(a record would name a choice that was not made); allowed: choose the group (+GROUP=NAME)"
             )
+
+
+def check_filled_by_hydra(
+    hydra_node: dict[str, Any], overrides: list[str], known_choices: dict[str, Any] | None = None
+) -> None:
+    """:class:`Refused` unless ``hydra.overrides`` and ``hydra.runtime`` of a composed node are
+    exactly what Hydra fills from ``overrides``: ``overrides.hydra`` the input lines of the Hydra
+    overrides, ``overrides.task`` the others, in order; ``runtime`` only Hydra's own keys, its
+    ``output_dir`` unset, and (``known_choices``: Hydra's defaults list) no group choice that
+    Hydra did not make."""
+    _check_overrides_node(hydra_node.get("overrides") or {}, overrides)
+    _check_runtime_node(hydra_node.get("runtime") or {}, known_choices)
 
 
 @lru_cache(maxsize=8)
