@@ -50,6 +50,7 @@ class Counts:
             self.imports += 1
             return locate(target)
 
+        monkeypatch.setattr(instantiate, "_REMEMBERED", [])  # no verdict of an earlier check in this process
         for module in (targets, instantiate):
             monkeypatch.setattr(module, "check_target", counted_check, raising=False)
             monkeypatch.setattr(module, "locate", counted_locate, raising=False)
@@ -78,6 +79,40 @@ def test_a_default_job_checks_each_target_once_and_converts_once(
     assert counts.conversions == 1
     assert counts.checks == n_targets <= 30
     assert counts.imports == len(set(_targets(plain_config(composed))))  # each class imported once
+
+
+def test_a_default_run_checks_each_target_once_in_all(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``nirspi-run``'s order in one process, for the default run (no overrides): the app
+    composes and checks the config before it launches Hydra, Hydra composes the job again, the
+    task makes its plan and runs it. The job's plan takes the verdict of the app's check of the
+    equal config: 24 checks in all, not 48. (A value override adds the app's type check of the
+    overridden stage nodes, app.validate._check_types, which checks their targets again.)"""
+    from nirspi_pipe.app.api import compose
+
+    compose([])  # the app's catalogue loaded (its schemas read their targets' signatures once per process)
+    counts = Counts(monkeypatch)
+    cfg, _ = compose([])  # the app's check before launching (app.entry.check_invocation)
+    n_targets = len(_targets(plain_config(cfg)))
+    checks = counts.checks
+    plan = Plan.of(cfg).check()  # the task's plan of the job Hydra composed again (app.cli)
+    record = execute_job(plan, tmp_path, {}, [])
+    assert record["meta"]["status"] == "ok", record["meta"].get("error")
+    assert checks == counts.checks  # the job's plan and its build checked nothing again
+    assert counts.checks <= 30 and n_targets == 24
+
+
+def test_a_remembered_verdict_needs_an_equal_config_and_the_same_allow_list(
+    composed: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(instantiate, "_REMEMBERED", [])
+    Plan(plain_config(composed)).check(remember=True)
+    changed = plain_config(composed)
+    changed["scan"]["_target_"] = "os.system"
+    with pytest.raises(ConfigError, match=r"^scan\._target_='os\.system' is not allowed"):
+        Plan(changed).check()
+    monkeypatch.setattr(targets, "PROJECT_TARGETS", targets.PROJECT_TARGETS - {"nirspi_pipe.patterns.orders.Basic"})
+    with pytest.raises(ConfigError, match=r"^scan\._target_='nirspi_pipe\.patterns\.orders\.Basic' is not allowed"):
+        Plan(plain_config(composed)).check()
 
 
 def test_a_plan_made_at_the_boundary_is_neither_converted_nor_checked_again(

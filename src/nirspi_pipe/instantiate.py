@@ -9,6 +9,7 @@ node included, whose interpolations resolve as they are read) into that plain da
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 import inspect
@@ -19,7 +20,7 @@ from functools import lru_cache
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.targets import check_target, find_targets, locate
+from nirspi_pipe.targets import allowed_targets, check_target, find_targets, locate
 
 __all__ = ["EFFECT_GROUPS", "Plan", "accepted_keys", "build", "check_types", "plain_config", "user_key"]
 
@@ -51,6 +52,12 @@ def user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     if full_key.startswith(_EFFECT_PARENT) and full_key[len(_EFFECT_PARENT) :].split(".")[0] in EFFECT_GROUPS:
         return full_key[len(_EFFECT_PARENT) :], True
     return (full_key, False) if full_key.startswith(key + ".") else (key, False)
+
+
+#: Configs whose plans were checked with ``remember`` (newest first, at most ``_REMEMBER``), the
+#: allow-list they were checked against and the target strings that passed: :meth:`Plan.check`.
+_REMEMBER = 2
+_REMEMBERED: list[tuple[Any, frozenset[str], frozenset[Any]]] = []
 
 
 class Plan(Mapping[str, Any]):
@@ -90,16 +97,32 @@ class Plan(Mapping[str, Any]):
         :func:`plain_config`; an OmegaConf node's interpolations resolve here)."""
         return cfg if isinstance(cfg, Plan) else cls(plain_config(cfg), path)
 
-    def check(self) -> Plan:
+    def check(self, *, remember: bool = False) -> Plan:
         """Every target of the plan against the allow-list (:func:`nirspi_pipe.targets.check_target`
         on each place :func:`nirspi_pipe.targets.find_targets` names, as ``check_targets``),
-        the first time it is called; a refusal is the one-line :class:`ConfigError` naming its key."""
-        if self._checked is None:
-            passed = set()
-            for key, target in find_targets(self.config, self.path):  # one walk, as check_targets
-                check_target(target, key)
-                passed.add(target)
-            self._checked = frozenset(passed)
+        the first time it is called; a refusal is the one-line :class:`ConfigError` naming its key.
+
+        ``remember``: keep a copy of this plan's config and what passed, so that a later plan of
+        an equal config in this process (``nirspi-run``'s job, composed again by Hydra after the
+        app checked the same config before launching it) takes the verdict without a second
+        walk. Equal plain data names the same strings at the same keys, so against the same
+        allow-list (the same :func:`~nirspi_pipe.targets.allowed_targets` object) the verdict is
+        the same; the copy is taken when the check passes, before anything could change it."""
+        if self._checked is not None:
+            return self
+        allowed = allowed_targets()
+        for config, allowed_then, passed in _REMEMBERED:
+            if allowed_then is allowed and config == self.config:  # the same list, the same strings
+                self._checked = passed
+                return self
+        found = set()
+        for key, target in find_targets(self.config, self.path):  # one walk, as check_targets
+            check_target(target, key)
+            found.add(target)
+        self._checked = frozenset(found)
+        if remember:
+            _REMEMBERED.insert(0, (copy.deepcopy(self.config), allowed, self._checked))
+            del _REMEMBERED[_REMEMBER:]
         return self
 
     def resolve(self, target: Any, key: str) -> Any:

@@ -57,6 +57,7 @@ from nirspi_pipe.app.hydranode import (
 )
 from nirspi_pipe.app.hydratargets import check_target, check_targets
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.instantiate import Plan
 
 __all__ = ["GATED_BEFORE_LAUNCH", "MAX_CHECKED_COMBINATIONS", "Invocation", "check_invocation"]
 
@@ -330,12 +331,13 @@ def _check_composed(
 
     job, hydra_node = _plain(cfg)
     params = check_hydra_node(hydra_node, plain_keys)
+    plan = Plan(job)  # the job part (no hydra key: the runner's check is the app's there)
     try:
-        check_targets(job)
+        plan.check(remember=True)  # each target once; the job Hydra composes again takes the verdict
         check_targets(hydra_node, "hydra")
     except ConfigError as exc:
         raise Refused(str(exc)) from None
-    problem = validate.check_plain_keys(job) or validate.check_stage_nodes(job)
+    problem = validate.check_plain_keys(job) or validate.check_stage_nodes(job, plan)
     if not problem and "--multirun" in flags:
         resolved = _resolved_hydra(cfg)
         problem = validate.check_sweep_settings(resolved)

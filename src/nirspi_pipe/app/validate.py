@@ -18,7 +18,7 @@ from nirspi_pipe.app.configs import CONFIG_MODULE, CONFIG_NAME, all_groups, conf
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import ObjectiveError, objective_names
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.instantiate import accepted_keys, user_key
+from nirspi_pipe.instantiate import Plan, accepted_keys, user_key
 from nirspi_pipe.pipeline import MODEL_OF_NOTHING, STAGE_GROUPS, check_types
 from nirspi_pipe.targets import find_targets, locate
 
@@ -338,10 +338,11 @@ def check_sweep_settings(hydra_node: dict[str, Any]) -> str | None:
     return None
 
 
-def check_stage_nodes(job: dict[str, Any]) -> str | None:
+def check_stage_nodes(job: dict[str, Any], plan: Plan | None = None) -> str | None:
     """Every node with a ``_target_`` in the stage groups (allowed: checked above) has only keys
     its class takes, with the annotated types: ``+scene.bogus=1`` stops before any job, not in
-    every job. A class taking ``**kwargs`` accepts any key."""
+    every job. A class taking ``**kwargs`` accepts any key. ``plan``: the checked plan of ``job``
+    (its classes are imported once and its targets not checked again)."""
     for group in ("camera", *STAGE_GROUPS):
         node = job.get(group)
         if not isinstance(node, dict):
@@ -352,7 +353,8 @@ def check_stage_nodes(job: dict[str, Any]) -> str | None:
             for part in path.split(".")[1:]:
                 sub = sub[int(part)] if isinstance(sub, list) else sub[part]
             try:
-                params = inspect.signature(locate(str(target))).parameters
+                cls = plan.resolve(target, key) if plan is not None else locate(str(target))
+                params = inspect.signature(cls).parameters
             except (TypeError, ValueError):
                 continue
             if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
@@ -362,7 +364,7 @@ def check_stage_nodes(job: dict[str, Any]) -> str | None:
                     where, _ = user_key(f"{path}.{name}", group)  # source.effects.fog.x is fog.x to the user
                     return f"{where} is not a key; allowed keys: {accepted_keys(sub) or '(none)'}"
         try:
-            check_types(node, group)
+            check_types(node, group, plan)
         except ConfigError as exc:
             return str(exc)
     return None
