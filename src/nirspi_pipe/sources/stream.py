@@ -41,10 +41,9 @@ def _header_int(header: dict[str, Any], key: str, where: str) -> int:
     return v
 
 
-def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acquisition:
-    """Read a header, the frames and the end marker from ``fh`` (after the request was sent)
-    and check each against the request. Raises :class:`StreamError` naming the field."""
-    header = read_json_line(fh, "header", where)
+def _check_header(header: dict[str, Any], indices: np.ndarray, n: int, where: str) -> tuple[int, Any]:
+    """The header against the request: no error, the protocol, the size, the frame count and
+    size, and a gain > 0; returns the count and the gain."""
     if "error" in header:
         raise StreamError("error", f"device refused the request: {sanitize_text(header['error'])}", where)
     if header.get("protocol") != PROTOCOL:
@@ -61,9 +60,11 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
     gain = header.get("gain", 1.0)
     if isinstance(gain, bool) or not isinstance(gain, (int, float)) or not np.isfinite(gain) or gain <= 0:
         raise StreamError("gain", f"expected a number > 0, got {short_repr(gain)}", where)
-    check_budget(count * FRAME_DTYPE.itemsize, f"{count} frames", where)
-    raw = read_exact(fh, count * FRAME_DTYPE.itemsize, "frames", where)
-    frames = np.frombuffer(raw, dtype=FRAME_DTYPE)
+    return count, gain
+
+
+def _check_order(frames: np.ndarray, indices: np.ndarray, count: int, where: str) -> None:
+    """The frames in sequence, each the pattern requested at its place."""
     seq = frames["seq"].astype(np.int64)
     bad = np.flatnonzero(seq != np.arange(count))
     if bad.size:
@@ -73,10 +74,15 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
         raise StreamError(
             "index", f"frame {bad[0]} measured pattern {frames['index'][bad[0]]}, requested {indices[bad[0]]}", where
         )
-    y_pos = frames["y_pos"].astype(np.float64)
-    y_neg = frames["y_neg"].astype(np.float64)
-    differential = bool(count) and bool(np.all(np.isnan(y_neg)))
-    for name, arr in (("y_pos", y_pos), ("t_s", frames["t_s"])) + (() if differential else (("y_neg", y_neg),)):
+
+
+def _check_values(
+    frames: np.ndarray, readings: tuple[tuple[str, np.ndarray], ...], size: tuple[int, int, Any], where: str
+) -> None:
+    """The readings and timestamps finite, the timestamps not decreasing, and every reading
+    small enough that the reconstruction stays finite (``size``: count, n and gain)."""
+    count, n, gain = size
+    for name, arr in (*readings[:1], ("t_s", frames["t_s"]), *readings[1:]):
         bad = np.flatnonzero(~np.isfinite(arr))
         if bad.size:
             raise StreamError(name, f"{bad.size} non-finite value(s), first in frame {bad[0]}", where)
@@ -90,7 +96,7 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
             where,
         )
     limit = max_safe_reading(count, n * n)
-    for name, arr in (("y_pos", y_pos),) + (() if differential else (("y_neg", y_neg),)):
+    for name, arr in readings:
         peak = float(np.max(np.abs(arr))) / float(gain) if count else 0.0
         if not peak <= limit:
             raise StreamError(
@@ -99,12 +105,33 @@ def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acq
                 f"float64 (at most {limit:.3g} for {count} readings of {n}x{n})",
                 where,
             )
+
+
+def _check_end(fh: Any, count: int, where: str) -> None:
+    """The end marker, counting the frames received."""
     end = read_exact(fh, len(END_MARKER) + 4, "end", where)
     if end[:4] != END_MARKER:
         raise StreamError("end", f"expected the end marker {END_MARKER!r}, got {end[:4]!r}", where)
     (sent,) = struct.unpack("<I", end[4:])
     if sent != count:
         raise StreamError("end", f"end marker counts {sent} frames, {count} received", where)
+
+
+def receive_acquisition(fh: Any, indices: np.ndarray, n: int, where: str) -> Acquisition:
+    """Read a header, the frames and the end marker from ``fh`` (after the request was sent)
+    and check each against the request. Raises :class:`StreamError` naming the field."""
+    header = read_json_line(fh, "header", where)
+    count, gain = _check_header(header, indices, n, where)
+    check_budget(count * FRAME_DTYPE.itemsize, f"{count} frames", where)
+    raw = read_exact(fh, count * FRAME_DTYPE.itemsize, "frames", where)
+    frames = np.frombuffer(raw, dtype=FRAME_DTYPE)
+    _check_order(frames, indices, count, where)
+    y_pos = frames["y_pos"].astype(np.float64)
+    y_neg = frames["y_neg"].astype(np.float64)
+    differential = bool(count) and bool(np.all(np.isnan(y_neg)))
+    readings = (("y_pos", y_pos),) + (() if differential else (("y_neg", y_neg),))
+    _check_values(frames, readings, (count, n, gain), where)
+    _check_end(fh, count, where)
     return Acquisition(
         n=n,
         indices=np.asarray(indices, dtype=np.int64),
