@@ -56,6 +56,80 @@ def _pair_times(t: np.ndarray | None, a: np.ndarray, b: np.ndarray | None) -> np
     return t[a] if b is None else 0.5 * (t[a] + t[b])
 
 
+@dataclass
+class _Readings:
+    """A recording's readings as an acquisition takes them (see :func:`recording_to_acquisition`)."""
+
+    indices: Any
+    y_pos: np.ndarray
+    y_neg: np.ndarray | None
+    times: np.ndarray | None
+    offset: float
+    gain: float
+    patterns: np.ndarray | None = None
+
+
+def _offset(rec: Recording, subtract_offset: bool) -> float:
+    """The mean ``background`` (else ``dark``) reading to subtract, or 0."""
+    if subtract_offset and rec.background is not None:
+        return float(rec.background.mean())
+    if subtract_offset and rec.dark is not None:
+        return float(rec.dark.mean())
+    return 0.0
+
+
+def _spec_readings(rec: Recording, offset: float, info: dict[str, Any]) -> _Readings:
+    """Readings of a recording whose patterns are given by their spec (Hadamard rows)."""
+    y, t = rec.measurements, rec.timestamps
+    indices = rec.indices
+    m = indices.size  # type: ignore[union-attr]
+    info.update(patterns_given="spec", split=rec.split, hadamard=True, fast_path=True)
+    if rec.split == "differential":
+        return _Readings(indices, y, None, t, 0.0, rec.gain)
+    if rec.split == "interleaved":
+        times = _pair_times(t, np.arange(0, 2 * m, 2), np.arange(1, 2 * m, 2))
+        return _Readings(indices, y[0::2] - offset, y[1::2] - offset, times, offset, rec.gain)
+    # stacked
+    times = _pair_times(t, np.arange(m), np.arange(m, 2 * m))
+    return _Readings(indices, y[:m] - offset, y[m:] - offset, times, offset, rec.gain)
+
+
+def _explicit_readings(rec: Recording, given: np.ndarray, offset: float, info: dict[str, Any]) -> _Readings:
+    """Readings of a recording that holds its patterns (``given``): split pairs, signed rows or any others."""
+    y, t = rec.measurements, rec.timestamps
+    match = match_hadamard(given)
+    info.update(patterns_given="explicit", pattern_kind=match.kind, hadamard=match.hadamard, fast_path=match.hadamard)
+    if match.kind == "split":
+        pos, neg = match.pos_rows, match.neg_rows
+        times = _pair_times(t, pos, neg)  # type: ignore[arg-type]
+        out = _Readings(None, y[pos] - offset, y[neg] - offset, times, offset, rec.gain * (match.high - match.low))
+    elif match.kind == "signed":
+        out = _Readings(None, match.signs * y, None, t, 0.0, rec.gain * match.high)
+    else:
+        patterns = np.array(given, dtype=np.float64)  # a copy (the file may be mapped)
+        out = _Readings(None, y - offset, None, t, offset, rec.gain, patterns)
+    if match.hadamard:
+        out.indices = match.indices
+    else:
+        if out.patterns is None:
+            out.patterns = match.canonical
+        out.indices = np.arange(out.y_pos.size, dtype=np.int64)
+    return out
+
+
+def _first(r: _Readings, keep: int) -> _Readings:
+    """The first ``keep`` measurements."""
+    return _Readings(
+        r.indices[:keep],
+        r.y_pos[:keep],
+        None if r.y_neg is None else r.y_neg[:keep],
+        None if r.times is None else r.times[:keep],
+        r.offset,
+        r.gain,
+        None if r.patterns is None else r.patterns[:keep],
+    )
+
+
 def recording_to_acquisition(
     rec: Recording, keep: int | None = None, subtract_offset: bool = True, name: str = "recorded"
 ) -> Acquisition:
@@ -69,61 +143,17 @@ def recording_to_acquisition(
             alone; in split pairs it cancels anyway.
         name: scene name for the ground truth.
     """
-    y = rec.measurements
-    t = rec.timestamps
-    offset = 0.0
-    if subtract_offset and rec.background is not None:
-        offset = float(rec.background.mean())
-    elif subtract_offset and rec.dark is not None:
-        offset = float(rec.dark.mean())
-    info: dict[str, Any] = {"measurements_in_file": int(y.size), **rec.meta}
-    patterns = None
-    gain = rec.gain
-    if rec.patterns is None:
-        indices = rec.indices
-        m = indices.size  # type: ignore[union-attr]
-        info.update(patterns_given="spec", split=rec.split, hadamard=True, fast_path=True)
-        if rec.split == "differential":
-            y_pos, y_neg, times = y, None, t
-            offset = 0.0
-        elif rec.split == "interleaved":
-            y_pos, y_neg = y[0::2] - offset, y[1::2] - offset
-            times = _pair_times(t, np.arange(0, 2 * m, 2), np.arange(1, 2 * m, 2))
-        else:  # stacked
-            y_pos, y_neg = y[:m] - offset, y[m:] - offset
-            times = _pair_times(t, np.arange(m), np.arange(m, 2 * m))
-    else:
-        match = match_hadamard(rec.patterns)
-        info.update(
-            patterns_given="explicit", pattern_kind=match.kind, hadamard=match.hadamard, fast_path=match.hadamard
-        )
-        if match.kind == "split":
-            pos, neg = match.pos_rows, match.neg_rows
-            y_pos, y_neg = y[pos] - offset, y[neg] - offset
-            times = _pair_times(t, pos, neg)  # type: ignore[arg-type]
-            gain = rec.gain * (match.high - match.low)
-        elif match.kind == "signed":
-            y_pos, y_neg = match.signs * y, None
-            times = t
-            gain = rec.gain * match.high
-            offset = 0.0
-        else:
-            y_pos, y_neg, times = y - offset, None, t
-            patterns = np.array(rec.patterns, dtype=np.float64)  # a copy (the file may be mapped)
-        if match.hadamard:
-            indices = match.indices
-        else:
-            if patterns is None:
-                patterns = match.canonical
-            indices = np.arange(y_pos.size, dtype=np.int64)
-    total = int(y_pos.size)
-    if keep is not None and keep < total:
-        indices, y_pos = indices[:keep], y_pos[:keep]  # type: ignore[index]
-        y_neg = None if y_neg is None else y_neg[:keep]
-        times = None if times is None else times[:keep]
-        patterns = None if patterns is None else patterns[:keep]
-    info["patterns_used"] = int(y_pos.size)
-    derived: dict[str, float] = {"offset_subtracted": offset}
+    offset = _offset(rec, subtract_offset)
+    info: dict[str, Any] = {"measurements_in_file": int(rec.measurements.size), **rec.meta}
+    r = (
+        _spec_readings(rec, offset, info)
+        if rec.patterns is None
+        else _explicit_readings(rec, rec.patterns, offset, info)
+    )
+    if keep is not None and keep < int(r.y_pos.size):
+        r = _first(r, keep)
+    info["patterns_used"] = int(r.y_pos.size)
+    derived: dict[str, float] = {"offset_subtracted": r.offset}
     if rec.dark is not None:
         derived["dark_mean"] = float(rec.dark.mean())
     if rec.background is not None:
@@ -132,13 +162,13 @@ def recording_to_acquisition(
         info["itof_raw_shape"] = list(rec.itof_raw.shape)
     return Acquisition(
         n=rec.n,
-        indices=np.asarray(indices, dtype=np.int64),
-        y_pos=np.asarray(y_pos, dtype=np.float64),
-        y_neg=None if y_neg is None else np.asarray(y_neg, dtype=np.float64),
-        gain=float(gain),
+        indices=np.asarray(r.indices, dtype=np.int64),
+        y_pos=np.asarray(r.y_pos, dtype=np.float64),
+        y_neg=None if r.y_neg is None else np.asarray(r.y_neg, dtype=np.float64),
+        gain=float(r.gain),
         truth=_truth(rec, name),
-        patterns=patterns,
-        timestamps_s=times,
+        patterns=r.patterns,
+        timestamps_s=r.times,
         derived=derived,
         info=info,
     )
