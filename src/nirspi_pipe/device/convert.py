@@ -67,6 +67,48 @@ def _vector(a: Any, key: str) -> np.ndarray:
     return v.astype(np.float64).ravel()
 
 
+def _split_readings(m: int, pos: Any, neg: Any, interleaved: Any, differential: Any) -> tuple[np.ndarray, str]:
+    """The readings in one vector and their layout (``stacked``, ``interleaved`` or
+    ``differential``), checked against the ``m`` patterns."""
+    if pos is not None:
+        yp, yn = _vector(pos, "pos"), _vector(neg, "neg")
+        if yp.size != m or yn.size != m:
+            raise RecordingError("pos", f"pos ({yp.size}) and neg ({yn.size}) need one value per pattern ({m})")
+        return np.concatenate([yp, yn]), "stacked"
+    if interleaved is not None:
+        y = _vector(interleaved, "interleaved")
+        if y.size != 2 * m:
+            raise RecordingError("interleaved", f"has {y.size} values, {m} patterns need {2 * m}")
+        return y, "interleaved"
+    y = _vector(differential, "differential")
+    if y.size != m:
+        raise RecordingError("differential", f"has {y.size} values for {m} patterns")
+    return y, "differential"
+
+
+def _flipped(y: np.ndarray, split: str, flip: np.ndarray, m: int) -> np.ndarray:
+    """The readings of rows stored as −h_k made those of +h_k: the halves swapped, or the
+    difference negated."""
+    if split == "differential":
+        return y * flip
+    pair = y.reshape(2, m) if split == "stacked" else y.reshape(m, 2).T
+    pos_y = np.where(flip > 0, pair[0], pair[1])
+    neg_y = np.where(flip > 0, pair[1], pair[0])
+    return np.concatenate([pos_y, neg_y]) if split == "stacked" else np.column_stack([pos_y, neg_y]).ravel()
+
+
+def _explicit_halves(signed: np.ndarray, split: str, m: int) -> np.ndarray:
+    """The patterns as stored for non-Hadamard rows: the ±1 rows for differential readings,
+    else their two positive halves in the readings' layout."""
+    if split == "differential":
+        return signed
+    return (
+        np.concatenate([(1 + signed) / 2, (1 - signed) / 2])
+        if split == "stacked"
+        else np.stack([(1 + signed) / 2, (1 - signed) / 2], axis=1).reshape(2 * m, -1)
+    )
+
+
 def convert(
     patterns: np.ndarray,
     pos: Any = None,
@@ -103,41 +145,14 @@ def convert(
         return out
     signed = _signed(rows)
     m = signed.shape[0]
-    if pos is not None:
-        yp, yn = _vector(pos, "pos"), _vector(neg, "neg")
-        if yp.size != m or yn.size != m:
-            raise RecordingError("pos", f"pos ({yp.size}) and neg ({yn.size}) need one value per pattern ({m})")
-        y, split = np.concatenate([yp, yn]), "stacked"
-    elif interleaved is not None:
-        y, split = _vector(interleaved, "interleaved"), "interleaved"
-        if y.size != 2 * m:
-            raise RecordingError("interleaved", f"has {y.size} values, {m} patterns need {2 * m}")
-    else:
-        y, split = _vector(differential, "differential"), "differential"
-        if y.size != m:
-            raise RecordingError("differential", f"has {y.size} values for {m} patterns")
+    y, split = _split_readings(m, pos, neg, interleaved, differential)
     match = match_hadamard(signed)
     n = int(round(np.sqrt(signed.shape[1])))
     if match.hadamard and match.kind == "signed" and match.signs is not None:  # signs: set for every signed match
-        flip = match.signs  # rows stored as −h_k: swap the halves / negate the difference
-        if split == "differential":
-            y = y * flip
-        else:
-            pair = y.reshape(2, m) if split == "stacked" else y.reshape(m, 2).T
-            pos_y = np.where(flip > 0, pair[0], pair[1])
-            neg_y = np.where(flip > 0, pair[1], pair[0])
-            y = np.concatenate([pos_y, neg_y]) if split == "stacked" else np.column_stack([pos_y, neg_y]).ravel()
+        y = _flipped(y, split, match.signs, m)
         out.update(measurements=y, basis="hadamard", resolution=n, split=split, indices=match.indices)
         return out
-    if split == "differential":
-        out.update(measurements=y, patterns=signed)
-    else:
-        halves = (
-            np.concatenate([(1 + signed) / 2, (1 - signed) / 2])
-            if split == "stacked"
-            else np.stack([(1 + signed) / 2, (1 - signed) / 2], axis=1).reshape(2 * m, -1)
-        )
-        out.update(measurements=y, patterns=halves)
+    out.update(measurements=y, patterns=_explicit_halves(signed, split, m))
     return out
 
 
