@@ -445,7 +445,7 @@ def table_rows(res: dict[str, Any], gpu_name: str | None) -> dict[str, dict[str,
     return {gpu_name: rows}
 
 
-def main(argv: list[str]) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="nirspi-bench gpu", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -457,7 +457,73 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--part", choices=list(PARTS), help=argparse.SUPPRESS)
     parser.add_argument("--gpu", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--cpu", default=None, help=argparse.SUPPRESS)
-    ns = parser.parse_args(argv)
+    return parser
+
+
+def _nvidia_smi() -> str:
+    """``nvidia-smi -L``'s listing, or "" without one."""
+    try:
+        return subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+
+
+#: The test modules the check runs on the GPU.
+_PARITY_TESTS = (
+    "test_parity.py",
+    "test_sfs_opencl.py",
+    "test_backend_auto.py",
+    "test_omp.py",
+    "test_fsrcnn_device.py",
+    "test_bench_gpu.py",
+)
+
+
+def _parity_step(run: Run, gpu: dict[str, Any] | None, out: Path, env: dict[str, str]) -> None:
+    """The parity tests on the GPU (from a source checkout's tests/), their summary line said."""
+    tests = Path.cwd() / "tests"
+    if gpu is None:
+        run.say(SKIP_NO_GPU + "parity tests on the GPU")
+        return
+    if not (tests / "test_parity.py").exists():
+        run.say("parity: SKIPPED (no tests/ here: run from a source checkout)")
+        return
+    cmd = [
+        sys.executable,
+        "-m",
+        "pytest",
+        "-q",
+        "-p",
+        "no:cacheprovider",
+        "--continue-on-collection-errors",  # a test module whose imports fail here costs only itself
+        "-m",
+        "torch or not torch",
+        "-k",
+        "not remesh",
+    ]
+    cmd += [str(tests / t) for t in _PARITY_TESTS]
+    run.step("parity", cmd, 120, env)
+    text = (out / "parity.log").read_text(errors="replace")
+    tail = re.findall(r"^=*\s*(\d+ (?:passed|failed).*?) in [\d.]+s", text, re.M)
+    run.results["parity"]["summary"] = tail[-1] if tail else "no pytest summary line (timeout or crash?)"
+    run.say(f"parity on {gpu['name']}: {run.results['parity']['summary']}")
+
+
+def _write_summary(run: Run, out: Path, gpu: dict[str, Any] | None, cpu: dict[str, Any] | None, write: bool) -> None:
+    """summary.json and summary.md, and (``write``) the device table of the faster back ends."""
+    rows = table_rows(run.results, gpu["name"] if gpu else None)
+    summary = {"head": run.lines, "gpu": gpu, "cpu_device": cpu, "results": run.results, "table_rows": rows}
+    (out / "summary.json").write_text(dumps_strict(summary, indent=1))
+    (out / "summary.md").write_text(_summary_md(run.results, [f"    {ln}" for ln in run.lines]))
+    if write:
+        if rows:
+            print(f"device table: {write_table(rows)} <- {json.dumps(rows)}")
+        else:
+            print("device table: nothing measured on a GPU, left as it is")
+
+
+def main(argv: list[str]) -> int:
+    ns = _parser().parse_args(argv)
     out = Path(ns.out)
     out.mkdir(parents=True, exist_ok=True)
     if ns.part:  # a child: one part, its result as JSON
@@ -470,10 +536,7 @@ def main(argv: list[str]) -> int:
     env, icd = nvidia_icd_env(env)
     run.say(f"nirspi-bench gpu, {time.strftime('%Y-%m-%dT%H:%M:%SZ', time.gmtime())}, {os.cpu_count()} CPU cores")
     run.say(icd)
-    try:
-        smi = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, timeout=20).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        smi = ""
+    smi = _nvidia_smi()
     run.say(f"nvidia-smi: {smi or 'none'}")
     me = [sys.executable, "-m", "nirspi_pipe.benchmarks.gpu", "--out", str(out), "--repeat", str(ns.repeat)]
     run.step("opencl", [*me, "--part", "opencl"], 60, env)
@@ -486,54 +549,12 @@ def main(argv: list[str]) -> int:
         env["PYOPENCL_CTX"] = gpu["spec"]
         run.say(f"GPU: {gpu['platform']} / {gpu['name']} (PYOPENCL_CTX={gpu['spec']})")
     dev_args = (["--gpu", gpu["spec"]] if gpu else []) + (["--cpu", cpu["spec"]] if cpu else [])
-    tests = Path.cwd() / "tests"
-    if gpu is None:
-        run.say(SKIP_NO_GPU + "parity tests on the GPU")
-    elif not (tests / "test_parity.py").exists():
-        run.say("parity: SKIPPED (no tests/ here: run from a source checkout)")
-    else:
-        cmd = [
-            sys.executable,
-            "-m",
-            "pytest",
-            "-q",
-            "-p",
-            "no:cacheprovider",
-            "--continue-on-collection-errors",  # a test module whose imports fail here costs only itself
-            "-m",
-            "torch or not torch",
-            "-k",
-            "not remesh",
-        ]
-        cmd += [
-            str(tests / t)
-            for t in (
-                "test_parity.py",
-                "test_sfs_opencl.py",
-                "test_backend_auto.py",
-                "test_omp.py",
-                "test_fsrcnn_device.py",
-                "test_bench_gpu.py",
-            )
-        ]
-        run.step("parity", cmd, 120, env)
-        text = (out / "parity.log").read_text(errors="replace")
-        tail = re.findall(r"^=*\s*(\d+ (?:passed|failed).*?) in [\d.]+s", text, re.M)
-        run.results["parity"]["summary"] = tail[-1] if tail else "no pytest summary line (timeout or crash?)"
-        run.say(f"parity on {gpu['name']}: {run.results['parity']['summary']}")
+    _parity_step(run, gpu, out, env)
     sizes = ["--sfs-sizes", *map(str, ns.sfs_sizes)]
     for name, limit in (("omp", 70), ("sfs", 110), ("fsrcnn", 40), ("mesh3d", 60)):
         run.step(name, [*me, "--part", name, *dev_args, *sizes], limit, env)
     run.say(f"done in {time.monotonic() - run.t0:.0f} s (budget {ns.budget:.0f} s)")
-    rows = table_rows(run.results, gpu["name"] if gpu else None)
-    summary = {"head": run.lines, "gpu": gpu, "cpu_device": cpu, "results": run.results, "table_rows": rows}
-    (out / "summary.json").write_text(dumps_strict(summary, indent=1))
-    (out / "summary.md").write_text(_summary_md(run.results, [f"    {ln}" for ln in run.lines]))
-    if ns.write_table:
-        if rows:
-            print(f"device table: {write_table(rows)} <- {json.dumps(rows)}")
-        else:
-            print("device table: nothing measured on a GPU, left as it is")
+    _write_summary(run, out, gpu, cpu, ns.write_table)
     print(f"summary: {out / 'summary.md'}, {out / 'summary.json'}")
     return 0
 
