@@ -168,12 +168,12 @@ def _seed_or_none(cfg: Mapping[str, Any]) -> int | None:
         return None
 
 
-def _stage_nodes(node: Any) -> Iterator[tuple[str, dict[str, Any]]]:
-    """``(target, params)`` of every ``_target_`` node in ``node`` (plain data), depth first."""
+def _stage_nodes(node: Any) -> Iterator[tuple[str, Mapping[str, Any]]]:
+    """``(target, node)`` of every ``_target_`` node in ``node`` (plain data), depth first."""
     if isinstance(node, Mapping):
         target = node.get("_target_")
         if isinstance(target, str):
-            yield target, {str(k): v for k, v in node.items() if not str(k).startswith("_")}
+            yield target, node
         for value in node.values():
             yield from _stage_nodes(value)
     elif isinstance(node, list):
@@ -187,24 +187,42 @@ def warm_up(configs: Iterable[Mapping[str, Any]]) -> list[str]:
     configs name, then call the class method ``warm_up(params)`` of each class that has one
     (:class:`nirspi_pipe.stages.WarmsUp`), once per distinct ``(target, params)``. Returns
     what failed, as ``target: error`` lines (the job that needs it reports it in its record);
-    a target outside the allow-list is not imported (its job refuses it)."""
+    a target outside the allow-list is not imported (its job refuses it).
+
+    Each target is imported once, and the parameters of a node are read only when its class
+    has the hook (or failed to import): a paper-sized sweep's 2640 configs took 2.9 s here when
+    every node's parameters were serialized, in the sweeping process before any job starts."""
     provenance()  # the installation's identity, read once
     allowed = allowed_targets()
     failed: list[str] = []
     seen: set[tuple[str, str]] = set()
+    found: dict[str, tuple[Any, bool]] = {}  # target -> (class, None or the import's exception; has the hook)
     for config in configs:
-        for target, params in _stage_nodes(config if isinstance(config, dict) else plain_config(config)):
+        for target, node in _stage_nodes(config if isinstance(config, dict) else plain_config(config)):
+            if target not in allowed:
+                continue
+            if target not in found:
+                try:
+                    cls = locate(target)
+                except Exception as exc:  # noqa: BLE001 - the job reports it
+                    cls = exc
+                found[target] = (cls, cls is None or isinstance(cls, Exception) or isinstance(cls, WarmsUp))
+            cls, wanted = found[target]
+            if not wanted:
+                continue  # imported, and no hook: nothing to warm
+            params = {str(k): v for k, v in node.items() if not str(k).startswith("_")}
             key = (target, json.dumps(params, sort_keys=True, default=repr))
-            if target not in allowed or key in seen:
+            if key in seen:
                 continue
             seen.add(key)
+            if cls is None:
+                failed.append(f"{target}: cannot be imported")
+                continue
+            if isinstance(cls, Exception):
+                failed.append(f"{target}: {type(cls).__name__}: {cls}")
+                continue
             try:
-                cls = locate(target)
-                if cls is None:
-                    failed.append(f"{target}: cannot be imported")
-                    continue
-                if isinstance(cls, WarmsUp):
-                    cls.warm_up(params)
+                cls.warm_up(params)
             except Exception as exc:  # noqa: BLE001 - the job reports it
                 failed.append(f"{target}: {type(exc).__name__}: {exc}")
     return failed
