@@ -40,6 +40,8 @@ Models (``model``):
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from nirspi_pipe.sfs.grid import BIG, SweepProblem, SweepResult, sweep_orders
@@ -93,17 +95,54 @@ def solve_numpy(
         return solve_second_order_numpy(problem, tol, max_sweeps, slope_average)
     if scheme == "godunov" and problem.model != 0:
         raise ValueError("the Godunov update is implemented for the eikonal (model 0) only")
+    lf = scheme == "lax_friedrichs"
+    zp, rhs, k = _padded(problem)
+    z = zp.ravel()
+    pc = zp.shape[1]
+    plans = _plans(problem, lf, pc)
+    fixed_pad = np.zeros(zp.shape, dtype=bool)
+    fixed_pad[1:-1, 1:-1] = problem.fixed
+
+    sweeps, round_change, converged = 0, np.inf, False
+    max_rounds = max(1, -(-int(max_sweeps) // 4))
+    for _ in range(max_rounds):
+        round_change = 0.0
+        for idx, starts in plans:
+            change = _sweep(z, idx, starts, pc, rhs, k if lf else None)
+            if lf:
+                change = max(change, _koq_boundary(zp, fixed_pad))
+            sweeps += 1
+            round_change = max(round_change, change)
+        if round_change <= tol:
+            converged = True
+            break
+    out = zp[1:-1, 1:-1].copy()
+    return SweepResult(out, sweeps, float(round_change), converged)
+
+
+class _LfCoefficients(NamedTuple):
+    """What the Lax-Friedrichs update needs besides the grid: the model, the viscosities, the
+    padded image coordinates (perspective models) and ``2/f`` (model 2)."""
+
+    model: int
+    sx: float
+    sy: float
+    inv_s: float
+    two_over_f: float
+    xh_all: np.ndarray | None
+    yh_all: np.ndarray | None
+
+
+def _padded(problem: SweepProblem) -> tuple[np.ndarray, np.ndarray, _LfCoefficients]:
+    """The depth padded with a frame of BIG (every cell gets four neighbours), the right-hand
+    side padded alike (flat) and the Lax-Friedrichs coefficients."""
     rows, cols = problem.rhs.shape
     model = problem.model
-    lf = scheme == "lax_friedrichs"
-    # Padded copy: a frame of BIG around the grid gives every cell four neighbours.
-    pc = cols + 2
-    zp = np.full((rows + 2, pc), BIG)
+    zp = np.full((rows + 2, cols + 2), BIG)
     zp[1:-1, 1:-1] = problem.init
-    z = zp.ravel()
     rhs = np.zeros_like(zp)
     rhs[1:-1, 1:-1] = problem.rhs
-    rhs = rhs.ravel()
+    xh_all = yh_all = None
     if model:
         assert problem.xhat is not None and problem.yhat is not None
         xg = np.zeros_like(zp)
@@ -112,10 +151,15 @@ def solve_numpy(
         yg[1:-1, 1:-1] = problem.yhat[:, None]
         xh_all, yh_all = xg.ravel(), yg.ravel()
     sx, sy = problem.sigmas()
-    inv_s = 1.0 / (sx + sy)
-    two_over_f = 2.0 / float(problem.focal_px)
+    k = _LfCoefficients(model, sx, sy, 1.0 / (sx + sy), 2.0 / float(problem.focal_px), xh_all, yh_all)
+    return zp, rhs.ravel(), k
 
-    # Which cells are updated: not fixed; for LF only interior cells (edges get KOQ's rule).
+
+def _plans(problem: SweepProblem, lf: bool, pc: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per sweep direction: the padded flat indices of the cells it updates, by anti-diagonal,
+    and where each anti-diagonal starts. Not the fixed cells; for LF only the interior (the
+    edges get KOQ's rule)."""
+    rows, cols = problem.rhs.shape
     upd = ~problem.fixed.copy()
     if lf and rows >= 3 and cols >= 3:
         upd[0, :] = upd[-1, :] = upd[:, 0] = upd[:, -1] = False
@@ -128,54 +172,53 @@ def solve_numpy(
         o, s = _subset(order, starts, upd.ravel())
         idx = to_pad[o]
         plans.append((idx, s))
-    fixed_pad = np.zeros(zp.shape, dtype=bool)
-    fixed_pad[1:-1, 1:-1] = problem.fixed
+    return plans
 
-    sweeps, round_change, converged = 0, np.inf, False
-    max_rounds = max(1, -(-int(max_sweeps) // 4))
-    for _ in range(max_rounds):
-        round_change = 0.0
-        for idx, starts in plans:
-            change = 0.0
-            for a, b in zip(starts[:-1], starts[1:]):
-                c = idx[a:b]
-                zc = z[c]
-                zw, ze = z[c - 1], z[c + 1]
-                zn, zs = z[c - pc], z[c + pc]
-                f = rhs[c]
-                if lf:
-                    p = 0.5 * (ze - zw)
-                    q = 0.5 * (zs - zn)
-                    if model:
-                        xc, yc = xh_all[c], yh_all[c]
-                        h = _hamiltonian(model, p, q, xc, yc)
-                    else:
-                        h = np.sqrt(p * p + q * q)
-                    base = -h + 0.5 * sx * (ze + zw) + 0.5 * sy * (zn + zs)
-                    if model == 2:
-                        new = _newton_falloff(zc, f, base, sx + sy, two_over_f)
-                    else:
-                        new = (f + base) * inv_s
-                else:  # Godunov eikonal update (Zhao 2005, Eq. 2.3 with h = 1)
-                    ax = np.minimum(zw, ze)
-                    by = np.minimum(zn, zs)
-                    d = ax - by
-                    disc = np.maximum(2.0 * f * f - d * d, 0.0)
-                    new = np.where(np.abs(d) >= f, np.minimum(ax, by) + f, 0.5 * (ax + by + np.sqrt(disc)))
-                new = np.minimum(zc, new)
-                z[c] = new
-                dmax = float(np.max(zc - new))
-                if dmax > change:
-                    change = dmax
-            if lf:
-                change = max(change, _koq_boundary(zp, fixed_pad))
-            sweeps += 1
-            round_change = max(round_change, change)
-        if round_change <= tol:
-            converged = True
-            break
-    out = zp[1:-1, 1:-1].copy()
-    return SweepResult(out, sweeps, float(round_change), converged)
+
+def _sweep(
+    z: np.ndarray, idx: np.ndarray, starts: np.ndarray, pc: int, rhs: np.ndarray, lf: _LfCoefficients | None
+) -> float:
+    """One sweep, anti-diagonal by anti-diagonal, in place (Lax-Friedrichs with ``lf``, else
+    Godunov); returns the largest decrease."""
+    change = 0.0
+    for a, b in zip(starts[:-1], starts[1:]):
+        c = idx[a:b]
+        zc = z[c]
+        zw, ze = z[c - 1], z[c + 1]
+        zn, zs = z[c - pc], z[c + pc]
+        f = rhs[c]
+        if lf is not None:
+            new = _lf_update(lf, c, zc, (zw, ze, zn, zs), f)
+        else:  # Godunov eikonal update (Zhao 2005, Eq. 2.3 with h = 1)
+            ax = np.minimum(zw, ze)
+            by = np.minimum(zn, zs)
+            d = ax - by
+            disc = np.maximum(2.0 * f * f - d * d, 0.0)
+            new = np.where(np.abs(d) >= f, np.minimum(ax, by) + f, 0.5 * (ax + by + np.sqrt(disc)))
+        new = np.minimum(zc, new)
+        z[c] = new
+        dmax = float(np.max(zc - new))
+        if dmax > change:
+            change = dmax
+    return change
+
+
+def _lf_update(
+    k: _LfCoefficients, c: np.ndarray, zc: np.ndarray, nb: tuple[np.ndarray, ...], f: np.ndarray
+) -> np.ndarray:
+    """The Lax-Friedrichs update of cells ``c`` from their west, east, north, south neighbours ``nb``."""
+    zw, ze, zn, zs = nb
+    p = 0.5 * (ze - zw)
+    q = 0.5 * (zs - zn)
+    if k.model:
+        xc, yc = k.xh_all[c], k.yh_all[c]  # type: ignore[index]
+        h = _hamiltonian(k.model, p, q, xc, yc)
+    else:
+        h = np.sqrt(p * p + q * q)
+    base = -h + 0.5 * k.sx * (ze + zw) + 0.5 * k.sy * (zn + zs)
+    if k.model == 2:
+        return _newton_falloff(zc, f, base, k.sx + k.sy, k.two_over_f)
+    return (f + base) * k.inv_s
 
 
 def _newton_falloff(w0: np.ndarray, k: np.ndarray, base: np.ndarray, s: float, two_over_f: float) -> np.ndarray:
