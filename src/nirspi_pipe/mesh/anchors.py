@@ -247,49 +247,13 @@ def fit_anchors(
     sig = np.asarray(sigma, dtype=np.float64)
     k = len(z)
     has_prior = prior_m is not None and prior_sigma_m is not None and prior_sigma_m > 0
-    if k == 0 and not has_prior:
-        raise NirspiError("fusion: no valid iToF anchor on the SFS depth map; cannot make it metric")
-    if k == 0 and scale_prior_rel is None:
-        scale_prior_rel = 0.2  # no anchor: the scale is the geometric one, as with one anchor
-    if scale_prior_rel is None and (k < 2 or float(np.ptp(zr)) <= 0):
-        raise NirspiError(
-            f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
-            "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
-        )
+    sp = _scale_prior(zr, k, scale_prior_rel, has_prior)
     b = zr - ref_zr
     rel = focal_px is not None
     f_px = float(focal_px) if focal_px is not None else 1.0
-
-    sp = None if scale_prior_rel is None else float(scale_prior_rel)
-    pm = float(prior_m) if has_prior else 0.0  # type: ignore[arg-type]
-    ps = float(prior_sigma_m) if has_prior else 1.0  # type: ignore[arg-type]
-
-    def residuals(x: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Residuals and their derivatives in ``u`` and ``ln c`` (analytic)."""
-        eu, c = math.exp(x[0]), math.exp(x[1])
-        s = eu * (c / f_px if rel else 1.0)
-        r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
-        if sp is not None:  # ratio e^u ~ N(1, rel), > 0
-            r.append(np.array([math.expm1(x[0]) / sp]))
-            du.append(np.array([eu / sp]))
-            dv.append(np.zeros(1))
-        if has_prior:
-            r.append(np.array([(c - pm) / ps]))
-            du.append(np.zeros(1))
-            dv.append(np.array([c / ps]))
-        return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
-
-    # start: u = 0 and the weighted least-squares placement at that scale (closed form)
-    w = 1.0 / sig**2
-    a = 1.0 + b / f_px if rel else np.ones(k)
-    shift = np.zeros(k) if rel else b
-    num = float(np.sum(w * a * (z - shift)))
-    den = float(np.sum(w * a * a))
-    if has_prior:
-        num += pm / ps**2
-        den += 1.0 / ps**2
-    c0 = num / den if den > 0 and np.isfinite(num / den) else float(np.median(z))
-    c0 = max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
+    prior = (float(prior_m), float(prior_sigma_m)) if has_prior else None  # type: ignore[arg-type]
+    residuals = _anchor_residuals(b, z, sig, f_px if rel else None, sp, prior)
+    c0 = _start_placement(b, z, sig, f_px if rel else None, prior)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         x = _levenberg_marquardt(residuals, (0.0, math.log(c0)), _LOG_RATIO_BOUND, math.log(1e12))
         res, ju, jv = residuals(x)
@@ -311,6 +275,74 @@ def fit_anchors(
         anchor_chi2=float(np.sum(res[:k] ** 2)),
         cov=cov,
     )
+
+
+def _scale_prior(zr: np.ndarray, k: int, scale_prior_rel: float | None, has_prior: bool) -> float | None:
+    """The scale prior the fit uses (0.2 without anchors, as with one), or None; fails when
+    there is nothing to fit or the anchors cannot determine the scale without a prior."""
+    if k == 0 and not has_prior:
+        raise NirspiError("fusion: no valid iToF anchor on the SFS depth map; cannot make it metric")
+    if k == 0 and scale_prior_rel is None:
+        scale_prior_rel = 0.2  # no anchor: the scale is the geometric one, as with one anchor
+    if scale_prior_rel is None and (k < 2 or float(np.ptp(zr)) <= 0):
+        raise NirspiError(
+            f"fusion: the {k} iToF anchor(s) cannot determine the depth scale and offset "
+            "(anchors at equal SFS depth?); set fusion.scale_prior_rel"
+        )
+    return None if scale_prior_rel is None else float(scale_prior_rel)
+
+
+def _anchor_residuals(
+    b: np.ndarray,
+    z: np.ndarray,
+    sig: np.ndarray,
+    focal: float | None,
+    sp: float | None,
+    prior: tuple[float, float] | None,
+) -> Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The fit's residuals and their derivatives in ``u`` and ``ln c`` (analytic), as a function
+    of ``(u, ln c)``; ``focal`` None: metric SFS depth."""
+    rel = focal is not None
+    f_px = focal if focal is not None else 1.0
+    has_prior = prior is not None
+    pm, ps = prior if prior is not None else (0.0, 1.0)
+
+    def residuals(x: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals and their derivatives in ``u`` and ``ln c`` (analytic)."""
+        eu, c = math.exp(x[0]), math.exp(x[1])
+        s = eu * (c / f_px if rel else 1.0)
+        r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
+        if sp is not None:  # ratio e^u ~ N(1, rel), > 0
+            r.append(np.array([math.expm1(x[0]) / sp]))
+            du.append(np.array([eu / sp]))
+            dv.append(np.zeros(1))
+        if has_prior:
+            r.append(np.array([(c - pm) / ps]))
+            du.append(np.zeros(1))
+            dv.append(np.array([c / ps]))
+        return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
+
+    return residuals
+
+
+def _start_placement(
+    b: np.ndarray, z: np.ndarray, sig: np.ndarray, focal: float | None, prior: tuple[float, float] | None
+) -> float:
+    """The fit's start: the weighted least-squares placement at ``u = 0`` (closed form)."""
+    k = len(z)
+    rel = focal is not None
+    f_px = focal if focal is not None else 1.0
+    w = 1.0 / sig**2
+    a = 1.0 + b / f_px if rel else np.ones(k)
+    shift = np.zeros(k) if rel else b
+    num = float(np.sum(w * a * (z - shift)))
+    den = float(np.sum(w * a * a))
+    if prior is not None:
+        pm, ps = prior
+        num += pm / ps**2
+        den += 1.0 / ps**2
+    c0 = num / den if den > 0 and np.isfinite(num / den) else float(np.median(z))
+    return max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
 
 
 def consistent_anchors(
