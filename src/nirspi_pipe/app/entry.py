@@ -364,6 +364,45 @@ def _check_output_paths(cfg: Any) -> None:
     check_node_paths(cfg.hydra)
 
 
+def _sweep_texts(
+    sweeps: list[Any],
+    hydra_node: dict[str, Any],
+    fixed: list[str],
+    config_name: str,
+    user_paths: bool,
+    flags: dict[str, str | None],
+) -> tuple[list[str], int]:
+    """Every sweep as override text: the command line's, ``hydra.sweeper.params`` and (with a
+    user's config folder) the experiments'; and how many of them are the run's own (the first)."""
+    params = (hydra_node.get("sweeper") or {}).get("params") or {}
+    texts = [ov.input_line for ov in sweeps]
+    texts += [f"{k}={v}" for k, v in params.items()]
+    experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
+    if experiments and user_paths:
+        texts += _experiment_sweeps(experiments, fixed, config_name, flags)
+    return texts, len(sweeps) + len(params)
+
+
+def _check_sweep_values(
+    job: dict[str, Any],
+    ov: Any,
+    is_group: bool,
+    fixed: list[str],
+    config_name: str,
+    user_paths: bool,
+    flags: dict[str, str | None],
+) -> list[Any]:
+    """Each value of one sweep checked for its key or group; the values."""
+    key = ov.key_or_group
+    values = _candidates(ov, group_options(key) if is_group else None) if ov.is_sweep_override() else [ov.value()]
+    for value in values:
+        if is_group:
+            _check_group_value(ov, key, value, fixed, config_name, user_paths, flags)
+        else:
+            _check_key_value(job, key, value)
+    return values
+
+
 def _check_sweeps(
     cfg: Any,
     sweeps: list[Any],
@@ -374,14 +413,9 @@ def _check_sweeps(
 ) -> None:
     """Every value of every sweep (command line and ``hydra.sweeper.params``) for its key."""
     job, hydra_node = _plain(cfg)
-    sweep_texts = [ov.input_line for ov in sweeps]
-    sweep_texts += [f"{k}={v}" for k, v in ((hydra_node.get("sweeper") or {}).get("params") or {}).items()]
-    experiments = (hydra_node.get("sweeper") or {}).get("experiments") or []
-    if experiments and user_paths:
-        sweep_texts += _experiment_sweeps(experiments, fixed, config_name, flags)
+    sweep_texts, n_own = _sweep_texts(sweeps, hydra_node, fixed, config_name, user_paths, flags)
     groups = all_groups()
     grid: list[list[str]] = []  # each swept group's key elements and values, as the jobs will set them
-    n_own = len(sweeps) + len((hydra_node.get("sweeper") or {}).get("params") or {})
     for i, ov in enumerate(parse_overrides(sweep_texts)):
         key = ov.key_or_group  # Hydra's parse: no package, no +/~ prefix
         if _is_hydra_key(key):
@@ -389,12 +423,7 @@ def _check_sweeps(
         if ov.is_delete():
             continue
         is_group = key in groups
-        values = _candidates(ov, group_options(key) if is_group else None) if ov.is_sweep_override() else [ov.value()]
-        for value in values:
-            if is_group:
-                _check_group_value(ov, key, value, fixed, config_name, user_paths, flags)
-            else:
-                _check_key_value(job, key, value)
+        values = _check_sweep_values(job, ov, is_group, fixed, config_name, user_paths, flags)
         if is_group and i < n_own:
             grid.append([f"{ov.get_key_element()}={'null' if v is None else v}" for v in values])
     if user_paths and len(grid) > 1:
