@@ -187,6 +187,58 @@ def _face_exists(F, opp, vh, a, b, c, buf):
 
 
 @jit_kernel
+def _walk_border(F, opp, h0, seen, loop, max_edges):
+    """Walk the border loop from the border half-edge h0 (a->b; the next border half-edge leaves
+    b), marking its half-edges seen and keeping its first max_edges + 1 vertices in loop: its
+    length, or -1 when the walk meets a vertex whose fan it cannot get round."""
+    nf = F.shape[0]
+    n = 0
+    h = h0
+    for _ in range(3 * nf):
+        seen[h] = True
+        if n <= max_edges:
+            loop[n] = he_origin(F, h)
+        n += 1
+        g = he_next(h)
+        steps = 0
+        while opp[g] >= 0 and steps < MAX_VALENCE:
+            g = he_next(opp[g])
+            steps += 1
+        if opp[g] >= 0:
+            return -1
+        h = g
+        if h == h0:
+            break
+    return n
+
+
+@jit_kernel
+def _best_ear(V, F, opp, vh, loop, cnt, new, start_new, n_new, buf):
+    """The ear (index in loop[:cnt]) whose smallest angle is the largest, among those that make
+    no existing edge and no edge the fill already made; -1 when there is none."""
+    best = -1
+    best_cos = 1.0 - 1e-12  # a zero-area ear (cosine 1) is never taken
+    for i in range(cnt):
+        a, b, c = loop[(i - 1) % cnt], loop[i], loop[(i + 1) % cnt]
+        if a == c or connected(F, opp, vh, a, c, buf):
+            continue
+        dup = False
+        for k in range(start_new, n_new):  # an edge the fill already made
+            if (new[k, 0] == a or new[k, 1] == a or new[k, 2] == a) and (
+                new[k, 0] == c or new[k, 1] == c or new[k, 2] == c
+            ):
+                dup = True
+                break
+        if dup:
+            continue
+        q = _min_angle_cos(V, a, b, c)
+        if q < best_cos:  # the ear whose smallest angle is the largest
+            best_cos = q
+            best = i
+    return best
+
+
+@jit_kernel
 def _close_holes(V, F, opp, nv, max_edges):
     """Faces closing every border loop of at most max_edges edges, by ear clipping: (new faces
     (k, 3), number of loops left open)."""
@@ -201,52 +253,15 @@ def _close_holes(V, F, opp, nv, max_edges):
     for h0 in range(3 * nf):
         if opp[h0] >= 0 or seen[h0]:
             continue
-        # walk the loop: from the border half-edge a->b, the next border half-edge leaves b
-        n = 0
-        h = h0
-        ok = True
-        for _ in range(3 * nf):
-            seen[h] = True
-            if n <= max_edges:
-                loop[n] = he_origin(F, h)
-            n += 1
-            g = he_next(h)
-            steps = 0
-            while opp[g] >= 0 and steps < MAX_VALENCE:
-                g = he_next(opp[g])
-                steps += 1
-            if opp[g] >= 0:
-                ok = False
-                break
-            h = g
-            if h == h0:
-                break
-        if not ok or n > max_edges or n < 3:
+        n = _walk_border(F, opp, h0, seen, loop, max_edges)
+        if n < 0 or n > max_edges or n < 3:
             continue
         # the loop runs along the existing faces (their border half-edges v_i -> v_i+1); the
         # ear at v_i is the face (v_i+1, v_i, v_i-1), which pairs with both border half-edges
         cnt = n
         start_new = n_new
         while cnt > 3:
-            best = -1
-            best_cos = 1.0 - 1e-12  # a zero-area ear (cosine 1) is never taken
-            for i in range(cnt):
-                a, b, c = loop[(i - 1) % cnt], loop[i], loop[(i + 1) % cnt]
-                if a == c or connected(F, opp, vh, a, c, buf):
-                    continue
-                dup = False
-                for k in range(start_new, n_new):  # an edge the fill already made
-                    if (new[k, 0] == a or new[k, 1] == a or new[k, 2] == a) and (
-                        new[k, 0] == c or new[k, 1] == c or new[k, 2] == c
-                    ):
-                        dup = True
-                        break
-                if dup:
-                    continue
-                q = _min_angle_cos(V, a, b, c)
-                if q < best_cos:  # the ear whose smallest angle is the largest
-                    best_cos = q
-                    best = i
+            best = _best_ear(V, F, opp, vh, loop, cnt, new, start_new, n_new, buf)
             if best < 0:
                 break
             a, b, c = loop[(best - 1) % cnt], loop[best], loop[(best + 1) % cnt]
