@@ -375,6 +375,65 @@ def _valences(F, bnd, nf, nv):
 
 
 @jit_kernel
+def _flip_helps(val, bnd, a, b, c, d):
+    """Whether flipping edge a-b (to c-d) brings the four valences closer to 6 (4 on a border),
+    leaving a and b at least 3 faces (2 on a border)."""
+    va, vb, vc, vd = val[a], val[b], val[c], val[d]
+    ta, tb, tc, td = 4 if bnd[a] else 6, 4 if bnd[b] else 6, 4 if bnd[c] else 6, 4 if bnd[d] else 6
+    if va <= (2 if bnd[a] else 3) or vb <= (2 if bnd[b] else 3):
+        return False
+    before = (va - ta) ** 2 + (vb - tb) ** 2 + (vc - tc) ** 2 + (vd - td) ** 2
+    after = (va - 1 - ta) ** 2 + (vb - 1 - tb) ** 2 + (vc + 1 - tc) ** 2 + (vd + 1 - td) ** 2
+    return after < before
+
+
+@jit_kernel
+def _flip_keeps_shape(V, a, b, c, d, nrm, nrm2):
+    """Whether the new faces (c, a, d) and (d, b, c) face the way the old ones (a, b, c) and
+    (b, a, d) did, and the worse of them keeps at least half the old worse face's shape quality."""
+    # the two new faces (c, a, d) and (d, b, c) must face the way the old ones did
+    _face_normal(V, a, b, c, nrm)
+    _face_normal(V, b, a, d, nrm2)
+    sx, sy, sz = nrm[0] + nrm2[0], nrm[1] + nrm2[1], nrm[2] + nrm2[2]
+    _face_normal(V, c, a, d, nrm)
+    _face_normal(V, d, b, c, nrm2)
+    n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
+    n2 = nrm2[0] * nrm2[0] + nrm2[1] * nrm2[1] + nrm2[2] * nrm2[2]
+    s2 = sx * sx + sy * sy + sz * sz
+    d1 = nrm[0] * sx + nrm[1] * sy + nrm[2] * sz
+    d2 = nrm2[0] * sx + nrm2[1] * sy + nrm2[2] * sz
+    if d1 <= 0.0 or d2 <= 0.0 or d1 * d1 < 0.25 * n1 * s2 or d2 * d2 < 0.25 * n2 * s2:
+        return False
+    # nor may the worse of the two faces lose more than half its shape quality (a
+    # valence-driven flip across a flat, skinny quad would make a needle)
+    q_old = min(_shape(V, a, b, c), _shape(V, b, a, d))
+    return not min(_shape(V, c, a, d), _shape(V, d, b, c)) < 0.5 * q_old
+
+
+@jit_kernel
+def _flip(F, opp, vh, val, f, h, o, a, b, c, d):
+    """Flip edge a-b of face f (half-edge h, its twin o): faces (c, a, d) and (d, b, c), the
+    twins, vertex half-edges and valences updated."""
+    g = o // 3
+    x_bc, x_ca = opp[he_next(h)], opp[he_prev(h)]
+    x_ad, x_db = opp[he_next(o)], opp[he_prev(o)]
+    F[f, 0], F[f, 1], F[f, 2] = c, a, d
+    F[g, 0], F[g, 1], F[g, 2] = d, b, c
+    pairs = ((3 * f, x_ca), (3 * f + 1, x_ad), (3 * g, x_db), (3 * g + 1, x_bc))
+    for e, x in pairs:
+        opp[e] = x
+        if x >= 0:
+            opp[x] = e
+    opp[3 * f + 2] = 3 * g + 2
+    opp[3 * g + 2] = 3 * f + 2
+    vh[a], vh[b], vh[c], vh[d] = 3 * f + 1, 3 * g + 1, 3 * f, 3 * g
+    val[a] -= 1
+    val[b] -= 1
+    val[c] += 1
+    val[d] += 1
+
+
+@jit_kernel
 def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):
     """Flip interior edges that bring the valences closer to 6 (4 on a border)."""
     count = 0
@@ -390,53 +449,13 @@ def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):
             a, b = F[f, k], F[f, (k + 1) % 3]
             c = he_target(F, he_next(h))
             d = he_target(F, he_next(o))
-            if c == d:
+            if c == d or not _flip_helps(val, bnd, a, b, c, d):
                 continue
-            va, vb, vc, vd = val[a], val[b], val[c], val[d]
-            ta, tb, tc, td = 4 if bnd[a] else 6, 4 if bnd[b] else 6, 4 if bnd[c] else 6, 4 if bnd[d] else 6
-            if va <= (2 if bnd[a] else 3) or vb <= (2 if bnd[b] else 3):
-                continue
-            before = (va - ta) ** 2 + (vb - tb) ** 2 + (vc - tc) ** 2 + (vd - td) ** 2
-            after = (va - 1 - ta) ** 2 + (vb - 1 - tb) ** 2 + (vc + 1 - tc) ** 2 + (vd + 1 - td) ** 2
-            if after >= before:
-                continue
-            # the two new faces (c, a, d) and (d, b, c) must face the way the old ones did
-            _face_normal(V, a, b, c, nrm)
-            _face_normal(V, b, a, d, nrm2)
-            sx, sy, sz = nrm[0] + nrm2[0], nrm[1] + nrm2[1], nrm[2] + nrm2[2]
-            _face_normal(V, c, a, d, nrm)
-            _face_normal(V, d, b, c, nrm2)
-            n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
-            n2 = nrm2[0] * nrm2[0] + nrm2[1] * nrm2[1] + nrm2[2] * nrm2[2]
-            s2 = sx * sx + sy * sy + sz * sz
-            d1 = nrm[0] * sx + nrm[1] * sy + nrm[2] * sz
-            d2 = nrm2[0] * sx + nrm2[1] * sy + nrm2[2] * sz
-            if d1 <= 0.0 or d2 <= 0.0 or d1 * d1 < 0.25 * n1 * s2 or d2 * d2 < 0.25 * n2 * s2:
-                continue
-            # nor may the worse of the two faces lose more than half its shape quality (a
-            # valence-driven flip across a flat, skinny quad would make a needle)
-            q_old = min(_shape(V, a, b, c), _shape(V, b, a, d))
-            if min(_shape(V, c, a, d), _shape(V, d, b, c)) < 0.5 * q_old:
+            if not _flip_keeps_shape(V, a, b, c, d, nrm, nrm2):
                 continue
             if connected(F, opp, vh, c, d, buf):
                 continue
-            g = o // 3
-            x_bc, x_ca = opp[he_next(h)], opp[he_prev(h)]
-            x_ad, x_db = opp[he_next(o)], opp[he_prev(o)]
-            F[f, 0], F[f, 1], F[f, 2] = c, a, d
-            F[g, 0], F[g, 1], F[g, 2] = d, b, c
-            pairs = ((3 * f, x_ca), (3 * f + 1, x_ad), (3 * g, x_db), (3 * g + 1, x_bc))
-            for e, x in pairs:
-                opp[e] = x
-                if x >= 0:
-                    opp[x] = e
-            opp[3 * f + 2] = 3 * g + 2
-            opp[3 * g + 2] = 3 * f + 2
-            vh[a], vh[b], vh[c], vh[d] = 3 * f + 1, 3 * g + 1, 3 * f, 3 * g
-            val[a] -= 1
-            val[b] -= 1
-            val[c] += 1
-            val[d] += 1
+            _flip(F, opp, vh, val, f, h, o, a, b, c, d)
             count += 1
             break  # face f changed: its other edges are visited in the next round
     return count
