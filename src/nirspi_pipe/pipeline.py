@@ -265,21 +265,11 @@ def run_pipeline(cfg: Mapping[str, Any] | Plan, *, scan_indices: ScanIndices | N
     streams = dict(zip(_RNG_STREAMS, np.random.SeedSequence(seed).spawn(len(_RNG_STREAMS)), strict=False))
     rngs = {k: np.random.default_rng(s) for k, s in streams.items()}
 
-    for group, nothing in MODEL_OF_NOTHING.items():
-        if group in config and config[group] is None:
-            raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
+    _refuse_null_models(config)
     with _recorded_warnings() as caught:
         clock = _Clock(caught)
-        with clock.stage("build"):
-            plan.check()  # every target, once, before anything is imported
-            camera: Camera = build(config["camera"], "camera", plan)
-            stages = build_stages(config, plan)
-        for required in ("source", "scan", "solver"):
-            if required not in stages:
-                raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
-        source, scan, solver = stages["source"], stages["scan"], stages["solver"]
-        if isinstance(source, ReadsScanOptions) and source.scan_indices is None:
-            source = source.with_scan_indices(scan_indices)  # the caller resolves scan options
+        camera, stages = _build_all(plan, clock)
+        source, scan, solver = _required_stages(stages, scan_indices)
         n = camera.resolution
 
         truth = None
@@ -291,29 +281,8 @@ def run_pipeline(cfg: Mapping[str, Any] | Plan, *, scan_indices: ScanIndices | N
         acq = clock.call("source", source.acquire, truth, indices, n, rngs["source"])
         truth = acq.truth if acq.truth is not None else truth
         image = clock.call("solver", solver.solve, acq)
-
-        upscaled = depth = itof = cloud = mesh = None
-        if "upscale" in stages:
-            upscaled = clock.call("upscale", stages["upscale"].upscale, image)
-        # 3D stages work on the finest image; their camera is that image's grid.
-        shaded = upscaled if upscaled is not None else image
-        grid = camera if shaded.data.shape[0] == n else camera.resampled(shaded.data.shape[0])
-        if "sfs" in stages and isinstance(stages["sfs"], NeedsScene) and stages["sfs"].needs_scene:
-            depth = clock.call("sfs", _solve_from_scene, stages["sfs"], stages.get("scene"), truth, shaded, grid)
-        elif "sfs" in stages:
-            depth = clock.call("sfs", stages["sfs"].solve, shaded, grid)
-        if "itof" in stages:
-            itof = clock.call("itof", _measure_itof, stages["itof"], shaded, grid, truth, acq, rngs["itof"])
-        if "fusion" in stages:
-            if depth is None:
-                raise ConfigError("fusion", config.get("fusion"), "null unless an sfs stage is set")
-            cloud = clock.call("fusion", stages["fusion"].fuse, depth, itof, grid)
-        if "surface" in stages:
-            if cloud is None:
-                raise ConfigError("surface", config.get("surface"), "null unless a fusion stage is set")
-            mesh = clock.call("surface", stages["surface"].reconstruct, cloud)
-
-        products = Products(truth, acq, image, upscaled, depth, itof, cloud, mesh)
+        upscaled = clock.call("upscale", stages["upscale"].upscale, image) if "upscale" in stages else None
+        products = _run_3d(config, stages, clock, camera, rngs, Products(truth, acq, image, upscaled))
         metrics: dict[str, float] = {}
         if "metrics" in stages:
             metrics = clock.call("metrics", stages["metrics"].compute, products)
@@ -329,3 +298,66 @@ def run_pipeline(cfg: Mapping[str, Any] | Plan, *, scan_indices: ScanIndices | N
         info=info,
         warnings=[f"{w.category.__name__}: {w.message}" for w in caught],
     )
+
+
+def _refuse_null_models(config: Mapping[str, Any]) -> None:
+    """A model of the simulated camera (fog, light, detector) set to null is refused: it is not a
+    stage that can be switched off."""
+    for group, nothing in MODEL_OF_NOTHING.items():
+        if group in config and config[group] is None:
+            raise ConfigError(group, "null", f"{nothing}; {group} is a model of the simulated camera, not a stage")
+
+
+def _build_all(plan: Plan, clock: _Clock) -> tuple[Camera, dict[str, Any]]:
+    """The camera and every stage of the plan, timed as ``build``; every target checked once,
+    before anything is imported."""
+    with clock.stage("build"):
+        plan.check()
+        camera: Camera = build(plan.config["camera"], "camera", plan)
+        stages = build_stages(plan.config, plan)
+    return camera, stages
+
+
+def _required_stages(stages: dict[str, Any], scan_indices: ScanIndices | None) -> tuple[Any, Any, Any]:
+    """The source, scan and solver (each required), the source given the caller's scan-option
+    resolver when it reads scan options and has none."""
+    for required in ("source", "scan", "solver"):
+        if required not in stages:
+            raise ConfigError(required, "null", f"a {required} stage ({required}=null is not allowed)")
+    source, scan, solver = stages["source"], stages["scan"], stages["solver"]
+    if isinstance(source, ReadsScanOptions) and source.scan_indices is None:
+        source = source.with_scan_indices(scan_indices)  # the caller resolves scan options
+    return source, scan, solver
+
+
+def _run_3d(
+    config: Mapping[str, Any],
+    stages: dict[str, Any],
+    clock: _Clock,
+    camera: Camera,
+    rngs: dict[str, np.random.Generator],
+    products: Products,
+) -> Products:
+    """The 3D stages (sfs, itof, fusion, surface) on the finest image, each where configured;
+    ``products`` holds the 2D ones and comes back with the 3D ones filled in."""
+    truth, acq, image, upscaled = products.truth, products.acquisition, products.image, products.upscaled
+    depth = itof = cloud = mesh = None
+    # 3D stages work on the finest image; their camera is that image's grid.
+    shaded = upscaled if upscaled is not None else image
+    n = camera.resolution
+    grid = camera if shaded.data.shape[0] == n else camera.resampled(shaded.data.shape[0])
+    if "sfs" in stages and isinstance(stages["sfs"], NeedsScene) and stages["sfs"].needs_scene:
+        depth = clock.call("sfs", _solve_from_scene, stages["sfs"], stages.get("scene"), truth, shaded, grid)
+    elif "sfs" in stages:
+        depth = clock.call("sfs", stages["sfs"].solve, shaded, grid)
+    if "itof" in stages:
+        itof = clock.call("itof", _measure_itof, stages["itof"], shaded, grid, truth, acq, rngs["itof"])
+    if "fusion" in stages:
+        if depth is None:
+            raise ConfigError("fusion", config.get("fusion"), "null unless an sfs stage is set")
+        cloud = clock.call("fusion", stages["fusion"].fuse, depth, itof, grid)
+    if "surface" in stages:
+        if cloud is None:
+            raise ConfigError("surface", config.get("surface"), "null unless a fusion stage is set")
+        mesh = clock.call("surface", stages["surface"].reconstruct, cloud)
+    return Products(truth, acq, image, upscaled, depth, itof, cloud, mesh)
