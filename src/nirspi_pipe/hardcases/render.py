@@ -78,7 +78,7 @@ def _preamble(outcomes: list[Outcome], stamp: str) -> list[str]:
         "**pending** (does not hold; the case says why, with the measured value), **FAILS** (does not hold).",
         "",
         "Time: the cases run in one process, after the default suite's earlier files; the 3D cases need the",
-        "compiled mesh kernels (`nirspi_pipe.mesh`: `halfedges`, `meshclean`, `isotropic`, `crustfaces`), which",
+        "compiled mesh kernels (`nirspi_pipe.mesh`: `halfedges`, `meshclean`, `edgeflip`, `isotropic`, `crustfaces`), which",
         "`tests/test_figure.py` has compiled into numba's cache by then. On a cold cache the first 3D case",
         "compiles them: `XDG_CACHE_HOME=$(mktemp -d) python -m nirspi_pipe.hardcases 3d-ideal-sphere` took",
         "78 s of CPU here, against 6.5 s with the cache warm.",

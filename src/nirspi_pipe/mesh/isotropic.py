@@ -43,12 +43,12 @@ import numpy as np
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.mesh import jitcache
+from nirspi_pipe.mesh.edgeflip import face_normal, flip_edges, len2
 from nirspi_pipe.mesh.halfedges import (
     HAVE_NUMBA,
     MAX_FACES,
     MAX_VALENCE,
     border_flags,
-    connected,
     he_next,
     he_origin,
     he_prev,
@@ -70,21 +70,6 @@ _PASSES = 1  # collapse and flip passes per iteration (Botsch & Kobbelt: one)
 # ---------------------------------------------------------------------------------------------
 # remeshing
 # ---------------------------------------------------------------------------------------------
-
-
-@jit_inline
-def _face_normal(V, a, b, c, out):
-    u0, u1, u2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
-    w0, w1, w2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
-    out[0] = u1 * w2 - u2 * w1
-    out[1] = u2 * w0 - u0 * w2
-    out[2] = u0 * w1 - u1 * w0
-
-
-@jit_inline
-def _len2(V, a, b):
-    d0, d1, d2 = V[a, 0] - V[b, 0], V[a, 1] - V[b, 1], V[a, 2] - V[b, 2]
-    return d0 * d0 + d1 * d1 + d2 * d2
 
 
 @jit_kernel
@@ -113,11 +98,11 @@ def _split_pass(V, F, opp, vh, bnd, nv, nf, hi2):
             o = opp[h]
             if o >= 0 and o < h:
                 continue  # each interior edge once, from its lower half-edge
-            if _len2(V, a, b) <= hi2:
+            if len2(V, a, b) <= hi2:
                 continue
             # only when the split shortens: the new edges to the opposite vertices must be shorter
             # than this one (not so in a degenerate, needle-like triangle, which flips handle)
-            l2 = _len2(V, a, b)
+            l2 = len2(V, a, b)
             c = F[f, (k + 2) % 3]
             mx, my, mz = 0.5 * (V[a, 0] + V[b, 0]), 0.5 * (V[a, 1] + V[b, 1]), 0.5 * (V[a, 2] + V[b, 2])
             if (mx - V[c, 0]) ** 2 + (my - V[c, 1]) ** 2 + (mz - V[c, 2]) ** 2 >= l2:
@@ -219,7 +204,7 @@ def _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2):
         for k in range(3):
             if F[f, 0] < 0:
                 break
-            if _len2(V, F[f, k], F[f, (k + 1) % 3]) >= lo2:
+            if len2(V, F[f, k], F[f, (k + 1) % 3]) >= lo2:
                 continue
             h, o, a, b, ok = _edge_to_collapse(F, opp, bnd, 3 * f + k)
             if not ok:
@@ -307,10 +292,10 @@ def _moves_ok(V, F, h, o, a, b, px, py, pz, buf, na, buf2, nb, hi2, nrm, nrm2):
             dx, dy, dz = V[w, 0] - px, V[w, 1] - py, V[w, 2] - pz
             if dx * dx + dy * dy + dz * dz > hi2:
                 return False
-            _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
+            face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
             sx, sy, sz = V[moved, 0], V[moved, 1], V[moved, 2]
             V[moved, 0], V[moved, 1], V[moved, 2] = px, py, pz
-            _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm2)
+            face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm2)
             V[moved, 0], V[moved, 1], V[moved, 2] = sx, sy, sz
             dot = nrm[0] * nrm2[0] + nrm[1] * nrm2[1] + nrm[2] * nrm2[2]
             n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
@@ -350,117 +335,6 @@ def _collapse(V, F, opp, vh, bnd, h, o, a, b, c, d, px, py, pz, buf, na, buf2, n
             bnd[w] = vertex_ring(F, opp, vh, w, buf)[1] if vh[w] >= 0 else False
 
 
-@jit_inline
-def _shape(V, a, b, c):
-    """4√3·area / (sum of squared edge lengths): 1 for an equilateral triangle, 0 for a degenerate one."""
-    u0, u1, u2 = V[b, 0] - V[a, 0], V[b, 1] - V[a, 1], V[b, 2] - V[a, 2]
-    w0, w1, w2 = V[c, 0] - V[a, 0], V[c, 1] - V[a, 1], V[c, 2] - V[a, 2]
-    x, y, z = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-    e = (u0 * u0 + u1 * u1 + u2 * u2) + (w0 * w0 + w1 * w1 + w2 * w2) + _len2(V, b, c)
-    return 2.0 * np.sqrt(3.0) * np.sqrt(x * x + y * y + z * z) / e if e > 0.0 else 0.0
-
-
-@jit_kernel
-def _valences(F, bnd, nf, nv):
-    """Number of neighbours of each vertex: its faces, plus one on a border."""
-    val = np.zeros(nv, np.int64)
-    for f in range(nf):
-        if F[f, 0] >= 0:
-            for k in range(3):
-                val[F[f, k]] += 1
-    for v in range(nv):
-        if bnd[v]:
-            val[v] += 1
-    return val
-
-
-@jit_kernel
-def _flip_helps(val, bnd, a, b, c, d):
-    """Whether flipping edge a-b (to c-d) brings the four valences closer to 6 (4 on a border),
-    leaving a and b at least 3 faces (2 on a border)."""
-    va, vb, vc, vd = val[a], val[b], val[c], val[d]
-    ta, tb, tc, td = 4 if bnd[a] else 6, 4 if bnd[b] else 6, 4 if bnd[c] else 6, 4 if bnd[d] else 6
-    if va <= (2 if bnd[a] else 3) or vb <= (2 if bnd[b] else 3):
-        return False
-    before = (va - ta) ** 2 + (vb - tb) ** 2 + (vc - tc) ** 2 + (vd - td) ** 2
-    after = (va - 1 - ta) ** 2 + (vb - 1 - tb) ** 2 + (vc + 1 - tc) ** 2 + (vd + 1 - td) ** 2
-    return after < before
-
-
-@jit_kernel
-def _flip_keeps_shape(V, a, b, c, d, nrm, nrm2):
-    """Whether the new faces (c, a, d) and (d, b, c) face the way the old ones (a, b, c) and
-    (b, a, d) did, and the worse of them keeps at least half the old worse face's shape quality."""
-    # the two new faces (c, a, d) and (d, b, c) must face the way the old ones did
-    _face_normal(V, a, b, c, nrm)
-    _face_normal(V, b, a, d, nrm2)
-    sx, sy, sz = nrm[0] + nrm2[0], nrm[1] + nrm2[1], nrm[2] + nrm2[2]
-    _face_normal(V, c, a, d, nrm)
-    _face_normal(V, d, b, c, nrm2)
-    n1 = nrm[0] * nrm[0] + nrm[1] * nrm[1] + nrm[2] * nrm[2]
-    n2 = nrm2[0] * nrm2[0] + nrm2[1] * nrm2[1] + nrm2[2] * nrm2[2]
-    s2 = sx * sx + sy * sy + sz * sz
-    d1 = nrm[0] * sx + nrm[1] * sy + nrm[2] * sz
-    d2 = nrm2[0] * sx + nrm2[1] * sy + nrm2[2] * sz
-    if d1 <= 0.0 or d2 <= 0.0 or d1 * d1 < 0.25 * n1 * s2 or d2 * d2 < 0.25 * n2 * s2:
-        return False
-    # nor may the worse of the two faces lose more than half its shape quality (a
-    # valence-driven flip across a flat, skinny quad would make a needle)
-    q_old = min(_shape(V, a, b, c), _shape(V, b, a, d))
-    return not min(_shape(V, c, a, d), _shape(V, d, b, c)) < 0.5 * q_old
-
-
-@jit_kernel
-def _flip(F, opp, vh, val, f, h, o, a, b, c, d):
-    """Flip edge a-b of face f (half-edge h, its twin o): faces (c, a, d) and (d, b, c), the
-    twins, vertex half-edges and valences updated."""
-    g = o // 3
-    x_bc, x_ca = opp[he_next(h)], opp[he_prev(h)]
-    x_ad, x_db = opp[he_next(o)], opp[he_prev(o)]
-    F[f, 0], F[f, 1], F[f, 2] = c, a, d
-    F[g, 0], F[g, 1], F[g, 2] = d, b, c
-    pairs = ((3 * f, x_ca), (3 * f + 1, x_ad), (3 * g, x_db), (3 * g + 1, x_bc))
-    for e, x in pairs:
-        opp[e] = x
-        if x >= 0:
-            opp[x] = e
-    opp[3 * f + 2] = 3 * g + 2
-    opp[3 * g + 2] = 3 * f + 2
-    vh[a], vh[b], vh[c], vh[d] = 3 * f + 1, 3 * g + 1, 3 * f, 3 * g
-    val[a] -= 1
-    val[b] -= 1
-    val[c] += 1
-    val[d] += 1
-
-
-@jit_kernel
-def _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2):
-    """Flip interior edges that bring the valences closer to 6 (4 on a border)."""
-    count = 0
-    val = _valences(F, bnd, nf, nv)
-    for f in range(nf):
-        if F[f, 0] < 0:
-            continue
-        for k in range(3):
-            h = 3 * f + k
-            o = opp[h]
-            if o < h:  # border (-1) or visited from the other side
-                continue
-            a, b = F[f, k], F[f, (k + 1) % 3]
-            c = he_target(F, he_next(h))
-            d = he_target(F, he_next(o))
-            if c == d or not _flip_helps(val, bnd, a, b, c, d):
-                continue
-            if not _flip_keeps_shape(V, a, b, c, d, nrm, nrm2):
-                continue
-            if connected(F, opp, vh, c, d, buf):
-                continue
-            _flip(F, opp, vh, val, f, h, o, a, b, c, d)
-            count += 1
-            break  # face f changed: its other edges are visited in the next round
-    return count
-
-
 @jit_kernel
 def _relax(V, F, opp, vh, bnd, nv, buf, nrm):
     """Tangential relaxation of the interior vertices (Jacobi: all from the old positions)."""
@@ -479,7 +353,7 @@ def _relax(V, F, opp, vh, bnd, nv, buf, nrm):
             qy += V[w, 1]
             qz += V[w, 2]
             g = buf[i] // 3
-            _face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
+            face_normal(V, F[g, 0], F[g, 1], F[g, 2], nrm)
             sx += nrm[0]
             sy += nrm[1]
             sz += nrm[2]
@@ -521,7 +395,7 @@ def _remesh(V0, F0, target, iterations, v_cap, f_cap, rounds):
             if _collapse_short(V, F, opp, vh, bnd, nf, lo2, hi2, buf, buf2, nrm, nrm2) == 0:
                 break
         for _r in range(rounds):
-            if _flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2) == 0:
+            if flip_edges(V, F, opp, vh, bnd, nf, nv, buf, nrm, nrm2) == 0:
                 break
         _relax(V, F, opp, vh, bnd, nv, buf, nrm)
     return V, F, nv, nf, False
@@ -608,7 +482,7 @@ def warm_up() -> bool:
         out_v, out_f, _ = jitcache.rebuild_on_failure(
             lambda: clean_and_remesh_compiled(v, f, 1.0, 1, 0.8, 30, 1),
             what="the remesher",
-            kernels=("halfedges", "meshclean", "isotropic"),
+            kernels=("halfedges", "meshclean", "edgeflip", "isotropic"),
         )
     except Exception:  # noqa: BLE001 - any failure means "not available": the caller falls back
         return False

@@ -3,7 +3,7 @@
 numba keeps compiled code in index files (``*.nbi``) that it **unpickles**, and in data files
 (``*.nbc``) it loads as machine code. Whoever can write the cache folder can therefore run code
 in every process that loads it: a writable cache folder is trusted code (docs/hostile.md). So
-the kernels of :mod:`nirspi_pipe.mesh.halfedges`, :mod:`~nirspi_pipe.mesh.meshclean`,
+the kernels of :mod:`nirspi_pipe.mesh.halfedges`, :mod:`~nirspi_pipe.mesh.meshclean`, :mod:`~nirspi_pipe.mesh.edgeflip`,
 :mod:`~nirspi_pipe.mesh.isotropic` and :mod:`~nirspi_pipe.mesh.crustfaces` are cached
 in a folder of their own, ``$XDG_CACHE_HOME/nirspi-pipe/numba`` (``~/.cache/nirspi-pipe/numba``),
 created private (mode 0700). Were that folder open to others (group or world permissions), it is
@@ -46,7 +46,7 @@ PROGRESS_EVERY_S = 10.0
 T = TypeVar("T")
 
 #: The modules whose kernels are cached here (numba names their files ``<module>.<function>-…``).
-KERNEL_MODULES = ("halfedges", "meshclean", "isotropic", "crustfaces")
+KERNEL_MODULES = ("halfedges", "meshclean", "edgeflip", "isotropic", "crustfaces")
 
 
 def _default_folder() -> Path:
