@@ -118,3 +118,41 @@ def test_the_stage_error_prints_what_the_docs_list() -> None:
 def test_a_whole_float_in_an_integer_field_becomes_an_int() -> None:
     p = _Probe(n=4.0)  # type: ignore[arg-type]
     assert p.n == 4 and type(p.n) is int
+
+
+@dataclass(frozen=True)
+class _Keyed:
+    rel: Annotated[float, Range(-0.9, 1.0, "a relative change", key="led_droop_rel")] = 0.0
+
+    def __post_init__(self) -> None:
+        check_ranges(self)
+
+
+def test_a_range_with_its_own_key_names_the_key_the_user_set() -> None:
+    """An effect built from ``source.effects.led_droop_rel`` keeps it as ``rel``: the error and the
+    docs name the config key, not the field."""
+    with pytest.raises(ConfigError) as exc:
+        _Keyed(rel=2.0)
+    assert exc.value.key == "led_droop_rel" and "[-0.9, 1]" in str(exc.value)
+    assert list(describe(_Keyed)) == ["led_droop_rel: a relative change in [-0.9, 1]"]
+
+
+@given(st.floats(allow_nan=True, allow_infinity=True))
+def test_check_value_agrees_with_the_field_check(x: float) -> None:
+    """A function's argument checked against the same declaration refuses exactly what the
+    dataclass field refuses, with the same words."""
+    from nirspi_pipe.ranges import check_value
+
+    spec = field_ranges(_Keyed)[0][1]
+    assert isinstance(spec, Range)
+    try:
+        _Keyed(rel=x)
+        field_error = None
+    except ConfigError as exc:
+        field_error = str(exc)
+    try:
+        check_value(x, spec)
+        value_error = None
+    except ConfigError as exc:
+        value_error = str(exc)
+    assert field_error == value_error

@@ -31,7 +31,7 @@ import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 
-__all__ = ["Range", "OneOf", "check_ranges", "field_ranges", "allowed_text", "describe"]
+__all__ = ["Range", "OneOf", "check_ranges", "check_value", "field_ranges", "allowed_text", "describe"]
 
 
 def _num(x: float) -> str:
@@ -52,6 +52,9 @@ class Range:
             interval holds it (an unbounded fog).
         note: said after the interval, in parentheses (``.inf for unbounded fog``).
         also: words accepted besides a number (``("auto",)``: the stage chooses the value).
+        key: the config key that sets the field, when it is not the field's own name (an effect
+            built from ``source.effects.led_droop_rel`` keeps it as ``LedDroop.rel``); the error
+            and the docs name it, so the user reads the key they set.
     """
 
     lo: float | None = None
@@ -63,6 +66,7 @@ class Range:
     finite: bool = True
     note: str = ""
     also: tuple[str, ...] = ()
+    key: str = ""
 
     def allowed(self) -> str:
         """The allowed values in words (the ``allowed:`` part of the error)."""
@@ -140,12 +144,25 @@ def check_ranges(obj: Any) -> None:
     for name, spec, nullable in field_ranges(cls):
         value = getattr(obj, name)
         if value is not None and not spec.contains(value):
-            raise ConfigError(name, value, allowed_text(spec, nullable))
+            raise ConfigError(_key(name, spec), value, allowed_text(spec, nullable))
         if isinstance(spec, Range) and spec.integer and isinstance(value, float):
             object.__setattr__(obj, name, int(value))  # 4.0 from a command line: the count 4
 
 
+def check_value(value: Any, spec: Range, key: str = "") -> None:
+    """Raise :class:`ConfigError` when ``value`` is outside ``spec``: the same check and words as
+    :func:`check_ranges`, for a value that is a function's argument rather than a field (the
+    function and the stage it builds share one declaration). The key is ``key``, else ``spec.key``."""
+    if not spec.contains(value):
+        raise ConfigError(key or spec.key, value, spec.allowed())
+
+
+def _key(name: str, spec: Spec) -> str:
+    """The key a user sets for field ``name``: the range's own ``key`` where it has one."""
+    return spec.key if isinstance(spec, Range) and spec.key else name
+
+
 def describe(cls: type) -> Iterator[str]:
-    """``field: allowed values`` lines of ``cls``'s declared ranges."""
+    """``key: allowed values`` lines of ``cls``'s declared ranges."""
     for name, spec, nullable in field_ranges(cls):
-        yield f"{name}: {allowed_text(spec, nullable)}"
+        yield f"{_key(name, spec)}: {allowed_text(spec, nullable)}"

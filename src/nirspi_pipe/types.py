@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.patterns.hadamard import is_power_of_two
+from nirspi_pipe.ranges import Range, check_ranges
 
 __all__ = [
     "Medium",
@@ -43,7 +44,7 @@ class Camera:
     """
 
     resolution: int = 64
-    fov_deg: float = 20.0
+    fov_deg: Annotated[float, Range(0.0, 170.0, "degrees", lo_open=True, hi_open=True)] = 20.0
     #: False for a camera grid that no pattern is shown on (e.g. after ×3 upscaling): then any
     #: resolution from 2 to 16384 is allowed. See :meth:`resampled`.
     patterned: bool = field(default=True, repr=False, metadata={"config": False})  # set by resampled()
@@ -54,8 +55,7 @@ class Camera:
                 raise ConfigError("resolution", self.resolution, "a power of two from 2 to 4096")
         elif int(self.resolution) != self.resolution or not 2 <= self.resolution <= 16384:
             raise ConfigError("resolution", self.resolution, "an integer from 2 to 16384")
-        if not 0.0 < float(self.fov_deg) < 170.0:
-            raise ConfigError("fov_deg", self.fov_deg, "degrees in (0, 170)")
+        check_ranges(self)
 
     def resampled(self, resolution: int) -> Camera:
         """The same camera (field of view, pose) on an ``resolution × resolution`` grid, e.g. the

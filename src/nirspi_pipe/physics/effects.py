@@ -67,7 +67,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, ClassVar, Literal, cast
+from typing import Annotated, Any, ClassVar, Literal, cast
 
 import numpy as np
 
@@ -98,6 +98,7 @@ from nirspi_pipe.physics.stagetypes import (
     stage_of,
 )
 from nirspi_pipe.physics.timevarying import fog_factor
+from nirspi_pipe.ranges import Range, check_ranges, check_value
 
 __all__ = [
     "FogAttenuation",
@@ -118,10 +119,10 @@ __all__ = [
 #: 1e50 finished, 1e100 and 1e300 overflowed in SSIM), so the bound keeps 40 decades of margin.
 NOISE_REL_MAX = 1e6
 
-
-def _check_rel(key: str, value: float, lo: float, hi: float, what: str) -> None:
-    if not np.isfinite(value) or not lo <= value <= hi:
-        raise ConfigError(key, value, what)
+#: The effects' declared ranges (:mod:`nirspi_pipe.ranges`), each under the config key that sets it.
+NOISE_REL = Range(0.0, NOISE_REL_MAX, "a relative noise level", key="noise_rel")
+#: Assumed: a droop/rise beyond -90 %/+100 % of the LED's power is no longer a thermal drift.
+LED_DROOP_REL = Range(-0.9, 1.0, "a relative change of LED power", key="led_droop_rel")
 
 
 # --------------------------------------------------------------------------------------------
@@ -182,8 +183,8 @@ class FogFluctuation:
     (Ornstein–Uhlenbeck of relative std ``rel`` and correlation time ``time_s``), per reading.
     Not in the reference (it changes during the acquisition)."""
 
-    rel: float
-    time_s: float = 0.05
+    rel: Annotated[float, Range(0.0, 1.0, "a relative standard deviation", key="fluctuation_rel")]
+    time_s: Annotated[float, Range(0.0, None, "a correlation time in s", lo_open=True, key="fluctuation_time_s")] = 0.05
 
     name: ClassVar[str] = "fog_fluctuation"
     domain: ClassVar[Literal["image"]] = "image"
@@ -191,9 +192,7 @@ class FogFluctuation:
     streams: ClassVar[tuple[int, ...]] = (0,)
 
     def __post_init__(self) -> None:
-        _check_rel("fluctuation_rel", self.rel, 0.0, 1.0, "a relative standard deviation in [0, 1]")
-        if not np.isfinite(self.time_s) or self.time_s <= 0:
-            raise ConfigError("fluctuation_time_s", self.time_s, "a correlation time in s > 0")
+        check_ranges(self)
 
     def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         med = _fog_of(image, "fog_fluctuation")
@@ -212,14 +211,14 @@ class FogTrend:
     coefficients see the early and the late density (issue 11). ``rel`` is ``fog.trend_rel``.
     Not in the reference."""
 
-    rel: float
+    rel: Annotated[float, Range(-0.9, 10.0, "a relative change over the acquisition", key="trend_rel")]
 
     name: ClassVar[str] = "fog_trend"
     domain: ClassVar[Literal["image"]] = "image"
     in_reference: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        _check_rel("trend_rel", self.rel, -0.9, 10.0, "a relative change over the acquisition in [-0.9, 10]")
+        check_ranges(self)
 
     def apply(self, image: ImageState, exposure: Exposure) -> ImageState:
         med = _fog_of(image, "fog_trend")
@@ -243,14 +242,14 @@ class Backscatter:
     on every reading, with ``ℓ`` the fog path of each pixel and κ = ``gain``. In the reference:
     its steady veil is added per pixel (:meth:`reference_e`)."""
 
-    gain: float
+    gain: Annotated[float, Range(0.0, None, "a factor", key="backscatter_gain")]
 
     name: ClassVar[str] = "backscatter"
     domain: ClassVar[Literal["readings"]] = "readings"
     in_reference: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
-        _check_rel("backscatter_gain", self.gain, 0.0, np.inf, "a factor >= 0")
+        check_ranges(self)
 
     def veil_e(self, medium: FogPath, exposure: Exposure) -> np.ndarray:
         """``(n, n)`` steady veil per pixel, e⁻: ``κ N_white(1 m)/n² (1 − e^{−β ℓ})``  # Eq. (12)."""
@@ -293,17 +292,17 @@ class LedDroop:
     datasheet); the amount and τ here are study values (``source.effects.led_droop_rel``,
     ``led_droop_time_s``), not measured on the paper's camera. Not in the reference."""
 
-    rel: float
-    time_s: float = 0.05
+    rel: Annotated[float, LED_DROOP_REL]
+    time_s: Annotated[float, Range(0.0, None, "a thermal time constant in s", lo_open=True, key="led_droop_time_s")] = (
+        0.05
+    )
 
     name: ClassVar[str] = "led_droop"
     domain: ClassVar[Literal["readings"]] = "readings"
     in_reference: ClassVar[bool] = False
 
     def __post_init__(self) -> None:
-        _check_rel("led_droop_rel", self.rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
-        if not np.isfinite(self.time_s) or self.time_s <= 0:
-            raise ConfigError("led_droop_time_s", self.time_s, "a thermal time constant in s > 0")
+        check_ranges(self)
 
     def factor(self, t_s: np.ndarray) -> np.ndarray:
         """Relative LED power at times ``t_s`` (s), dimensionless."""
@@ -396,13 +395,13 @@ class GaussianNoise:
     """Idealised additive Gaussian noise on every reading (output units), of std ``noise_rel``
     times the mean noise-free half-pattern reading (the foundation's noise model)."""
 
-    noise_rel: float
+    noise_rel: Annotated[float, NOISE_REL]
 
     name: ClassVar[str] = "gaussian_noise"
     domain: ClassVar[Literal["output"]] = "output"
 
     def __post_init__(self) -> None:
-        _check_rel("noise_rel", self.noise_rel, 0.0, NOISE_REL_MAX, f"a relative noise level in [0, {NOISE_REL_MAX:g}]")
+        check_ranges(self)
 
     def apply(self, output: Output, exposure: Exposure) -> Output:
         rng = exposure.rng_main if exposure.rng_main is not None else np.random.default_rng(0)
@@ -537,11 +536,11 @@ def forward_model(
     """
     if detector is not None and not hasattr(detector, "physical"):
         raise ConfigError("detector", detector, "a detector from conf/detector (ideal, ingaas)")
-    _check_rel("noise_rel", noise_rel, 0.0, NOISE_REL_MAX, f"a relative noise level in [0, {NOISE_REL_MAX:g}]")
+    check_value(noise_rel, NOISE_REL)
     placed: dict[str, list[Any]] = {stage: [] for stage in STAGES}
     for i, effect in enumerate(extra):
         placed[stage_of(effect, f"extra.{i}")].append(effect)
-    _check_rel("led_droop_rel", led_droop_rel, -0.9, 1.0, "a relative change of LED power in [-0.9, 1]")
+    check_value(led_droop_rel, LED_DROOP_REL)
     physical = bool(getattr(detector, "physical", False))
     image: list[ImageEffect] = []
     readings: list[ReadingEffect] = []

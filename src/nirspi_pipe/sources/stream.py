@@ -11,7 +11,7 @@ import socket
 import struct
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
@@ -26,6 +26,7 @@ from nirspi_pipe.device.protocol import (
     write_json_line,
 )
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.ranges import Range, check_ranges
 from nirspi_pipe.safeio import check_budget, max_safe_reading, sanitize_text, short_repr
 from nirspi_pipe.types import Acquisition, Scene
 
@@ -179,8 +180,8 @@ class Stream:
     """
 
     host: str = "127.0.0.1"
-    port: int | None = None
-    timeout_s: float = 10.0
+    port: int | None = None  # required: null (the shipped default) is refused below, so no declared range
+    timeout_s: Annotated[float, Range(0.0, None, "seconds", lo_open=True)] = 10.0
     allow_remote: bool = False
 
     needs_scene = False
@@ -208,8 +209,7 @@ class Stream:
             or not 1 <= self.port <= 65535
         ):
             raise ConfigError("port", self.port, "a TCP port 1-65535 (source.port=PORT)")
-        if not (isinstance(self.timeout_s, (int, float)) and np.isfinite(self.timeout_s) and self.timeout_s > 0):
-            raise ConfigError("timeout_s", self.timeout_s, "seconds > 0")
+        check_ranges(self)
 
     def acquire(self, scene: Scene | None, indices: np.ndarray, n: int, rng: np.random.Generator) -> Acquisition:
         """Send the pattern ``indices`` and receive one frame per pattern (``scene``, ``rng`` unused)."""
