@@ -47,7 +47,7 @@ def test_sfs_kernel_is_built_at_construction(sphere_image) -> None:  # type: ign
 def test_omp_auto_is_numpy_on_cpu_devices() -> None:
     """Issue 33: ``auto`` is what was measured faster on the device, numpy on PoCL's CPU device
     (the device OMP is slower there) and wherever nothing was measured."""
-    from nirspi_pipe.accel import choose, is_gpu
+    from nirspi_pipe.opencl_devices import choose, is_gpu
     from nirspi_pipe.solvers.omp_opencl import gpu_available, opencl_context
 
     assert OMPSolver(backend="numpy").effective_backend() == "numpy"
@@ -64,27 +64,29 @@ def test_omp_auto_is_numpy_on_cpu_devices() -> None:
 def test_auto_follows_the_measured_table(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """A row of the user's table (``nirspi-bench gpu --write-table``) decides ``auto`` for that
     device, stage and size; the nearest measured size at or below is used."""
-    from nirspi_pipe import accel
+    from nirspi_pipe import opencl_devices
 
     class Dev:
         name = "Some Device"
 
     monkeypatch.setenv("NIRSPI_DEVICE_TABLE", str(tmp_path / "t.json"))
-    accel.load_table.cache_clear()
+    opencl_devices.load_table.cache_clear()
     try:
-        assert accel.choose("omp", Dev(), 64)[0] == accel.DEFAULT_CHOICE["omp"]
-        accel.write_table({"Some Device": {"omp": {32: "numpy", 128: "opencl"}, "sfs": {64: "numpy"}}})
-        assert accel.choose("omp", Dev(), 64)[0] == "numpy"
-        assert accel.choose("omp", Dev(), 128)[0] == "opencl"
-        assert accel.choose("omp", Dev(), 512)[0] == "opencl"
-        assert accel.choose("omp", Dev(), 8)[0] == "numpy"  # below every row: the smallest one's
-        assert accel.choose("sfs", Dev(), 256) == ("numpy", "measured on Some Device at 64²")
+        assert opencl_devices.choose("omp", Dev(), 64)[0] == opencl_devices.DEFAULT_CHOICE["omp"]
+        opencl_devices.write_table({"Some Device": {"omp": {32: "numpy", 128: "opencl"}, "sfs": {64: "numpy"}}})
+        assert opencl_devices.choose("omp", Dev(), 64)[0] == "numpy"
+        assert opencl_devices.choose("omp", Dev(), 128)[0] == "opencl"
+        assert opencl_devices.choose("omp", Dev(), 512)[0] == "opencl"
+        assert opencl_devices.choose("omp", Dev(), 8)[0] == "numpy"  # below every row: the smallest one's
+        assert opencl_devices.choose("sfs", Dev(), 256) == ("numpy", "measured on Some Device at 64²")
         (tmp_path / "t.json").write_text("{not json")
-        accel.load_table.cache_clear()
-        assert accel.choose("sfs", Dev(), 256)[0] == accel.DEFAULT_CHOICE["sfs"]  # a broken file is ignored
+        opencl_devices.load_table.cache_clear()
+        assert (
+            opencl_devices.choose("sfs", Dev(), 256)[0] == opencl_devices.DEFAULT_CHOICE["sfs"]
+        )  # a broken file is ignored
     finally:
         monkeypatch.delenv("NIRSPI_DEVICE_TABLE")
-        accel.load_table.cache_clear()
+        opencl_devices.load_table.cache_clear()
 
 
 @pytest.mark.parametrize("bad", ["GPU", "1", "0:x", "", 3, "cuda"])
@@ -98,7 +100,7 @@ def test_device_spec_is_checked_in_one_line(bad) -> None:  # type: ignore[no-unt
 
 
 def test_pyopencl_ctx_names_the_device_and_a_missing_one_fails_in_one_line(monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    from nirspi_pipe import accel
+    from nirspi_pipe import opencl_devices
     from nirspi_pipe.errors import NirspiError
 
     if not ocl.opencl_available():
@@ -106,19 +108,19 @@ def test_pyopencl_ctx_names_the_device_and_a_missing_one_fails_in_one_line(monke
     import pyopencl as cl
 
     last = len(cl.get_platforms()) - 1
-    accel.opencl_device.cache_clear()
+    opencl_devices.opencl_device.cache_clear()
     try:
         monkeypatch.setenv("PYOPENCL_CTX", f"{last}:0")
-        assert accel.opencl_device("auto") == cl.get_platforms()[last].get_devices()[0]
-        assert accel.opencl_device(f"{last}:0") == cl.get_platforms()[last].get_devices()[0]
+        assert opencl_devices.opencl_device("auto") == cl.get_platforms()[last].get_devices()[0]
+        assert opencl_devices.opencl_device(f"{last}:0") == cl.get_platforms()[last].get_devices()[0]
         monkeypatch.setenv("PYOPENCL_CTX", "99:0")
-        accel.opencl_device.cache_clear()  # read once per process
+        opencl_devices.opencl_device.cache_clear()  # read once per process
         with pytest.raises(NirspiError, match="PYOPENCL_CTX='99:0': no such OpenCL device"):
-            accel.opencl_device("auto")
+            opencl_devices.opencl_device("auto")
         with pytest.raises(NirspiError, match="no such OpenCL device"):
-            accel.opencl_device("7:3")
+            opencl_devices.opencl_device("7:3")
     finally:
-        accel.opencl_device.cache_clear()
+        opencl_devices.opencl_device.cache_clear()
 
 
 def test_record_names_backend_and_device(sphere_image) -> None:  # type: ignore[no-untyped-def]

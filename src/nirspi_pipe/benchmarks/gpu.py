@@ -24,7 +24,7 @@ all within ``--budget`` seconds (default 330, under the 6 minutes of a GPU loan)
 6. ``mesh3d``: ``nirspi-bench mesh3d`` at 64² with second-order SFS on numpy and on OpenCL.
 
 ``--write-table`` writes, per device, stage and size, which back end was faster into the table
-that ``backend: auto`` reads (:mod:`nirspi_pipe.accel`).
+that ``backend: auto`` reads (:mod:`nirspi_pipe.opencl_devices`).
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.accel import write_table
 from nirspi_pipe.benchmarks import mesh3d
+from nirspi_pipe.opencl_devices import write_table
 from nirspi_pipe.patterns.orders import Zigzag
 from nirspi_pipe.scene.objects import ImageTarget
 from nirspi_pipe.solvers.omp_opencl import opencl_context
@@ -429,7 +429,7 @@ def _summary_md(res: dict[str, Any], head: list[str]) -> str:
 
 
 def table_rows(res: dict[str, Any], gpu_name: str | None) -> dict[str, dict[str, dict[int, str]]]:
-    """Which back end was faster per stage and size on the GPU (for :func:`nirspi_pipe.accel.write_table`)."""
+    """Which back end was faster per stage and size on the GPU (for :func:`nirspi_pipe.opencl_devices.write_table`)."""
     if gpu_name is None:
         return {}
     rows: dict[str, dict[int, str]] = {}

@@ -69,7 +69,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--schemes", nargs="+", default=list(SOLVERS), choices=list(SOLVERS))
     parser.add_argument("--backends", nargs="+", default=["numpy", "opencl"], choices=["numpy", "opencl"])
-    parser.add_argument("--device", default="auto", help="OpenCL device: auto, cpu, gpu or P:D (nirspi_pipe.accel)")
+    parser.add_argument(
+        "--device", default="auto", help="OpenCL device: auto, cpu, gpu or P:D (nirspi_pipe.opencl_devices)"
+    )
     parser.add_argument(
         "--local-sizes",
         nargs="+",

@@ -24,7 +24,7 @@ Shared keys (all stages):
 * ``scheme``, ``backend``, ``tol`` (pixel units), ``max_sweeps``.
 * ``device``: the OpenCL device of ``backend`` ``auto``/``opencl``: ``auto`` (``PYOPENCL_CTX``,
   else the first GPU, else the first device), ``cpu``, ``gpu`` or ``<platform>:<device>`` by
-  index (:mod:`nirspi_pipe.accel`). The record's ``info.sfs.device`` names the one used.
+  index (:mod:`nirspi_pipe.opencl_devices`). The record's ``info.sfs.device`` names the one used.
 * ``slope_average`` (orthographic stages, ``scheme: second_order`` only): ``cos2`` (slopes
   averaged along the upwind edges with cos²θ linear, see :mod:`nirspi_pipe.sfs.second_order`)
   or ``node`` (the pixel's own slope: fast marching's order 2).
@@ -39,8 +39,8 @@ from typing import Annotated, Any
 
 import numpy as np
 
-from nirspi_pipe.accel import check_device
 from nirspi_pipe.errors import ConfigError, NirspiError
+from nirspi_pipe.opencl_devices import check_device
 from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.sfs.second_order import SLOPE_AVERAGES
 from nirspi_pipe.sfs.sweeping import BIG, SCHEMES, SweepProblem, SweepResult, solve_numpy
@@ -320,7 +320,7 @@ def _resolve(
     backend: str, model: int, scheme: str, slope_average: str = "cos2", device: str = "auto", size: int = 64
 ) -> str:
     """The back end a solve of image side ``size`` uses; ``auto`` is ``opencl`` when a device
-    builds the kernel and OpenCL was measured faster there (:func:`nirspi_pipe.accel.choose`)."""
+    builds the kernel and OpenCL was measured faster there (:func:`nirspi_pipe.opencl_devices.choose`)."""
     if backend == "numpy":
         return "numpy"
     from nirspi_pipe.sfs.opencl import resolve_backend  # import circle: nirspi_pipe.sfs.opencl imports this module
@@ -400,7 +400,7 @@ class LaxFriedrichsSFS(SweepingSFS):
     def effective_backend(self, size: int = 64) -> str:
         """The back end a solve of image side ``size`` uses: ``auto`` is ``opencl`` when a device
         builds the kernel and OpenCL was measured faster on it at that size
-        (:func:`nirspi_pipe.accel.choose`), else ``numpy`` (the record's ``info.sfs.backend`` says
+        (:func:`nirspi_pipe.opencl_devices.choose`), else ``numpy`` (the record's ``info.sfs.backend`` says
         which, ``info.sfs.device`` on which device)."""
         return _resolve(self.backend, 0, self.scheme, self.slope_average, self.device, size)
 

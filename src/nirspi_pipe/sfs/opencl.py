@@ -22,7 +22,7 @@ launch with a given local size (the work-group function, ~0.1–0.4 s here with 
 program and launches each kernel of the solve once on a 4×4 problem with the solve's local
 sizes, so that neither compilation falls inside a timed solve.
 
-The device is a spec of :mod:`nirspi_pipe.accel` (``auto``, ``cpu``, ``gpu``, ``P:D``).
+The device is a spec of :mod:`nirspi_pipe.opencl_devices` (``auto``, ``cpu``, ``gpu``, ``P:D``).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.accel import choose, device_label, is_gpu, opencl_context
+from nirspi_pipe.opencl_devices import choose, device_label, is_gpu, opencl_context
 from nirspi_pipe.sfs.second_order import F_MAX, GAUSS_Q, HALF_PI, SLOPE_AVERAGES, slope_antiderivative
 from nirspi_pipe.sfs.sweeping import BIG, SweepProblem, SweepResult
 
@@ -325,7 +325,7 @@ __kernel void fsm(__global double *z, __global const double *rhs,
 
 @lru_cache(maxsize=8)
 def _context(device: str = "auto") -> tuple[Any, Any]:
-    """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.accel.opencl_device`;
+    """``(context, queue)`` on the device ``device`` names (:func:`nirspi_pipe.opencl_devices.opencl_device`;
     cached here too, so that its cache says whether this process made one)."""
     return opencl_context(device)
 
@@ -380,7 +380,7 @@ def kernel2_source() -> str:
 
 def opencl_available(scheme: str = "godunov", device: str = "auto") -> bool:
     """True when pyopencl finds a float64-capable device (``device``,
-    :func:`nirspi_pipe.accel.opencl_device`) that builds the sweeping kernel for ``scheme`` (PoCL
+    :func:`nirspi_pipe.opencl_devices.opencl_device`) that builds the sweeping kernel for ``scheme`` (PoCL
     fails on CPUs its LLVM does not know, e.g. ``unknown target CPU 'generic'``)."""
     try:
         if scheme == "second_order":
@@ -440,7 +440,7 @@ def resolve_backend(
 ) -> str:
     """``auto`` → ``opencl`` when a device builds and runs this solve's kernels (:func:`warm_up`)
     and the measured choice for that device and image side ``size`` is OpenCL
-    (:func:`nirspi_pipe.accel.choose`), else ``numpy``; ``numpy``/``opencl`` are returned as given
+    (:func:`nirspi_pipe.opencl_devices.choose`), else ``numpy``; ``numpy``/``opencl`` are returned as given
     (``opencl`` warmed up)."""
     if backend == "numpy":
         return backend
@@ -473,7 +473,7 @@ def solve_opencl(
     a CPU device, where the kernel is then plain compiled Gauss–Seidel and skips the barrier
     bookkeeping; the longest diagonal on a GPU). Every local size gives the same bits: the cells
     of one diagonal never read each other. ``slope_average`` is used by
-    ``scheme="second_order"`` only; ``device`` is a spec of :mod:`nirspi_pipe.accel`.
+    ``scheme="second_order"`` only; ``device`` is a spec of :mod:`nirspi_pipe.opencl_devices`.
     """
     import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
 

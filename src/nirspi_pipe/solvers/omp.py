@@ -41,7 +41,7 @@ from typing import Annotated, Any, Protocol, TypeVar
 import numpy as np
 from scipy.linalg.blas import daxpy, dtpmv
 
-from nirspi_pipe.accel import check_device, choose, device_label
+from nirspi_pipe.opencl_devices import check_device, choose, device_label
 from nirspi_pipe.patterns.hadamard import sylvester
 from nirspi_pipe.ranges import OneOf, Range, check_ranges
 from nirspi_pipe.solvers.common import TIE_RTOL, checked_coefficients
@@ -304,7 +304,7 @@ def omp_hadamard(
     opencl_mode: str | None = None,
 ) -> tuple[np.ndarray, dict]:
     """OMP for Hadamard measurements ``y`` at flat ``indices``; returns ``(image, info)``.
-    ``backend`` ``opencl`` solves on the device ``device`` names (:mod:`nirspi_pipe.accel`), laid
+    ``backend`` ``opencl`` solves on the device ``device`` names (:mod:`nirspi_pipe.opencl_devices`), laid
     out as ``opencl_mode`` says (:meth:`~nirspi_pipe.solvers.omp_opencl.DeviceOmp.solve`).
 
     ``image`` is ``n × n`` in the units of ``y`` per pixel (relative radiance for calibrated
@@ -458,11 +458,11 @@ class OMPSolver:
         max_atoms: hard cap on atoms (cost grows as ``atoms · (n³ + m · atoms)``); null = none.
         tol: stop when ``‖r‖ ≤ tol · ‖y‖``.
         backend: ``auto`` (OpenCL where it was measured faster than numpy on the device at this
-            size, :func:`nirspi_pipe.accel.choose`; numpy where nothing was measured, and on
+            size, :func:`nirspi_pipe.opencl_devices.choose`; numpy where nothing was measured, and on
             PoCL's CPU device), ``numpy`` (reference) or ``opencl`` (pyopencl, float64, the
             whole solve on the device).
         device: the OpenCL device: ``auto``, ``cpu``, ``gpu`` or ``<platform>:<device>``
-            (:mod:`nirspi_pipe.accel`; ``auto`` honours ``PYOPENCL_CTX``).
+            (:mod:`nirspi_pipe.opencl_devices`; ``auto`` honours ``PYOPENCL_CTX``).
     """
 
     basis: Annotated[str, OneOf(("dct", "haar"))] = "dct"
@@ -482,7 +482,7 @@ class OMPSolver:
     def effective_backend(self, size: int = 64) -> str:
         """The back end of a solve of an ``size × size`` image. ``auto``: ``opencl`` where a device
         builds the kernels and OpenCL OMP was measured faster than numpy on it at that size
-        (:func:`nirspi_pipe.accel.choose`), else ``numpy``: on PoCL's CPU device the device OMP is
+        (:func:`nirspi_pipe.opencl_devices.choose`), else ``numpy``: on PoCL's CPU device the device OMP is
         slower than numpy (``nirspi-bench omp --opencl``; docs/reconstruction.md)."""
         if self.backend != "auto":
             return self.backend

@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.accel import is_gpu
-from nirspi_pipe.accel import opencl_context as accel_context
 from nirspi_pipe.errors import NirspiError
+from nirspi_pipe.opencl_devices import is_gpu
+from nirspi_pipe.opencl_devices import opencl_context as accel_context
 from nirspi_pipe.solvers.omp_kernels import KERNELS, kernel_source
 
 __all__ = ["DeviceOmp", "opencl_context", "gpu_available", "STOP_REASONS"]
@@ -50,7 +50,7 @@ STOP_REASONS = ("running", "max_atoms", "exhausted", "residual_tol", "zero_measu
 @lru_cache(maxsize=4)
 def opencl_context(device: str = "auto") -> tuple[Any, Any, dict[str, Any]]:
     """``(context, queue, kernels by name)`` on the device ``device`` names
-    (:func:`nirspi_pipe.accel.opencl_device`), built once per process. Raises
+    (:func:`nirspi_pipe.opencl_devices.opencl_device`), built once per process. Raises
     :class:`NirspiError` (one line) when there is none or its compiler fails."""
     try:
         import pyopencl as cl  # start-up: loads pyopencl, attrs, pytools (64 ms here)
@@ -109,7 +109,7 @@ class DeviceOmp:
         rows, cols: the measured Hadamard cells (``(m,)`` each).
         colnorm: ``‖A[:, p]‖`` (``(N,)``).
         k_max: atoms at most.
-        device: a device spec of :mod:`nirspi_pipe.accel`.
+        device: a device spec of :mod:`nirspi_pipe.opencl_devices`.
     """
 
     def __init__(
