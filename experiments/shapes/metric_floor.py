@@ -1,6 +1,7 @@
 """The 3D metrics' own floor (issue 44 item 4): a Markdown table for docs/mesh.md.
 
     python experiments/shapes/metric_floor.py [--resolution 64] [--shapes sphere,multi,...,insect]
+    python experiments/shapes/metric_floor.py --write-insect insect.obj   # the thin shape, for nirspi-run scene=mesh
 
 For each shape, the "reconstruction" is the exact surface point-sampled at the scored grid's pixel
 centres (one ray per pixel), its cloud those samples and its mesh their grid triangulation without
@@ -153,7 +154,13 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--shapes", default=",".join(SHAPES))
+    ap.add_argument(
+        "--write-insect", metavar="PATH", help="write the insect OBJ (scene=mesh scene.rotation_deg=[20,0,0]) and stop"
+    )
     args = ap.parse_args(argv)
+    if args.write_insect:
+        print(insect_obj(Path(args.write_insect)))
+        return
     print(
         "| shape | chamfer floor (mm) | old reference: chamfer (mm), its points off the surface | "
         "depth RMSE, Eq. 16 on coverage ≥ 0.5 (mm) | depth RMSE, inner pixels (mm), share |"
