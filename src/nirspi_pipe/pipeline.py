@@ -21,7 +21,17 @@ from nirspi_pipe.errors import ConfigError, NirspiError, NumericalError
 from nirspi_pipe.instantiate import EFFECT_GROUPS, Plan, build, check_types, plain_config
 from nirspi_pipe.jobkey import config_hash
 from nirspi_pipe.scene.render import forget_renders
-from nirspi_pipe.stages import Aimable, Itof, NeedsScene, Products, ReadsScanOptions, ScanIndices, check_stage
+from nirspi_pipe.stages import (
+    Aimable,
+    Itof,
+    NeedsScene,
+    Products,
+    ReadsScanOptions,
+    RunStages,
+    ScanIndices,
+    ScoresWithStages,
+    check_stage,
+)
 from nirspi_pipe.types import Acquisition, Camera, Image2D, Mesh, PointCloud
 
 __all__ = [
@@ -310,11 +320,15 @@ def _refuse_null_models(config: Mapping[str, Any]) -> None:
 
 def _build_all(plan: Plan, clock: _Clock) -> tuple[Camera, dict[str, Any]]:
     """The camera and every stage of the plan, timed as ``build``; every target checked once,
-    before anything is imported."""
+    before anything is imported. A metrics stage that scores with the run's stages
+    (:class:`ScoresWithStages`) gets the ones built here: each stage is built once."""
     with clock.stage("build"):
         plan.check()
         camera: Camera = build(plan.config["camera"], "camera", plan)
         stages = build_stages(plan.config, plan)
+        if isinstance(stages.get("metrics"), ScoresWithStages):
+            wired = RunStages(stages.get("scene"), stages.get("source"), stages.get("upscale"))
+            stages["metrics"] = stages["metrics"].with_stages(wired)
     return camera, stages
 
 

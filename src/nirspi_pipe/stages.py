@@ -29,8 +29,10 @@ method and attribute the protocol declares, by name), so a stage that lacks a me
 pipeline uses fails when it is built, with one line naming the group, its ``_target_`` and the
 missing members. Two optional protocols add what only some stages do: a source that replays a
 recording naming its scan option (:class:`ReadsScanOptions`: the runner hands it the config
-layer's resolver) and an iToF stage whose spots are aimed with the 2D image (:class:`Aimable`).
-The runner reads no member that a protocol does not declare.
+layer's resolver), an iToF stage whose spots are aimed with the 2D image (:class:`Aimable`) and
+a metrics stage that scores with the run's own built stages (:class:`ScoresWithStages`: the
+runner hands it the scene model, source and upscaler it built, :class:`RunStages`; no config
+copy of them is built a second time). The runner reads no member that a protocol does not declare.
 
 Every stage class (and every class built inside a stage's node, such as a fog model) may also
 define :class:`WarmsUp`'s class method ``warm_up(params)``: what its first use in a process
@@ -75,6 +77,8 @@ __all__ = [
     "WarmsUp",
     "ReadsScanOptions",
     "Aimable",
+    "RunStages",
+    "ScoresWithStages",
     "ScanIndices",
     "PROTOCOLS",
     "check_stage",
@@ -226,6 +230,26 @@ class Metrics(Protocol):
     """Scores a run's products against the ground truth."""
 
     def compute(self, products: Products) -> dict[str, float]: ...
+
+
+@dataclass(frozen=True)
+class RunStages:
+    """The run's built stages that a metrics stage may score with (:class:`ScoresWithStages`);
+    None where the run has none (``scene=null``, ``upscale=null``)."""
+
+    scene: SceneModel | None = None
+    source: Source | None = None
+    upscaler: Upscaler | None = None
+
+
+@runtime_checkable
+class ScoresWithStages(Protocol):
+    """Optional part of the metrics protocol: a metrics stage that scores with the run's own
+    stages (the scene model rendered again on an upscaled grid, the source's noise-free image
+    there, the upscaler applied to the camera's noise-free image). The runner builds each stage
+    once and calls ``compute`` on ``with_stages(RunStages(scene, source, upscaler))``."""
+
+    def with_stages(self, stages: RunStages) -> Metrics: ...
 
 
 #: The protocol each stage group's ``_target_`` must satisfy.

@@ -3,19 +3,19 @@ upscaled resolution.
 
 The default metrics compare the solver's image with the ground truth at the camera resolution.
 A super-resolved image has ``scale`` times more pixels per side, so its truth is the same scene
-rendered on the finer grid: this class gets the run's scene model through the config
-(``scene: ${scene}`` in ``conf/metrics/upscale.yaml``) and renders it again with the same field
-of view at the upscaled side length. Nothing else changes: the low-resolution camera, the
+rendered on the finer grid: this class gets the run's own scene model from the runner
+(:class:`~nirspi_pipe.stages.ScoresWithStages`: the stage the run built, not a copy built again
+from the config) and renders it again with the same field of view at the upscaled side length. Nothing else changes: the low-resolution camera, the
 measurements and the solver are those of the run. Next to the upscaler's scores it reports the
 bicubic interpolation of the *same* reconstruction (``bicubic_*``) and the PSNR gain over it,
 so every run carries its own baseline.
 
 As at the camera resolution (:mod:`nirspi_pipe.metrics`), ``upscale_psnr``/``upscale_ssim`` are
-normalised against the noise-free image the camera forms of the fine scene (the run's source,
-``source: ${source}``, renders it with :meth:`Simulator.reference_image`), and
+normalised against the noise-free image the camera forms of the fine scene (the run's source
+renders it with :meth:`Simulator.reference_image`), and
 ``upscale_psnr_raw``/``upscale_ssim_raw`` are the radiometric scores against the fine radiance.
 
-Given the run's upscaler (``upscaler: ${upscale}``), ``noise_{ssim,psnr,rmse}`` score the upscaled
+With the run's upscaler (and ``noise_scores``, default true), ``noise_{ssim,psnr,rmse}`` score the upscaled
 image against the *same upscaler applied to the camera's noise-free image* at the camera
 resolution (``Acquisition.reference``): what the noise, the daylight wander and the fog
 fluctuation cost at the upscaled resolution, without the resolution limit that the scores against
@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from nirspi_pipe.metrics import ImageMetrics, content_test, measured_values, measured_view
 from nirspi_pipe.scene.render import render_cached
-from nirspi_pipe.stages import Products
+from nirspi_pipe.stages import Products, RunStages
 from nirspi_pipe.types import Image2D
 from nirspi_pipe.upscale.base import finish
 from nirspi_pipe.upscale.bicubic import bicubic
@@ -50,16 +50,25 @@ class UpscaleMetrics(ImageMetrics):
     reconstruction (clipped to [0, 1]), and ``upscale_gain_db`` = upscale − bicubic PSNR (dB).
 
     Attributes:
-        scene: the run's scene model (``${scene}``), rendered again on the fine grid.
-        source: the run's source (``${source}``); when it has ``reference_image`` (the
-            simulator), the normalised scores use the camera's noise-free image of the fine scene.
-        upscaler: the run's upscaler (``${upscale}``); when given, the ``noise_*`` scores
-            (module docstring).
+        noise_scores: the ``noise_*`` scores (module docstring), where the run has an upscaler.
+        scene: the run's scene model, rendered again on the fine grid.
+        source: the run's source; when it has ``reference_image`` (the simulator), the
+            normalised scores use the camera's noise-free image of the fine scene.
+        upscaler: the run's upscaler, for the ``noise_*`` scores.
+
+    ``scene``, ``source`` and ``upscaler`` are not config keys: the runner hands over the stages
+    it built (:meth:`with_stages`).
     """
 
-    scene: Any = None
-    source: Any = None
-    upscaler: Any = None
+    noise_scores: bool = True
+    scene: Any = field(default=None, repr=False, compare=False, metadata={"config": False})
+    source: Any = field(default=None, repr=False, compare=False, metadata={"config": False})
+    upscaler: Any = field(default=None, repr=False, compare=False, metadata={"config": False})
+
+    def with_stages(self, stages: RunStages) -> UpscaleMetrics:
+        """These metrics with the run's built scene model, source and upscaler
+        (:class:`~nirspi_pipe.stages.ScoresWithStages`)."""
+        return replace(self, scene=stages.scene, source=stages.source, upscaler=stages.upscaler)
 
     @classmethod
     def warm_up(cls, params: Mapping[str, Any]) -> None:
@@ -97,7 +106,7 @@ class UpscaleMetrics(ImageMetrics):
         camera = content_test(camera_ref, np.asarray(products.image.data, dtype=np.float64), carried, view)
         kw: dict[str, Any] = {"upstream": "" if camera.reason is None else f"{camera.flag}"}
         out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
-        if self.upscaler is not None and clean is not None:
+        if self.noise_scores and self.upscaler is not None and clean is not None:
             clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
             if clean_up.shape == est.shape:
                 out.update(

@@ -1,0 +1,111 @@
+"""Stages wired as objects (issue 42, item 3): the metrics stages that score with the run's scene
+model, source and upscaler (``metrics=upscale``, ``metrics=full``) get the stages the run built
+(:class:`nirspi_pipe.stages.ScoresWithStages`), not copies of their config built a second time.
+
+Before (at 27f888e), ``conf/metrics/{full,upscale}.yaml`` carried ``scene: ${scene}``,
+``source: ${source}`` and ``upscaler: ${upscale}``: every such run built a second scene model, a
+second simulator and a second FSRCNN for its metrics.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import pytest
+
+import nirspi_pipe.instantiate as instantiate
+from nirspi_pipe.app.api import compose, run
+from nirspi_pipe.instantiate import plain_config
+from nirspi_pipe.mesh.metrics3d import Metrics3D
+from nirspi_pipe.scene.objects import Sphere
+from nirspi_pipe.sources.simulator import Simulator
+from nirspi_pipe.stages import RunStages, ScoresWithStages
+from nirspi_pipe.upscale import FSRCNN
+from nirspi_pipe.upscale.metrics import UpscaleMetrics
+
+#: The device model at its smallest: 8² camera, FSRCNN ×4 to 32² (conf/preset/device.yaml).
+DEVICE = ["output.images=false", "output.arrays=false", "seed=0"]
+#: The 3D stages up to the fused cloud (no surface: the power crust is the slow part).
+THREE_D = ["sfs=second_order", "itof=cw4", "fusion=itof", "metrics=full"]
+
+
+def _built_from_config(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    """``{config path: object}`` of every ``_target_`` node the runner builds (wraps the builder's
+    recursion, :func:`nirspi_pipe.instantiate._instantiate`)."""
+    built: dict[str, Any] = {}
+    inner = instantiate._instantiate
+
+    def recorded(node: Any, path: str, plan: Any) -> Any:
+        out = inner(node, path, plan)
+        if isinstance(node, dict) and "_target_" in node:
+            built[path] = out
+        return out
+
+    monkeypatch.setattr(instantiate, "_instantiate", recorded)
+    return built
+
+
+def _scored_with(monkeypatch: pytest.MonkeyPatch, cls: type) -> list[Any]:
+    """The metrics objects whose ``compute`` ran."""
+    seen: list[Any] = []
+    compute = cls.compute
+
+    def spy(self: Any, products: Any) -> Any:
+        seen.append(self)
+        return compute(self, products)
+
+    monkeypatch.setattr(cls, "compute", spy)
+    return seen
+
+
+def _run(overrides: list[str]) -> dict[str, float]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return dict(run(overrides).metrics)
+
+
+def test_the_upscale_metrics_score_with_the_run_s_own_stages(monkeypatch: pytest.MonkeyPatch) -> None:
+    built = _built_from_config(monkeypatch)
+    seen = _scored_with(monkeypatch, UpscaleMetrics)
+    metrics = _run(DEVICE)  # the default run: device preset, metrics=upscale
+    assert {"upscale_psnr", "noise_psnr", "bicubic_psnr"} <= set(metrics)  # every stage was there to score with
+    kinds = {path: type(obj) for path, obj in built.items()}
+    assert [p for p, k in kinds.items() if k in (Sphere, Simulator, FSRCNN)] == ["scene", "source", "upscale"]
+    assert not [p for p in built if p.startswith("metrics.")]  # nothing built inside the metrics node
+    (scored,) = seen
+    assert scored.scene is built["scene"] and scored.source is built["source"] and scored.upscaler is built["upscale"]
+
+
+def test_the_3d_metrics_score_with_the_run_s_own_stages(monkeypatch: pytest.MonkeyPatch) -> None:
+    built = _built_from_config(monkeypatch)
+    seen = _scored_with(monkeypatch, Metrics3D)
+    metrics = _run([*DEVICE, "upscale=bicubic", *THREE_D])
+    assert "upscale_psnr" in metrics and "depth_rmse_fused_mm" in metrics  # scored on the upscaled grid
+    assert [p for p, obj in built.items() if isinstance(obj, (Sphere, Simulator))] == ["scene", "source"]
+    (scored,) = seen
+    assert scored.scene is built["scene"] and scored.source is built["source"]
+
+
+@pytest.mark.parametrize("option", ["full", "upscale"])
+def test_the_metrics_nodes_hold_no_copy_of_another_stage(option: str) -> None:
+    cfg, _ = compose([f"metrics={option}"])
+    node = plain_config(cfg)["metrics"]
+    assert not {"scene", "source", "upscaler"} & set(node)
+    assert not any(isinstance(v, dict) for v in node.values())  # no nested _target_ node to build
+
+
+def test_with_stages_hands_over_the_run_s_objects() -> None:
+    scene, source, upscaler = Sphere(), Simulator(), object()
+    stages = RunStages(scene, source, upscaler)  # type: ignore[arg-type]
+    up = UpscaleMetrics().with_stages(stages)
+    assert isinstance(UpscaleMetrics(), ScoresWithStages) and isinstance(Metrics3D(), ScoresWithStages)
+    assert (up.scene, up.source, up.upscaler) == (scene, source, upscaler)
+    assert up.scene is scene and up.source is source and up.upscaler is upscaler
+    full = Metrics3D(sample_spacing_mm=2.0).with_stages(stages)
+    assert full.scene is scene and full.source is source and full.sample_spacing_mm == 2.0
+
+
+def test_noise_scores_switch_off_with_their_key() -> None:
+    metrics = _run([*DEVICE, "metrics.noise_scores=false"])
+    assert "upscale_psnr" in metrics and not any(k.startswith("noise_") for k in metrics)
