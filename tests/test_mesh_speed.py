@@ -9,9 +9,11 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from scipy import sparse
 
+from nirspi_pipe.mesh.anchors import _anchor_residuals, np_sum
 from nirspi_pipe.mesh.crustfaces import _stable_order, _weld
-from nirspi_pipe.mesh.pointcloud import _nanmedian_last, heat_diffusion, heat_graph, heat_step
+from nirspi_pipe.mesh.pointcloud import _nanmedian_last, _step_matrix, heat_diffusion, heat_graph, heat_step
 from nirspi_pipe.mesh.powercrust import _compact, _group_first, circumcentres
 
 # finite values with ties, signed zeros and a wide range of magnitudes
@@ -152,3 +154,65 @@ def test_weld_is_the_components_of_the_close_pairs(points: np.ndarray, tol: floa
     assert len(set(zip(cl.tolist(), ref.tolist()))) == len(set(cl.tolist())) == len(set(ref.tolist()))
     for c in range(len(pos)):
         assert np.allclose(pos[c], points[cl == c].mean(axis=0), rtol=0, atol=1e-15)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(_FLOATS, max_size=300))
+def test_np_sum_is_numpys_sum(values: list[float]) -> None:
+    # the anchors' fit sums Python floats in numpy's order: same bits as np.sum of the array
+    # (lengths past 8 and 128 exercise numpy's eight running sums and its halving)
+    ours = np_sum(values)
+    ref = float(np.sum(np.array(values, dtype=np.float64)))
+    assert np.float64(ours).tobytes() == np.float64(ref).tobytes()
+
+
+def _residuals_reference(b, z, sig, focal, sp, prior, x):  # type: ignore[no-untyped-def]
+    """The anchors' residuals as numpy arrays (the code the Python-float version replaced)."""
+    eu, c = np.exp(x[0]), np.exp(x[1])
+    rel = focal is not None
+    s = eu * (c / focal if rel else 1.0)
+    r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
+    if sp is not None:
+        r.append(np.array([np.expm1(x[0]) / sp]))
+        du.append(np.array([eu / sp]))
+        dv.append(np.zeros(1))
+    if prior is not None:
+        r.append(np.array([(c - prior[0]) / prior[1]]))
+        du.append(np.zeros(1))
+        dv.append(np.array([c / prior[1]]))
+    return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 2**32 - 1),
+    st.integers(1, 12),
+    st.sampled_from([None, 300.0]),
+    st.sampled_from([None, 0.2]),
+    st.sampled_from([None, (0.2, 0.05)]),
+)
+def test_anchor_residuals_are_the_numpy_ones(seed: int, k: int, focal, sp, prior) -> None:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(seed)
+    b = rng.normal(0.0, 10.0 ** rng.uniform(-2, 2), k)
+    z = 0.2 + rng.normal(0.0, 0.01, k)
+    sig = 10.0 ** rng.uniform(-5, -1, k)
+    fun = _anchor_residuals(b, z, sig, focal, sp, prior)
+    for x in ((0.0, np.log(0.2)), tuple(rng.normal(0.0, 1.0, 2))):
+        ours = fun((float(x[0]), float(x[1])))
+        for got, ref in zip(ours, _residuals_reference(b, z, sig, focal, sp, prior, x)):
+            assert _same(np.array(got, dtype=np.float64), ref)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 80), st.integers(1, 10), st.sampled_from([5e-324, 0.3, 2.0]))
+def test_step_matrix_is_scipys(seed: int, p: int, knn: int, t: float) -> None:
+    # the heat step's matrix (1 + t) D - t W, built without scipy's conversions: same stored
+    # entries in the same order (duplicate points put W's entries on the diagonal; t = 5e-324
+    # makes t * w underflow to zeros, which scipy does not store)
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0.0, 0.01, (p, 3))
+    pts[: p // 3] = pts[0]
+    w, deg = heat_graph(pts, knn)
+    ref = ((1.0 + t) * sparse.diags(deg) - t * w).tocsc()
+    data, indices, indptr = _step_matrix(w, deg, t)
+    assert _same(data, ref.data) and np.array_equal(indices, ref.indices) and np.array_equal(indptr, ref.indptr)

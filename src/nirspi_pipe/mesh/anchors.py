@@ -7,14 +7,18 @@ flags a placement the fit itself expects to be worse than the working-distance p
 :func:`depth_noise` estimates the SFS map's noise that weights the anchors; :func:`anchor_weights`
 and :func:`region_weights` blend per-anchor offsets over the image.
 
-The fit uses elementwise numpy and sums only, no BLAS or LAPACK (the 2×2 covariance is inverted in
-closed form), so that it gives the same bits under every OpenBLAS kernel set (docs/sweeps.md).
+The fit uses elementwise IEEE operations and sums only, no BLAS or LAPACK (the 2×2 covariance is
+inverted in closed form), so that it gives the same bits under every OpenBLAS kernel set
+(docs/sweeps.md). Its residuals (a handful: one per anchor and prior) are Python floats summed in
+numpy's own order (:func:`np_sum`): the same bits as the numpy arrays it used before, without the
+cost of a dozen tiny numpy calls per step (the leave-one-out fits ran about 110 residual
+evaluations a job).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -148,8 +152,48 @@ def _inv_sym2(a: float, b: float, d: float) -> np.ndarray:
     return np.array([[a, b], [b, d]]) / tr**2
 
 
+def _pairwise_sum(a: Sequence[float], lo: int, n: int) -> float:
+    """numpy's pairwise summation of ``a[lo:lo + n]`` (``pairwise_sum`` in numpy's
+    ``loops_utils.h``): plain below 8 terms, eight running sums up to 128, halves above."""
+    if n < 8:
+        res = -0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3, r4, r5, r6, r7 = a[lo : lo + 8]
+        i = 8
+        while i < n - n % 8:
+            p = lo + i
+            r0, r1, r2, r3 = r0 + a[p], r1 + a[p + 1], r2 + a[p + 2], r3 + a[p + 3]
+            r4, r5, r6, r7 = r4 + a[p + 4], r5 + a[p + 5], r6 + a[p + 6], r7 + a[p + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        for q in range(lo + i, lo + n):
+            res += a[q]
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise_sum(a, lo, n2) + _pairwise_sum(a, lo + n2, n - n2)
+
+
+def np_sum(a: Sequence[float]) -> float:
+    """``float(np.sum(np.array(a, dtype=np.float64)))`` for a sequence of Python floats, with the
+    same bits (numpy's reduction starts from 0.0 and adds the pairwise sum;
+    tests/test_mesh_speed.py compares them on random lengths and magnitudes)."""
+    return 0.0 + _pairwise_sum(a, 0, len(a))
+
+
+def _dots(u: Sequence[float], v: Sequence[float]) -> float:
+    """``float(np.sum(u * v))`` of two equal-length float sequences, same bits (:func:`np_sum`)."""
+    return np_sum([x * y for x, y in zip(u, v)])
+
+
+_Residuals = tuple[list[float], list[float], list[float]]
+
+
 def _levenberg_marquardt(
-    fun: Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    fun: Callable[[tuple[float, float]], _Residuals],
     x0: tuple[float, float],
     u_bound: float,
     v_max: float,
@@ -160,20 +204,21 @@ def _levenberg_marquardt(
     Optimization*, 2nd ed., §10.3), steps projected onto the bounds. ``fun`` returns the
     residuals and their derivatives in ``u`` and ``v``.
 
-    Written out with elementwise numpy and sums only, so that the fit gives the same bits under
-    every OpenBLAS/LAPACK kernel set (``scipy.optimize.least_squares`` did not: its last bits
-    moved the fused cloud of one CI job, docs/sweeps.md)."""
+    Written out with elementwise IEEE operations and numpy-ordered sums only (:func:`np_sum`), so
+    that the fit gives the same bits under every OpenBLAS/LAPACK kernel set
+    (``scipy.optimize.least_squares`` did not: its last bits moved the fused cloud of one CI
+    job, docs/sweeps.md)."""
 
     def clip(u: float, v: float) -> tuple[float, float]:
         return min(max(u, -u_bound), u_bound), min(v, v_max)
 
     x = clip(*x0)
     r, ju, jv = fun(x)
-    cost = float(np.sum(r * r))
+    cost = _dots(r, r)
     lam = 1e-3
     for _ in range(max_iter):
-        a, b, d = float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv))
-        gu, gv = float(np.sum(ju * r)), float(np.sum(jv * r))
+        a, b, d = _dots(ju, ju), _dots(ju, jv), _dots(jv, jv)
+        gu, gv = _dots(ju, r), _dots(jv, r)
         if not (math.isfinite(cost) and math.isfinite(a + b + d + gu + gv)):
             break
         if abs(gu) + abs(gv) <= 1e-15 * max(cost, 1e-300) ** 0.5 * (math.sqrt(a) + math.sqrt(d) + 1e-300):
@@ -188,7 +233,7 @@ def _levenberg_marquardt(
             du, dv = (-d2 * gu + b * gv) / det, (b * gu - a2 * gv) / det
             x_new = clip(x[0] + du, x[1] + dv)
             r_new, ju_new, jv_new = fun(x_new)
-            cost_new = float(np.sum(r_new * r_new))
+            cost_new = _dots(r_new, r_new)
             if math.isfinite(cost_new) and cost_new <= cost:
                 step = abs(x_new[0] - x[0]) + abs(x_new[1] - x[1])
                 gain = cost - cost_new
@@ -256,8 +301,9 @@ def fit_anchors(
     c0 = _start_placement(b, z, sig, f_px if rel else None, prior)
     with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         x = _levenberg_marquardt(residuals, (0.0, math.log(c0)), _LOG_RATIO_BOUND, math.log(1e12))
-        res, ju, jv = residuals(x)
-        cov = _inv_sym2(float(np.sum(ju * ju)), float(np.sum(ju * jv)), float(np.sum(jv * jv)))
+        res_l, ju, jv = residuals(x)
+        cov = _inv_sym2(_dots(ju, ju), _dots(ju, jv), _dots(jv, jv))
+    res = np.array(res_l, dtype=np.float64)
     u, v = x
     c = math.exp(v) if v < 709.0 else math.inf
     s_ref = c / f_px if rel else 1.0
@@ -299,28 +345,40 @@ def _anchor_residuals(
     focal: float | None,
     sp: float | None,
     prior: tuple[float, float] | None,
-) -> Callable[[tuple[float, float]], tuple[np.ndarray, np.ndarray, np.ndarray]]:
+) -> Callable[[tuple[float, float]], _Residuals]:
     """The fit's residuals and their derivatives in ``u`` and ``ln c`` (analytic), as a function
-    of ``(u, ln c)``; ``focal`` None: metric SFS depth."""
+    of ``(u, ln c)``; ``focal`` None: metric SFS depth. Lists of Python floats: the anchors'
+    terms, then the scale prior's and the placement prior's where given (the same IEEE
+    operations, in the same order, as numpy's elementwise ``(c + s·b − z)/σ`` and so on).
+
+    Raises:
+        NirspiError: an anchor with ``σ = 0`` (its residual is not finite: the fit cannot converge
+            to finite values, as numpy's division by zero made it fail before).
+    """
     rel = focal is not None
     f_px = focal if focal is not None else 1.0
     has_prior = prior is not None
     pm, ps = prior if prior is not None else (0.0, 1.0)
+    terms = list(zip(b.tolist(), z.tolist(), sig.tolist()))
+    if any(si == 0.0 for _, _, si in terms):
+        raise NirspiError("fusion: the anchors' fit of the depth scale and offset did not converge to finite values")
 
-    def residuals(x: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def residuals(x: tuple[float, float]) -> _Residuals:
         """Residuals and their derivatives in ``u`` and ``ln c`` (analytic)."""
         eu, c = math.exp(x[0]), math.exp(x[1])
         s = eu * (c / f_px if rel else 1.0)
-        r, du, dv = [(c + s * b - z) / sig], [s * b / sig], [(c + s * b if rel else c + 0.0 * b) / sig]
+        r = [(c + s * bi - zi) / si for bi, zi, si in terms]
+        du = [s * bi / si for bi, _, si in terms]
+        dv = [(c + s * bi) / si for bi, _, si in terms] if rel else [(c + 0.0 * bi) / si for bi, _, si in terms]
         if sp is not None:  # ratio e^u ~ N(1, rel), > 0
-            r.append(np.array([math.expm1(x[0]) / sp]))
-            du.append(np.array([eu / sp]))
-            dv.append(np.zeros(1))
+            r.append(math.expm1(x[0]) / sp)
+            du.append(eu / sp)
+            dv.append(0.0)
         if has_prior:
-            r.append(np.array([(c - pm) / ps]))
-            du.append(np.zeros(1))
-            dv.append(np.array([c / ps]))
-        return np.concatenate(r), np.concatenate(du), np.concatenate(dv)
+            r.append((c - pm) / ps)
+            du.append(0.0)
+            dv.append(c / ps)
+        return r, du, dv
 
     return residuals
 
