@@ -128,8 +128,8 @@ def truth_surface(truth: Scene, scene_model: Any = None, factor: int = FINE_FACT
 
 def _fine_render(truth: Scene, scene_model: Any, factor: int) -> Scene | None:
     """``scene_model`` rendered with ``supersample = 1`` on the ``factor``-times finer grid, or None
-    (no model, no ``supersample`` field, a grid beyond :data:`MAX_FINE_SIDE`, or a model that
-    renders another field of view)."""
+    (no model, no ``supersample`` field, a grid beyond :data:`MAX_FINE_SIDE`, or a render of
+    another size)."""
     if scene_model is None or factor < 1 or not dataclasses.is_dataclass(scene_model) or isinstance(scene_model, type):
         return None
     if "supersample" not in {f.name for f in dataclasses.fields(scene_model)}:
@@ -157,10 +157,9 @@ def inner_pixels(surface: TruthSurface, shape: tuple[int, int]) -> np.ndarray | 
     right, down, _ = same_surface(depth, surface.hit, grid)
     full = surface.hit.reshape(n0, k, n1, k).all(axis=(1, 3))
     # pairs inside a pixel: drop the pairs that straddle two pixels, then require all of them
-    r = right.reshape(n0 * k, n1 * k - 1)
     r_inside = np.ones((n0 * k, n1 * k - 1), dtype=bool)
     r_inside[:, k - 1 :: k] = False
-    r_ok = np.where(r_inside, r, True)
+    r_ok = np.where(r_inside, right, True)
     r_ok = np.concatenate([r_ok, np.ones((n0 * k, 1), dtype=bool)], axis=1)
     d_inside = np.ones((n0 * k - 1, n1 * k), dtype=bool)
     d_inside[k - 1 :: k, :] = False
