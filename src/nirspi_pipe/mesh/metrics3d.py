@@ -15,7 +15,13 @@ surface distances.
   of the baseline's squared error is ``sfs_offset_mm² / depth_rmse_sfs_mm²``.
 * ``depth_rmse_fused_mm``: Eq. (16) between the true z-depth and the fused cloud (output of
   Alg. A3), interpolated on the same pixels (linear over the Delaunay triangulation of the
-  points' image positions); ``depth_pixels`` counts the pixels compared.
+  points' image positions); ``depth_pixels`` counts the pixels compared. The truth there is the
+  pixel's mean depth over its rays that hit (coverage ≥ 0.5), which at a depth jump inside the
+  pixel is no surface's depth.
+* ``depth_rmse_fused_inner_mm``: the same on the compared pixels *fully inside one surface*
+  (:func:`~nirspi_pipe.mesh.truthsurface.inner_pixels`: all their fine samples hit and no
+  neighbour pair among them jumps in depth), ``depth_inner_pixels`` of them, a share
+  ``depth_inner_share`` (0–1) of ``depth_pixels``; only with the scene model (a fine render).
 * ``improvement_pct``: Eq. (17), ``(RMSE_A2 − RMSE_A3) / RMSE_A2 × 100`` with the geometric
   baseline; ``improvement_fit_pct`` the same with the global-fit baseline,
   ``improvement_offsetfree_pct`` with the offset-free baseline. The paper's
@@ -30,10 +36,12 @@ surface distances.
   good < 0.5 ≤ fair < 0.75 ≤ poor < 0.9 ≤ very poor < 1, degenerate = 1);
   ``skewness_sfs_mean`` is the same for the pixel-grid mesh of the metric SFS depth.
 * ``chamfer_mm`` / ``hausdorff_mm``: symmetric chamfer (mean of the two mean nearest-neighbour
-  distances) and Hausdorff distance between the final mesh and the ground-truth surface (the
-  true depth map back-projected and triangulated, sampled at its vertices and face centroids);
-  the mesh is sampled uniformly at ``sample_spacing_mm`` (default: the true pixel pitch at the scene distance, ~1.1 mm for
-  the default sphere at 64²), so sampling adds a floor of about a third of that spacing.
+  distances) and Hausdorff distance between the final mesh and the true visible surface
+  (:func:`~nirspi_pipe.mesh.truthsurface.truth_surface`: the scene model ray-cast with one ray per
+  sample on a grid 4× finer than the scored one, every hit sample plus the centroids of the faces
+  that join samples of one surface; no face bridges a depth jump). The mesh is sampled uniformly at
+  ``sample_spacing_mm`` (default: half the true pixel pitch at the scene distance, ~0.55 mm for
+  the default sphere at 64²); docs/mesh.md states the metric's own floor.
 """
 
 from __future__ import annotations
@@ -49,6 +57,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 from nirspi_pipe.errors import ConfigError
 from nirspi_pipe.instantiate import build
 from nirspi_pipe.mesh.pointcloud import back_project, grid_triangles
+from nirspi_pipe.mesh.truthsurface import TruthSurface, inner_pixels, truth_surface
 from nirspi_pipe.metrics import ImageMetrics, rmse
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products, RunStages
@@ -348,8 +357,8 @@ class Metrics3D:
     Attributes:
         names: the 2D image metrics (subset of ``ssim``, ``psnr``, ``rmse``).
         clip: clip the 2D reconstruction to [0, 1] before scoring.
-        sample_spacing_mm: surface sampling for chamfer/Hausdorff, mm; null = the true pixel
-            pitch at the scene distance.
+        sample_spacing_mm: surface sampling for chamfer/Hausdorff, mm; null = half the true
+            pixel pitch at the scene distance.
         scene, source: the run's scene model and source; with an upscaled image they give the
             scores on the upscaled grid (module docstring). Not config keys: the runner hands
             over the stages it built (:meth:`with_stages`).
@@ -392,36 +401,30 @@ class Metrics3D:
         if z_sfs is not None:
             out.update(_sfs_skewness(truth.camera, z_sfs))
         compared = compared_depths(truth, depth, cloud)
+        surface = truth_surface(truth, self.scene) if compared is not None or mesh is not None else None
         if compared is not None:
             out.update(_depth_scores(truth, compared))
+            assert surface is not None
+            out.update(_inner_depth_scores(truth, compared, inner_pixels(surface, truth.depth_m.shape)))
         if mesh is not None and len(mesh.faces):
-            out.update(self._mesh_scores(truth, mesh))
+            assert surface is not None
+            out.update(self._mesh_scores(truth, mesh, surface))
         elif mesh is not None:
             warnings.warn("metrics: the mesh has no face; no skewness or surface distance", stacklevel=2)
         return out
 
-    def _mesh_scores(self, truth: Any, mesh: Any) -> dict[str, float]:
-        """The mesh's equiangle skewness (summary and candidates) and, where the truth has
-        pixels, its chamfer and Hausdorff distances to the true surface (mm)."""
+    def _mesh_scores(self, truth: Any, mesh: Any, surface: TruthSurface) -> dict[str, float]:
+        """The mesh's equiangle skewness (summary and candidates) and, where the true surface has
+        samples, its chamfer and Hausdorff distances to it (mm)."""
         out = dict(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
         out.update(
             {k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items() if np.isfinite(v)}
         )
-        cam = truth.camera
-        tmask = truth.mask & np.isfinite(truth.depth_m)
-        if tmask.any():
-            pitch = truth.distance_m / cam.focal_px
-            spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch
+        truth_pts = surface.cloud()
+        if len(truth_pts):
+            pitch = truth.distance_m / truth.camera.focal_px
+            spacing = self.sample_spacing_mm * 1e-3 if self.sample_spacing_mm is not None else pitch / 2
             rng = np.random.default_rng(0)  # fixed: a metric must not vary between runs
-            t_verts = back_project(np.where(tmask, truth.depth_m, 0.0), cam).reshape(-1, 3)
-            t_faces = grid_triangles(tmask)
-            # the truth grid is already sampled at the pixel pitch: its vertices and face
-            # centroids are enough (and deterministic)
-            truth_pts = (
-                np.concatenate([t_verts[np.unique(t_faces)], t_verts[t_faces].mean(axis=1)])
-                if len(t_faces)
-                else t_verts[tmask.ravel()]
-            )
             mesh_pts = sample_surface(mesh.vertices_m, mesh.faces, spacing, rng)
             chamfer, hausdorff = surface_distances(mesh_pts, truth_pts)
             out.update(chamfer_mm=chamfer * 1e3, hausdorff_mm=hausdorff * 1e3)
@@ -480,4 +483,18 @@ def _depth_scores(truth: Any, compared: tuple[np.ndarray, ...]) -> dict[str, flo
             out["improvement_offsetfree_pct"] = improvement_rate(free, after)
     else:
         warnings.warn("metrics: SFS depth RMSE is 0; improvement rate undefined", stacklevel=3)
+    return out
+
+
+def _inner_depth_scores(truth: Any, compared: tuple[np.ndarray, ...], inner: np.ndarray | None) -> dict[str, float]:
+    """``depth_rmse_fused_inner_mm`` on the compared pixels fully inside one surface, their count
+    and share of the compared pixels (module docstring); empty without a fine truth (``inner``
+    None) or without compared pixels. The RMSE is absent where no compared pixel is inner."""
+    both, _, _, z_fused = compared
+    if inner is None or not both.any():
+        return {}
+    keep = both & inner
+    out = {"depth_inner_pixels": float(keep.sum()), "depth_inner_share": float(keep.sum() / both.sum())}
+    if keep.any():
+        out["depth_rmse_fused_inner_mm"] = rmse(z_fused[keep], truth.depth_m[keep]) * 1e3
     return out
