@@ -4,7 +4,10 @@ from that plan without converting a node or checking a target again.
 
 Before (at cf90d56 and still at 5911ebf), one default job made 29 conversions (``plain_config``
 calls from outside itself) and 123 allow-list checks in the runner for its 24 targets: every
-``build`` and ``check_types`` converted its node again and checked its targets again."""
+``build`` and ``check_types`` converted its node again and checked its targets again. At 27f888e
+a whole default ``nirspi-run`` still made 35 checks (the app's schema catalogue checked 11 targets
+that the job's plan then checked again), and 55 with a value override (the app's type check of
+the overridden config checked its targets again)."""
 
 from __future__ import annotations
 
@@ -25,11 +28,13 @@ DEFAULT = ["camera.resolution=16", "output.images=false"]
 
 
 class Counts:
-    """Calls of the allow-list check, of the converter (outermost calls only) and of the import
-    by string, counted through the module attributes every caller reads."""
+    """Calls of the allow-list check (and the strings checked), of the converter (outermost calls
+    only) and of the import by string, counted through the module attributes every caller reads.
+    The process's record of passed strings starts empty (as in a new process)."""
 
     def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
         self.checks = 0
+        self.checked: list[Any] = []
         self.conversions = 0
         self.imports = 0
         self._depth = 0
@@ -37,6 +42,7 @@ class Counts:
 
         def counted_check(target: Any, key: str) -> None:
             self.checks += 1
+            self.checked.append(target)
             check(target, key)
 
         def counted_convert(node: Any) -> Any:
@@ -51,7 +57,7 @@ class Counts:
             self.imports += 1
             return locate(target)
 
-        monkeypatch.setattr(instantiate, "_REMEMBERED", [])  # no verdict of an earlier check in this process
+        monkeypatch.setattr(targets, "_PASSED", [])  # no verdict of an earlier check in this process
         for module in (targets, instantiate):
             monkeypatch.setattr(module, "check_target", counted_check, raising=False)
             monkeypatch.setattr(module, "locate", counted_locate, raising=False)
@@ -78,39 +84,56 @@ def test_a_default_job_checks_each_target_once_and_converts_once(
     record = execute_job(composed, tmp_path, {}, DEFAULT)  # the composed OmegaConf node, as Hydra hands it
     assert record["meta"]["status"] == "ok", record["meta"].get("error")
     assert counts.conversions == 1
-    assert counts.checks == n_targets <= 30
+    assert counts.checks == len(set(_targets(plain_config(composed)))) <= n_targets <= 30  # each string once
     assert counts.imports == len(set(_targets(plain_config(composed))))  # each class imported once
 
 
-def test_a_default_run_checks_each_target_once_in_all(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``nirspi-run``'s order in one process, for the default run (no overrides): the app
-    composes and checks the config before it launches Hydra, Hydra composes the job again, the
-    task makes its plan and runs it. The job's plan takes the verdict of the app's check of the
-    equal config: 16 checks in all, not 32. (A value override adds the app's type check of the
-    overridden stage nodes, app.validate._check_types, which checks their targets again.)"""
-    from nirspi_pipe.app.api import compose
+@pytest.mark.parametrize(
+    "overrides",
+    [[], ["camera.resolution=16", "scene.distance_mm=250", "output.images=false"]],
+    ids=["default", "value-overrides"],
+)
+def test_a_nirspi_run_checks_each_target_once_in_all(
+    overrides: list[str], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``nirspi-run``'s order in one process, as in a new process: the app composes the config
+    (its schema catalogue reads the composed options' targets), checks it before it launches Hydra
+    (with a value override, the type check of the overridden config too:
+    app.validate._check_types), Hydra composes the job again, the task makes its plan and runs it.
+    Every target string is checked once in all; at 27f888e the default made 35 checks (11 of the
+    catalogue, then 24 of the plan) and the value overrides 55."""
+    from nirspi_pipe.app import configs
+    from nirspi_pipe.app.entry import check_invocation
 
-    compose([])  # the app's catalogue loaded (its schemas read their targets' signatures once per process)
+    monkeypatch.setattr(configs, "_GENERATED", {})  # the catalogue's schemas made again, as in a new process
     counts = Counts(monkeypatch)
-    cfg, _ = compose([])  # the app's check before launching (app.entry.check_invocation)
-    n_targets = len(_targets(plain_config(cfg)))
-    checks = counts.checks
-    plan = Plan.of(cfg).check()  # the task's plan of the job Hydra composed again (app.cli)
-    record = execute_job(plan, tmp_path, {}, [])
+    invocation = check_invocation([*overrides, f"hydra.run.dir={tmp_path}"])
+    job = {k: v for k, v in invocation.config.items() if k != "hydra"}  # the task's config, without Hydra's node
+    plan = Plan.of(job).check()  # the task's plan of the job Hydra composes again (app.cli._hydra_task)
+    record = execute_job(plan, tmp_path, {}, overrides)
     assert record["meta"]["status"] == "ok", record["meta"].get("error")
-    assert checks == counts.checks  # the job's plan and its build checked nothing again
-    assert counts.checks <= 30 and n_targets == 16
+    names = _targets(plan.config)
+    assert len(counts.checked) == len(set(counts.checked))  # no string checked twice
+    assert set(names) <= set(counts.checked)  # and every one of the job's checked
+    assert counts.checks <= 30
 
 
-def test_a_remembered_verdict_needs_an_equal_config_and_the_same_allow_list(
+def test_a_recorded_verdict_needs_the_same_string_and_the_same_allow_list(
     composed: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(instantiate, "_REMEMBERED", [])
-    Plan(plain_config(composed)).check(remember=True)
+    """A string passed once is not compared again; any other string is, and a new allow-list
+    (here one without the scan's class) drops the record: the verdicts are those of check_target."""
+    counts = Counts(monkeypatch)
+    Plan(plain_config(composed)).check()
+    checks = counts.checks
+    Plan(plain_config(composed)).check()
+    assert counts.checks == checks
     changed = plain_config(composed)
     changed["scan"]["_target_"] = "os.system"
     with pytest.raises(ConfigError, match=r"^scan\._target_='os\.system' is not allowed"):
         Plan(changed).check()
+    with pytest.raises(ConfigError, match=r"^solver\._target_='os\.system' is not allowed"):
+        targets.resolve("os.system", "solver._target_")  # a refusal is never recorded
     monkeypatch.setattr(targets, "PROJECT_TARGETS", targets.PROJECT_TARGETS - {"nirspi_pipe.patterns.orders.Basic"})
     with pytest.raises(ConfigError, match=r"^scan\._target_='nirspi_pipe\.patterns\.orders\.Basic' is not allowed"):
         Plan(plain_config(composed)).check()

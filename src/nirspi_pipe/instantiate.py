@@ -9,7 +9,6 @@ node included, whose interpolations resolve as they are read) into that plain da
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 import inspect
@@ -20,7 +19,7 @@ from functools import lru_cache
 from typing import Any
 
 from nirspi_pipe.errors import ConfigError
-from nirspi_pipe.targets import allowed_targets, check_target, find_targets, locate
+from nirspi_pipe.targets import check_once, find_targets, locate
 
 __all__ = ["EFFECT_GROUPS", "Plan", "accepted_keys", "build", "check_types", "plain_config", "user_key"]
 
@@ -54,25 +53,23 @@ def user_key(full_key: str | None, key: str) -> tuple[str, bool]:
     return (full_key, False) if full_key.startswith(key + ".") else (key, False)
 
 
-#: Configs whose plans were checked with ``remember`` (newest first, at most ``_REMEMBER``), the
-#: allow-list they were checked against and the target strings that passed: :meth:`Plan.check`.
-_REMEMBER = 2
-_REMEMBERED: list[tuple[Any, frozenset[str], frozenset[Any]]] = []
-
-
 class Plan(Mapping[str, Any]):
     """One job's resolved configuration as plain data, converted once (:meth:`of`), whose
-    ``_target_`` strings are checked against the allow-list once (:meth:`check`: one walk, before
-    anything is imported) and whose classes are imported once (:meth:`resolve`).
+    ``_target_`` strings are checked against the allow-list before anything is imported
+    (:meth:`check`: one walk) and whose classes are imported once (:meth:`resolve`).
 
     The front ends make it at the boundary (the app from its composed config; the runner from
     whatever it is handed, when that is not a plan already); :func:`build` and
     :func:`check_types` take it, so building a job's stages neither converts its nodes again
     nor checks a target again (issue 42: before, one default job through
     :func:`nirspi_pipe.execute.execute_job` made 28 conversions, 60 allow-list checks and 40
-    imports by string for its 24 targets; now 1, 24 and 12: tests/test_one_plan.py). A plan owns its ``config``: nothing
-    changes it after it is made. It reads as the mapping it holds (so :func:`plain_config` of a
-    plan is a copy of its config)."""
+    imports by string for its 24 targets; now 1 conversion, one check per distinct target
+    string and one import per class: tests/test_one_plan.py). Checks go through
+    :func:`nirspi_pipe.targets.check_once`: a string that passed against the same allow-list
+    earlier in the process (the app's check of the same config before launching, the schema
+    catalogue's, an earlier job of a sweep) is not compared again. A plan owns its ``config``:
+    nothing changes it after it is made. It reads as the mapping it holds (so
+    :func:`plain_config` of a plan is a copy of its config)."""
 
     __slots__ = ("_checked", "_classes", "config", "path")
 
@@ -97,39 +94,25 @@ class Plan(Mapping[str, Any]):
         :func:`plain_config`; an OmegaConf node's interpolations resolve here)."""
         return cfg if isinstance(cfg, Plan) else cls(plain_config(cfg), path)
 
-    def check(self, *, remember: bool = False) -> Plan:
-        """Every target of the plan against the allow-list (:func:`nirspi_pipe.targets.check_target`
+    def check(self) -> Plan:
+        """Every target of the plan against the allow-list (:func:`nirspi_pipe.targets.check_once`
         on each place :func:`nirspi_pipe.targets.find_targets` names, as ``check_targets``),
-        the first time it is called; a refusal is the one-line :class:`ConfigError` naming its key.
-
-        ``remember``: keep a copy of this plan's config and what passed, so that a later plan of
-        an equal config in this process (``nirspi-run``'s job, composed again by Hydra after the
-        app checked the same config before launching it) takes the verdict without a second
-        walk. Equal plain data names the same strings at the same keys, so against the same
-        allow-list (the same :func:`~nirspi_pipe.targets.allowed_targets` object) the verdict is
-        the same; the copy is taken when the check passes, before anything could change it."""
-        if self._checked is not None:
-            return self
-        allowed = allowed_targets()
-        for config, allowed_then, passed in _REMEMBERED:
-            if allowed_then is allowed and config == self.config:  # the same list, the same strings
-                self._checked = passed
-                return self
-        found = set()
-        for key, target in find_targets(self.config, self.path):  # one walk, as check_targets
-            check_target(target, key)
-            found.add(target)
-        self._checked = frozenset(found)
-        if remember:
-            _REMEMBERED.insert(0, (copy.deepcopy(self.config), allowed, self._checked))
-            del _REMEMBERED[_REMEMBER:]
+        the first time it is called; a refusal is the one-line :class:`ConfigError` naming its
+        key (the first place the string appears)."""
+        if self._checked is None:
+            found = set()
+            for key, target in find_targets(self.config, self.path):  # one walk, as check_targets
+                check_once(target, key)
+                found.add(target)
+            self._checked = frozenset(found)
         return self
 
     def resolve(self, target: Any, key: str) -> Any:
         """:func:`nirspi_pipe.targets.resolve` with this plan's checks: a target :meth:`check` passed
-        is not checked again (any other is, first); each class is imported once per plan."""
+        is not checked again (any other is, first: :func:`nirspi_pipe.targets.check_once`); each
+        class is imported once per plan."""
         if self._checked is None or not isinstance(target, str) or target not in self._checked:
-            check_target(target, key)
+            check_once(target, key)
         name = str(target)
         if name not in self._classes:
             self._classes[name] = locate(name)

@@ -46,6 +46,7 @@ __all__ = [
     "allowed_targets",
     "find_targets",
     "check_target",
+    "check_once",
     "check_targets",
     "resolve",
     "locate",
@@ -278,6 +279,33 @@ def check_target(target: Any, key: str) -> None:
     raise ConfigError(key, target, allowed, absolute=True)
 
 
+#: The target strings that passed :func:`check_target` in this process and the allow-list they
+#: passed against (the :func:`allowed_targets` object, held so it is not collected): :func:`check_once`.
+_PASSED: list[tuple[frozenset[str], set[str]]] = []
+
+
+def check_once(target: Any, key: str) -> None:
+    """:func:`check_target`, once per target string and allow-list in this process (issue 42:
+    each ``_target_`` checked once). A string that passed against the current
+    :func:`allowed_targets` object is not compared again, wherever it appears: the app's schema
+    catalogue checks an option's target when Hydra first composes the option
+    (:func:`nirspi_pipe.app.configs.schema_defaults`, through :func:`resolve`), and the job's
+    plan then names the same string (:class:`nirspi_pipe.instantiate.Plan`). Nothing is weakened:
+    the verdict of :func:`check_target` depends only on the string and the allow-list, a string
+    is recorded only after it passed, the record is dropped when the allow-list is another object
+    (a plugin list read again, ``PROJECT_TARGETS`` replaced), and a refusal is never recorded, so
+    every refusal is :func:`check_target`'s own one line naming the key where it was found."""
+    allowed = allowed_targets()
+    if not _PASSED or _PASSED[0][0] is not allowed:
+        _PASSED[:] = [(allowed, set())]
+    passed = _PASSED[0][1]
+    if isinstance(target, str) and target in passed:
+        return
+    check_target(target, key)
+    if isinstance(target, str):
+        passed.add(target)
+
+
 def check_targets(node: Any, path: str = "") -> None:
     """Check every target in a plain config tree (:func:`find_targets`) before any is built."""
     for key, value in find_targets(node, path):
@@ -304,6 +332,7 @@ def locate(target: str) -> Any:
 
 def resolve(target: Any, key: str) -> Any:
     """The class an allowed ``_target_`` names (checked first, then imported), or None when an
-    allowed name does not import (a plugin registered but not installed)."""
-    check_target(target, key)
+    allowed name does not import (a plugin registered but not installed). Each string is
+    checked once per process and allow-list (:func:`check_once`)."""
+    check_once(target, key)
     return locate(str(target))

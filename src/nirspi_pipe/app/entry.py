@@ -333,7 +333,7 @@ def _check_composed(
     params = check_hydra_node(hydra_node, plain_keys)
     plan = Plan(job)  # the job part (no hydra key: the runner's check is the app's there)
     try:
-        plan.check(remember=True)  # each target once; the job Hydra composes again takes the verdict
+        plan.check()  # each target once (targets.check_once): the job Hydra composes again is not compared again
         check_targets(hydra_node, "hydra")
     except ConfigError as exc:
         raise Refused(str(exc)) from None

@@ -261,12 +261,11 @@ def _check_types(cfg: Any, values: list[Any]) -> str | None:
                 continue
             runs.append((one, (ov.key_or_group.split(".", 1)[0],)))
     for config, groups in runs:
-        for group in groups:
-            node = config.get(group)
-            if node is None:
-                continue
+        nodes = {group: config.get(group) for group in groups if config.get(group) is not None}
+        plan = Plan.of(nodes)  # one conversion of the stage nodes; their targets checked once (check_once)
+        for group in nodes:
             try:
-                check_types(node, group)
+                check_types(plan.config[group], group, plan)
             except ConfigError as exc:
                 return str(exc)
     return None
