@@ -10,11 +10,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from scipy import sparse
+from scipy.spatial import cKDTree
 
-from nirspi_pipe.mesh.anchors import _anchor_residuals, np_sum
+from nirspi_pipe.mesh.anchors import _anchor_residuals, _dots, np_sum
 from nirspi_pipe.mesh.crustfaces import _stable_order, _weld
 from nirspi_pipe.mesh.pointcloud import _nanmedian_last, _step_matrix, heat_diffusion, heat_graph, heat_step
-from nirspi_pipe.mesh.powercrust import _compact, _group_first, circumcentres
+from nirspi_pipe.mesh.powercrust import (
+    COVERAGE_SPACINGS,
+    _compact,
+    _group_first,
+    _unique_rows,
+    circumcentres,
+    cloud_coverage,
+)
 
 # finite values with ties, signed zeros and a wide range of magnitudes
 _FLOATS = st.one_of(
@@ -164,6 +172,9 @@ def test_np_sum_is_numpys_sum(values: list[float]) -> None:
     ours = np_sum(values)
     ref = float(np.sum(np.array(values, dtype=np.float64)))
     assert np.float64(ours).tobytes() == np.float64(ref).tobytes()
+    other = values[::-1]  # the fit's dot products (a plain loop below 8 terms)
+    ref_dot = float(np.sum(np.array(values, dtype=np.float64) * np.array(other, dtype=np.float64)))
+    assert np.float64(_dots(values, other)).tobytes() == np.float64(ref_dot).tobytes()
 
 
 def _residuals_reference(b, z, sig, focal, sp, prior, x):  # type: ignore[no-untyped-def]
@@ -216,3 +227,36 @@ def test_step_matrix_is_scipys(seed: int, p: int, knn: int, t: float) -> None:
     ref = ((1.0 + t) * sparse.diags(deg) - t * w).tocsc()
     data, indices, indptr = _step_matrix(w, deg, t)
     assert _same(data, ref.data) and np.array_equal(indices, ref.indices) and np.array_equal(indptr, ref.indptr)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(0, 40), st.data())
+def test_unique_rows_is_numpys_unique(n: int, data: st.DataObject) -> None:
+    # integer rows (the merged poles) and float rows with ties and signed zeros (the samples)
+    ints = data.draw(hnp.arrays(np.int64, (n, 3), elements=st.integers(-3, 3)))
+    floats = data.draw(hnp.arrays(np.float64, (n, 3), elements=st.sampled_from([0.0, -0.0, 1.0, -2.5, 1e-300])))
+    for a in (ints, floats):
+        first, inv = _unique_rows(a)
+        _, ref_first, ref_inv = np.unique(a, axis=0, return_index=True, return_inverse=True)
+        assert np.array_equal(first, ref_first) and np.array_equal(inv, ref_inv.ravel())
+
+
+def _coverage_reference(verts: np.ndarray, faces: np.ndarray, pts: np.ndarray, spacing: float) -> float:
+    """cloud_coverage as one search over all samples (vertices, edge midpoints, centroids)."""
+    tri = verts[faces]
+    mids = 0.5 * (tri + np.roll(tri, -1, axis=1))
+    samples = np.concatenate([tri.reshape(-1, 3), mids.reshape(-1, 3), tri.mean(axis=1)])
+    edge = float(np.linalg.norm(tri - np.roll(tri, -1, axis=1), axis=-1).max())
+    dist, _ = cKDTree(samples).query(pts, k=1)
+    return float(np.mean(dist <= COVERAGE_SPACINGS * spacing + 0.5 * edge))
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 40), st.integers(1, 200), st.floats(0.0, 0.5))
+def test_cloud_coverage_searches_vertices_first_with_the_same_result(seed: int, nf: int, npts: int, sp: float) -> None:
+    # a point near an edge midpoint or a centroid but no vertex must still count (small spacing)
+    rng = np.random.default_rng(seed)
+    verts = rng.uniform(-1.0, 1.0, (nf + 2, 3))
+    faces = np.array([rng.choice(nf + 2, 3, replace=False) for _ in range(nf)])
+    pts = np.concatenate([rng.uniform(-2.0, 2.0, (npts, 3)), verts[faces].mean(axis=1)])
+    assert cloud_coverage(verts, faces, pts, sp) == _coverage_reference(verts, faces, pts, sp)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -185,7 +186,13 @@ def np_sum(a: Sequence[float]) -> float:
 
 
 def _dots(u: Sequence[float], v: Sequence[float]) -> float:
-    """``float(np.sum(u * v))`` of two equal-length float sequences, same bits (:func:`np_sum`)."""
+    """``float(np.sum(u * v))`` of two equal-length float sequences, same bits (:func:`np_sum`;
+    below 8 terms, the fit's case, its plain loop written in place)."""
+    if len(u) < 8:
+        res = -0.0
+        for x, y in zip(u, v):
+            res += x * y
+        return 0.0 + res
     return np_sum([x * y for x, y in zip(u, v)])
 
 
@@ -403,6 +410,16 @@ def _start_placement(
     return max(c0, 1e-9 * max(float(np.max(np.abs(z), initial=0.0)), 1e-3))
 
 
+@lru_cache(maxsize=64)
+def _chi2_limit(alpha: float, k: int) -> float:
+    """The χ²₁ quantile at ``1 − alpha/k`` (:func:`consistent_anchors`' Bonferroni bound),
+    computed once per ``(alpha, k)`` in a process: scipy.stats' quantile cost more than the
+    anchors' fits it decides on."""
+    from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
+
+    return float(chi2_dist.ppf(1.0 - alpha / k, 1))
+
+
 def consistent_anchors(
     zr: np.ndarray,
     z: np.ndarray,
@@ -427,8 +444,6 @@ def consistent_anchors(
     again; the family-wise chance of rejecting a good anchor is at most ``alpha``.
     ``alpha=None``: no test. ``fit(idx)`` fits the anchors ``idx`` (indices into the arrays).
     """
-    from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
-
     keep = np.arange(len(z))
     rejected: dict[int, str] = {}
     cur = fit(keep)
@@ -443,7 +458,7 @@ def consistent_anchors(
             d2 = float((z[j] - pred[0]) ** 2 / (sigma[j] ** 2 + tau_m**2 + var[0]))
             if d2 > worst_d2:
                 worst, worst_d2, worst_dev = int(j), d2, float(z[j] - pred[0])
-        limit = float(chi2_dist.ppf(1.0 - alpha / len(keep), 1))
+        limit = _chi2_limit(alpha, len(keep))
         if worst < 0 or worst_d2 <= limit:
             break
         rejected[worst] = (
