@@ -12,12 +12,15 @@ from __future__ import annotations
 import warnings
 from typing import Any
 
+import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import nirspi_pipe.instantiate as instantiate
 from nirspi_pipe.app.api import compose, run
 from nirspi_pipe.instantiate import plain_config
-from nirspi_pipe.mesh.metrics3d import Metrics3D
+from nirspi_pipe.mesh.metrics3d import Metrics3D, sample_skewness
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.sources.simulator import Simulator
 from nirspi_pipe.stages import RunStages, ScoresWithStages
@@ -109,3 +112,45 @@ def test_with_stages_hands_over_the_run_s_objects() -> None:
 def test_noise_scores_switch_off_with_their_key() -> None:
     metrics = _run([*DEVICE, "metrics.noise_scores=false"])
     assert "upscale_psnr" in metrics and not any(k.startswith("noise_") for k in metrics)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(-1e6, 1e6, allow_nan=False), min_size=3, max_size=400),
+    st.floats(-1e3, 1e3, allow_nan=False),
+    st.sampled_from([1.0, 1e-9, 1e-14, 1e-17]),
+)
+def test_sample_skewness_is_scipy_s_to_the_bit(values: list[float], offset: float, spread: float) -> None:
+    """The 3D metrics' skewness computes scipy.stats.skew's operations itself (1.3 ms of array-API
+    wrapper a call saved): the same float64 bits, near-constant samples (scipy's NaN and its
+    cancellation warning) included."""
+    from scipy.stats import skew
+
+    v = offset + spread * np.asarray(values)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        want = float(skew(v)) if np.std(v) > 0 else float("nan")
+        got = sample_skewness(v)
+    assert got == want or (np.isnan(got) and np.isnan(want))
+
+
+def test_the_upscale_metrics_test_the_camera_s_content_once(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One content test per scored image (camera, upscaled, noise-only, bicubic), and no raw
+    SSIM of the noise-only score, which is not kept: at 27f888e the camera's test ran twice and
+    the noise-only raw scores were computed and dropped (5 tests and 8 SSIMs a job)."""
+    import nirspi_pipe.metrics as metrics
+    import nirspi_pipe.upscale.metrics as upscale_metrics
+
+    calls = {"content_test": 0, "ssim": 0}
+    for name in calls:
+        inner = getattr(metrics, name)
+
+        def counted(*a: Any, _inner: Any = inner, _name: str = name, **kw: Any) -> Any:
+            calls[_name] += 1
+            return _inner(*a, **kw)
+
+        for module in (metrics, upscale_metrics):  # also where a module imported the name (27f888e)
+            monkeypatch.setattr(module, name, counted, raising=False)
+    metrics_out = _run(DEVICE)
+    assert {"ssim", "upscale_ssim", "noise_ssim", "bicubic_ssim"} <= set(metrics_out)
+    assert calls == {"content_test": 4, "ssim": 7}

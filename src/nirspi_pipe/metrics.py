@@ -301,20 +301,25 @@ class ImageMetrics:
         from skimage.metrics import peak_signal_noise_ratio, structural_similarity  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:
-        truth = products.truth
-        if truth is None:
+        if products.truth is None:
             warnings.warn("metrics: no ground truth in this acquisition; nothing to score", stacklevel=2)
             return {}
+        return self.camera_scores(products)[0]
+
+    def camera_scores(self, products: Products) -> tuple[dict[str, float], Content]:
+        """The scores of the camera's image (:meth:`compute`; ``products.truth`` given) and the
+        :func:`content_test` of it against the camera's noise-free reference (run whatever
+        ``names``: an upscaled image's scores take it as their ``upstream``)."""
+        truth, acq = products.truth, products.acquisition
+        assert truth is not None
         est = np.asarray(products.image.data, dtype=np.float64)
-        acq = products.acquisition
-        ref = truth.radiance if acq.reference is None else acq.reference
-        return self.score(
-            truth.radiance,
-            est,
-            acq.reference,
-            independent=measured_values(acq, est.size),
-            seen=measured_view(acq, ref),
-        )
+        ref = np.asarray(truth.radiance if acq.reference is None else acq.reference, dtype=np.float64)
+        content = None
+        if est.shape == ref.shape == np.shape(truth.radiance):  # else score() says which shapes differ
+            content = content_test(ref, est, measured_values(acq, est.size), measured_view(acq, ref))
+        out = self.score(truth.radiance, est, acq.reference, content=content)
+        assert content is not None
+        return out, content
 
     def score(
         self,
@@ -325,6 +330,8 @@ class ImageMetrics:
         independent: int | None = None,
         upstream: str | None = None,
         seen: np.ndarray | None = None,
+        content: Content | None = None,
+        raw: bool = True,
     ) -> dict[str, float]:
         """The scores of ``estimate`` against ``truth`` (raw) and ``reference`` (normalised; the
         truth when None), keys prefixed by ``prefix``. The normalised ones only where
@@ -333,7 +340,8 @@ class ImageMetrics:
         computed from another (the camera's, for an upscaled image), that one's flag when it has no
         content (then this one has none either: post-processing adds no information about the
         scene), or ``""`` when it passed (then only this image's own constant/finite checks run,
-        not a second t-test)."""
+        not a second t-test). ``content``: the :func:`content_test` of these very arguments,
+        when the caller has run it already. ``raw=False`` leaves out ``psnr_raw`` and ``ssim_raw``."""
         est = np.asarray(estimate, dtype=np.float64)
         ref = np.asarray(truth, dtype=np.float64)
         if est.shape != ref.shape:
@@ -347,7 +355,7 @@ class ImageMetrics:
             content = Content(
                 f"it is computed from the camera's image, which has no content to score ({upstream})", NO_CONTENT_FLAG
             )
-        else:
+        elif content is None:
             content = content_test(norm_ref, est, independent, seen, gain_test=upstream is None)
         why = content.reason
         if why is not None:
@@ -365,11 +373,13 @@ class ImageMetrics:
             elif name == "psnr":
                 if why is None:
                     out[f"{prefix}psnr"] = _psnr_normalised(nref, nest)
-                out[f"{prefix}psnr_raw"] = psnr(ref, raw_est)
+                if raw:
+                    out[f"{prefix}psnr_raw"] = psnr(ref, raw_est)
             else:
                 if why is None:
                     out[f"{prefix}ssim"] = ssim(nref, nest)
-                out[f"{prefix}ssim_raw"] = ssim(ref, raw_est)
+                if raw:
+                    out[f"{prefix}ssim_raw"] = ssim(ref, raw_est)
         if content.flag is not None:
             out[f"{prefix}{content.flag}"] = 1.0
             if np.isfinite(content.t):

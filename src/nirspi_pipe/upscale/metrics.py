@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from nirspi_pipe.metrics import ImageMetrics, content_test, measured_values, measured_view
+from nirspi_pipe.metrics import ImageMetrics
 from nirspi_pipe.scene.render import render_cached
 from nirspi_pipe.stages import Products, RunStages
 from nirspi_pipe.types import Image2D
@@ -79,8 +79,12 @@ class UpscaleMetrics(ImageMetrics):
         from skimage.transform import resize  # noqa: F401
 
     def compute(self, products: Products) -> dict[str, float]:
-        out = super().compute(products)
         up, truth = products.upscaled, products.truth
+        # the camera's scores, and its content test: the upscaled images are functions of the
+        # camera's image, so the content test is the camera's (under H0, an image independent of
+        # the scene, they are independent of it too); where the camera's image has no content, an
+        # upscaler's output would be its prior, not the scene
+        out, camera = self.camera_scores(products) if truth is not None else (super().compute(products), None)
         if up is None or truth is None or self.scene is None:
             warnings.warn(
                 "metrics=upscale: needs an upscale stage, a ground truth and a scene model; "
@@ -96,26 +100,14 @@ class UpscaleMetrics(ImageMetrics):
         fine = render_cached(self.scene, RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
         reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
-        # the upscaled images are functions of the camera's image: the content test is the camera's
-        # (under H0, an image independent of the scene, they are independent of it too); where the
-        # camera's image has no content, an upscaler's output would be its prior, not the scene
-        carried = measured_values(products.acquisition, n * n)
+        assert camera is not None
         clean = products.acquisition.reference
-        camera_ref = np.asarray(truth.radiance if clean is None else clean, dtype=np.float64)
-        view = measured_view(products.acquisition, camera_ref)
-        camera = content_test(camera_ref, np.asarray(products.image.data, dtype=np.float64), carried, view)
         kw: dict[str, Any] = {"upstream": "" if camera.reason is None else f"{camera.flag}"}
         out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
         if self.noise_scores and self.upscaler is not None and clean is not None:
             clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
-            if clean_up.shape == est.shape:
-                out.update(
-                    {
-                        k: v
-                        for k, v in self.score(clean_up, est, clean_up, prefix="noise_", **kw).items()
-                        if "_raw" not in k
-                    }
-                )
+            if clean_up.shape == est.shape:  # the raw scores against the clean image: not kept
+                out.update(self.score(clean_up, est, clean_up, prefix="noise_", raw=False, **kw))
         if scale > 1:
             bic = finish(bicubic(np.asarray(products.image.data, dtype=np.float64), scale), True)
             out.update(self.score(ref, bic, reference, prefix="bicubic_", **kw))
