@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -50,6 +51,7 @@ def input_files(config: Mapping[str, Any], base: Path | None = None) -> dict[str
     Any key counts, not only ``path``: recordings, meshes, images, weights and whatever a plugin
     reads are all inputs whose content must key the job."""
     base = Path.cwd() if base is None else Path(base)
+    base_text = str(base)
     found: dict[str, Path] = {}
 
     def walk(prefix: str, node: Any) -> None:
@@ -62,6 +64,14 @@ def input_files(config: Mapping[str, Any], base: Path | None = None) -> dict[str
             for i, v in enumerate(node):
                 walk(f"{prefix}[{i}]", v)
         elif isinstance(node, str) and 0 < len(node) < _MAX_PATH_TEXT and "\n" not in node and "\0" not in node:
+            if _POSIX and not _pathlib_differs(node):
+                # a plain stat of the text as it is: what Path(...).is_file() asks, without pathlib
+                # (2.6 ms of a paper job's 3 ms record, in each job and again in keying)
+                try:
+                    if not stat.S_ISREG(os.stat(os.path.join(base_text, node)).st_mode):
+                        return
+                except (OSError, ValueError):  # no such file, a name too long, a permission problem
+                    return
             candidate = Path(node).expanduser()
             candidate = candidate if candidate.is_absolute() else base / candidate
             try:
@@ -72,6 +82,18 @@ def input_files(config: Mapping[str, Any], base: Path | None = None) -> dict[str
 
     walk("", config)
     return found
+
+
+_POSIX = os.name == "posix"
+
+
+def _pathlib_differs(text: str) -> bool:
+    """Whether ``pathlib`` reads ``text`` as another file than the operating system would: a
+    home folder (``~``), or a trailing ``/`` or ``/.`` that ``Path`` drops (``file.txt/`` is
+    ``file.txt`` to ``Path``, no file to ``os.stat``). For the rest, ``os.stat`` of
+    ``os.path.join(base, text)`` finds the file ``Path`` finds (``//`` and ``/./`` inside name
+    the same file to both), so the fast check only rules files out."""
+    return text.startswith("~") or text.endswith("/") or text.endswith("/.") or text == "."
 
 
 class InputHasher:
@@ -132,10 +154,11 @@ class InputHasher:
         return out
 
 
-def job_key_of(config: Mapping[str, Any], inputs: Mapping[str, str]) -> str:
+def job_key_of(config: Mapping[str, Any], inputs: Mapping[str, str], hashed: str | None = None) -> str:
     """A job's folder key: :func:`config_hash` of the resolved config alone when it names no input
     file, else of the config together with the content hashes of its input files, so that
-    replacing a recording (same path, new content) gives the job a new key and it reruns."""
+    replacing a recording (same path, new content) gives the job a new key and it reruns.
+    ``hashed``: ``config_hash(config)`` when the caller has it already (not computed twice)."""
     if not inputs:
-        return config_hash(config)
+        return config_hash(config) if hashed is None else hashed
     return config_hash({"config": _run_part(config), "inputs": dict(inputs)})

@@ -71,6 +71,7 @@ def new_record(
     with the sha256 of every input file the config names), :func:`provenance`, empty results and
     ``status: failed`` until the run says otherwise; ``meta`` adds or overrides fields of ``meta``."""
     inputs = InputHasher().hashes(config)
+    hashed = config_hash(config)  # once: it is the job key too when the config names no input file
     return {
         "config": config,
         "choices": dict(choices),
@@ -79,8 +80,8 @@ def new_record(
         "derived": {},
         "info": {},
         "meta": {
-            "config_hash": config_hash(config),
-            "job_key": job_key_of(config, inputs),
+            "config_hash": hashed,
+            "job_key": job_key_of(config, inputs, hashed),
             "inputs": inputs,
             **provenance(),
             "status": "failed",

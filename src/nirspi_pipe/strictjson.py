@@ -52,7 +52,27 @@ def dumps_strict(value: Any, **kwargs: Any) -> str:
 
 def jsonable(value: Any) -> Any:
     """Convert numpy scalars/arrays and other leaves into JSON-friendly Python values (a
-    non-finite float as its spelling, :data:`NONFINITE_SPELLINGS`)."""
+    non-finite float as its spelling, :data:`NONFINITE_SPELLINGS`).
+
+    Plain values (exactly ``dict`` with ``str`` keys, ``list``, ``str``, ``int``, ``bool``,
+    ``float``, None: all of a resolved config and most of a record) take a short path by exact
+    type; anything else, subclasses included, goes through :func:`_jsonable_other` as before
+    (the same result: ``tests/test_job_overhead.py``). The short path took the 44 records of
+    ``paper_ci`` (7 kB each) from 0.49 to 0.07 ms of CPU each (issue 42 item 6)."""
+    t = type(value)
+    if t is dict:
+        return {(k if type(k) is str else str(k)): jsonable(v) for k, v in value.items()}
+    if t is str or t is int or t is bool or value is None:
+        return value
+    if t is float:
+        return value if math.isfinite(value) else _float_leaf(value)
+    if t is list:
+        return [jsonable(v) for v in value]
+    return _jsonable_other(value)
+
+
+def _jsonable_other(value: Any) -> Any:
+    """:func:`jsonable` of a value that is not plain (numpy, tuples, mappings, subclasses)."""
     if isinstance(value, Mapping):
         return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

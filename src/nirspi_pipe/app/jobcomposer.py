@@ -43,6 +43,9 @@ def _resolved(job_cfg: Any) -> dict[str, Any]:
 
 #: An interpolation that is a whole-value reference to another node: ``${fog}``, ``${a.b}``.
 _NODE_REF = re.compile(r"^\$\{([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)\}$")
+#: A whole-value ``oc.select`` of an absolute key with the default ``null``:
+#: ``${oc.select:scene.distance_mm,null}`` (conf/fusion/itof.yaml).
+_SELECT_OR_NULL = re.compile(r"^\$\{oc\.select:\s*([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)\s*,\s*null\s*\}$")
 
 
 class _NotSimple(Exception):
@@ -51,20 +54,30 @@ class _NotSimple(Exception):
 
 def _resolve_references(root: dict[str, Any]) -> dict[str, Any]:
     """``OmegaConf.to_container(OmegaConf.create(root), resolve=True)`` for a config whose only
-    interpolations are whole-value references to other nodes (``source.effects.fog: ${fog}``, all
-    that the shipped configs use): each becomes a copy of the node it names, resolved in turn.
-    Raises :class:`_NotSimple` for anything else (resolvers, string interpolation, relative or
-    missing keys, cycles), which OmegaConf then resolves. Before, the per-job part of keying
-    (all but the 50 compositions) took 24 of the paper sweep's 55 s of keying under ``cProfile``,
-    most of it in OmegaConf; ``tests/test_sweeper.py`` compares the keys with Hydra's own
-    composition."""
+    interpolations are whole-value references to other nodes (``source.effects.fog: ${fog}``) and
+    whole-value ``${oc.select:abs.key,null}`` (all that the shipped configs use): each becomes a
+    copy of the node it names, resolved in turn; an ``oc.select`` whose key is absent (its parents
+    being mappings) or ``???`` becomes None, as OmegaConf's ``select_value`` gives its default.
+    Raises :class:`_NotSimple` for anything else (other resolvers or defaults, string
+    interpolation, relative or missing keys, cycles), which OmegaConf then resolves. Before, the per-job
+    part of keying (all but the 50 compositions) took 24 of the paper sweep's 55 s of keying under
+    ``cProfile``, most of it in OmegaConf; then the 1280 3D jobs (``fusion=itof``'s ``oc.select``)
+    still went through OmegaConf: 240 of 417 s of keying under ``cProfile``.
+    ``tests/test_sweeper.py`` compares the keys with Hydra's own composition,
+    ``tests/test_job_overhead.py`` this function with OmegaConf."""
 
-    def lookup(path: str, depth: int) -> Any:
+    def lookup(path: str, depth: int, default_none: bool = False) -> Any:
         node: Any = root
         for part in path.split("."):
-            if not isinstance(node, dict) or part not in node:
+            if not isinstance(node, dict):
+                raise _NotSimple(path)
+            if part not in node:
+                if default_none:
+                    return None
                 raise _NotSimple(path)
             node = node[part]
+        if default_none and node == "???":
+            return None  # a missing value: select_value gives the default
         return resolve(node, depth + 1)
 
     def resolve(node: Any, depth: int) -> Any:
@@ -76,9 +89,12 @@ def _resolve_references(root: dict[str, Any]) -> dict[str, Any]:
             return [resolve(v, depth) for v in node]
         if isinstance(node, str) and "$" in node:
             ref = _NODE_REF.match(node)
-            if ref is None:
-                raise _NotSimple(node)
-            return lookup(ref.group(1), depth)
+            if ref is not None:
+                return lookup(ref.group(1), depth)
+            select = _SELECT_OR_NULL.match(node)
+            if select is not None:
+                return lookup(select.group(1), depth, default_none=True)
+            raise _NotSimple(node)
         return node
 
     return cast("dict[str, Any]", resolve(root, 0))
@@ -106,13 +122,19 @@ def choices_of(cfg: Any) -> dict[str, Any]:
 def set_plain(cfg: dict[str, Any], dotted: str, value: Any) -> bool:
     """Set ``dotted`` (``scene.distance_mm``) in a plain config as Hydra's ``OmegaConf.update(...,
     merge=True)`` of a struct config would: only an existing key, only a non-mapping value over a
-    non-mapping one. False (nothing set) for anything else, which the caller composes in full."""
+    non-mapping one. False (nothing set) for anything else, which the caller composes in full.
+
+    ``cfg`` itself is changed, but every mapping below it on the way to ``dotted`` is copied
+    first (copy on write), so the rest may be shared with the sweeper's composed base: a
+    shallow copy of the base per job instead of a deep one (``copy.deepcopy`` was 3 % of the
+    paper sweep's keying under ``cProfile``; issue 42 item 6)."""
     node: Any = cfg
     *parents, leaf = dotted.split(".")
     for part in parents:
-        if not isinstance(node, dict) or part not in node:
+        child = node.get(part)
+        if not isinstance(child, dict):  # absent, or a value: Hydra's update would not set below it
             return False
-        node = node[part]
+        node[part] = node = dict(child)
     if not isinstance(node, dict) or leaf not in node or isinstance(node[leaf], dict) or isinstance(value, dict):
         return False
     node[leaf] = value

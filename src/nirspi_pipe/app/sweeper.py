@@ -34,7 +34,6 @@ launcher failed), unless ``hydra.sweeper.allow_failures=true``.
 
 from __future__ import annotations
 
-import copy
 import logging
 import multiprocessing
 import os
@@ -241,7 +240,7 @@ class NirspiSweeperBase(Sweeper):
             raw.pop("hydra", None)
             bases[base_key] = (raw, choices_of(cfg))
         raw, choices = bases[base_key]
-        plain_cfg = copy.deepcopy(raw)
+        plain_cfg = dict(raw)  # set_plain copies what it changes below the top (copy on write)
         for ov in updates:
             if not set_plain(plain_cfg, str(ov.key_or_group), ov.value()):
                 return self._composed(overrides)
