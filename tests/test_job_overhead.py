@@ -335,3 +335,27 @@ def test_set_plain_copies_on_write(base: dict[str, Any], updates: list[tuple[str
     else:
         assert new == old
     assert base == before  # the base the next job starts from is untouched
+
+
+def test_new_record_reads_an_input_file_once_until_it_changes(tmp_path: Path, monkeypatch: Any) -> None:
+    import os
+
+    from nirspi_pipe import records
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(records, "_INPUTS", records.InputHasher())
+    rec = tmp_path / "rec.npz"
+    rec.write_bytes(b"abc" * 1000)
+    config = {"source": {"path": "rec.npz"}}
+    first = records.new_record(config, {}, [], 0, 1)["meta"]
+    again = records.new_record(config, {}, [], 1, 1)["meta"]
+    assert records._INPUTS.bytes_read == 3000  # read once for both jobs
+    assert first["inputs"] == again["inputs"] and first["job_key"] == again["job_key"]
+    rec.write_bytes(b"abd" * 1000)  # same size, new content
+    st = rec.stat()
+    os.utime(rec, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))  # a new mtime, as a later write has
+    changed = records.new_record(config, {}, [], 2, 1)["meta"]
+    assert records._INPUTS.bytes_read == 6000
+    assert changed["inputs"] != first["inputs"] and changed["job_key"] != first["job_key"]
+    monkeypatch.setenv("NIRSPI_READ_BUDGET_MB", "0.001")  # 1048 bytes: the process-wide cache asks again
+    assert records.new_record(config, {}, [], 3, 1)["meta"]["inputs"]["source.path"].startswith("not hashed: 3000")

@@ -97,7 +97,7 @@ def _pathlib_differs(text: str) -> bool:
 
 
 class InputHasher:
-    """SHA-256 of input files, cached by ``(path, size, mtime_ns, inode)`` so that a sweep of
+    """SHA-256 of input files, cached by ``(path, size, mtime_ns, inode, read budget)`` so that a sweep of
     hundreds of jobs naming the same recording reads it once, and a file replaced in place (new
     size or mtime) is read again.
 
@@ -109,7 +109,7 @@ class InputHasher:
     at most that of reading the budget once per file. :attr:`bytes_read` counts what was read."""
 
     def __init__(self, budget: int | None = None) -> None:
-        self._cache: dict[tuple[str, int, int, int], str] = {}
+        self._cache: dict[tuple[str, int, int, int, int], str] = {}
         self.budget = budget
         self.bytes_read = 0
 
@@ -118,12 +118,13 @@ class InputHasher:
         read budget; :class:`~nirspi_pipe.safeio.UnsafeInputError` when it is not a regular file."""
         with open_regular(path) as fh:
             st = os.fstat(fh.fileno())
-            stamp = (str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+            try:
+                limit = read_budget(self.budget)
+            except UnsafeInputError:  # a bad NIRSPI_READ_BUDGET_MB: the readers say so in one line
+                limit = DEFAULT_BUDGET_BYTES
+            # the budget too: a process-wide hasher (records.new_record's) sees NIRSPI_READ_BUDGET_MB change
+            stamp = (str(path), st.st_size, st.st_mtime_ns, st.st_ino, limit)
             if stamp not in self._cache:
-                try:
-                    limit = read_budget(self.budget)
-                except UnsafeInputError:  # a bad NIRSPI_READ_BUDGET_MB: the readers say so in one line
-                    limit = DEFAULT_BUDGET_BYTES
                 if st.st_size > limit:
                     self._cache[stamp] = (
                         f"not hashed: {st.st_size} bytes, over the read budget of {limit} bytes (NIRSPI_READ_BUDGET_MB)"

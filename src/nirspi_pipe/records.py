@@ -59,6 +59,12 @@ __all__ = [
 RECORD_NAME = "record.json"
 
 
+#: The input files' hashes of this process's jobs, cached by ``(path, size, mtime_ns, inode)``
+#: (:class:`InputHasher`): a runner of a sweep whose jobs name one recording reads it once, not
+#: once a job; a file replaced or changed in place (new size or mtime) is read again.
+_INPUTS = InputHasher()
+
+
 def new_record(
     config: dict[str, Any],
     choices: Mapping[str, str],
@@ -70,7 +76,7 @@ def new_record(
     """A job's record before its run: the resolved ``config`` and its keys (config hash; job key
     with the sha256 of every input file the config names), :func:`provenance`, empty results and
     ``status: failed`` until the run says otherwise; ``meta`` adds or overrides fields of ``meta``."""
-    inputs = InputHasher().hashes(config)
+    inputs = _INPUTS.hashes(config)
     hashed = config_hash(config)  # once: it is the job key too when the config names no input file
     return {
         "config": config,
