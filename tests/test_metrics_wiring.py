@@ -154,3 +154,31 @@ def test_the_upscale_metrics_test_the_camera_s_content_once(monkeypatch: pytest.
     metrics_out = _run(DEVICE)
     assert {"ssim", "upscale_ssim", "noise_ssim", "bicubic_ssim"} <= set(metrics_out)
     assert calls == {"content_test": 4, "ssim": 7}
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(3, 40),
+    st.integers(3, 40),
+    st.integers(0, 2**32 - 1),
+    st.sampled_from([1.0, 1e-6, 1e3]),
+    st.sampled_from([1.0, 0.5]),
+)
+def test_ssim_is_scikit_image_s_to_the_bit(h: int, w: int, seed: int, scale: float, data_range: float) -> None:
+    """The image metrics' SSIM runs scikit-image's operations itself (one filter call for the five
+    window means): the same float64 bits as skimage.metrics.structural_similarity."""
+    from skimage.metrics import structural_similarity
+
+    from nirspi_pipe.metrics import ssim
+
+    rng = np.random.default_rng(seed)
+    a = rng.random((h, w)) * scale
+    b = a + rng.normal(size=(h, w)) * scale * 0.1 if seed % 2 else rng.random((h, w))
+    side = min(h, w)
+    win = min(7, side if side % 2 == 1 else side - 1)
+    if win < 3:
+        assert np.isnan(ssim(a, b, data_range))
+        return
+    want = float(np.clip(structural_similarity(a, b, data_range=data_range, win_size=win), -1.0, 1.0))
+    assert ssim(a, b, data_range) == want
+    assert ssim(np.asfortranarray(a), b, data_range) == want

@@ -214,15 +214,58 @@ def ssim(truth: np.ndarray, estimate: np.ndarray, data_range: float = 1.0) -> fl
     win = min(7, side if side % 2 == 1 else side - 1)
     if win < 3:
         return float("nan")
-    # start-up: loads scipy, skimage, charset_normalizer (250 ms here)
-    from skimage.metrics import (
-        structural_similarity,
-    )
+    if _float64_pair(truth, estimate):
+        value = _ssim_float64(truth, estimate, float(data_range), win)
+    else:
+        # start-up: loads scipy, skimage, charset_normalizer (250 ms here)
+        from skimage.metrics import (
+            structural_similarity,
+        )
 
-    value = float(structural_similarity(truth, estimate, data_range=data_range, win_size=win))
+        value = float(structural_similarity(truth, estimate, data_range=data_range, win_size=win))
     # SSIM lies in [-1, 1] (Wang et al. 2004, Eq. 13: a product of terms of modulus <= 1); float64
     # rounding put a noise-free 8² image of a board at 1 km at 1 + 2.4e-13 (issue 40)
     return float(np.clip(value, -1.0, 1.0)) if np.isfinite(value) else value
+
+
+def _float64_pair(a: Any, b: Any) -> bool:
+    return (
+        isinstance(a, np.ndarray)
+        and isinstance(b, np.ndarray)
+        and a.dtype == np.float64
+        and b.dtype == np.float64
+        and a.ndim == 2
+        and a.shape == b.shape
+    )
+
+
+def _ssim_float64(im1: np.ndarray, im2: np.ndarray, data_range: float, win: int) -> float:
+    """scikit-image's ``structural_similarity(im1, im2, data_range=..., win_size=win)`` (0.26,
+    uniform window, sample covariance, K1 = 0.01, K2 = 0.03) for two float64 images of one shape:
+    its operations in its order, so the same bits (tests/test_metrics_wiring.py compares), with the
+    five window means in one filter call on the stacked images (a 1-tap axis is not filtered; each
+    line is filtered alone) instead of five calls and skimage's argument checks: 0.35 -> 0.19 ms
+    a call at 32², 6-7 calls per metrics stage."""
+    # start-up: loads scipy.ndimage (already loaded by skimage.metrics, which the stage warms up)
+    from scipy.ndimage import uniform_filter
+
+    if np.any((np.asarray(im1.shape) - win) < 0) or win % 2 != 1:
+        raise ValueError(f"SSIM window {win} does not fit an image of shape {im1.shape}")
+    means = uniform_filter(np.stack([im1, im2, im1 * im1, im2 * im2, im1 * im2]), size=(1, win, win))
+    ux, uy, uxx, uyy, uxy = means
+    np_ = win**2
+    cov_norm = np_ / (np_ - 1)
+    vx = cov_norm * (uxx - ux * ux)
+    vy = cov_norm * (uyy - uy * uy)
+    vxy = cov_norm * (uxy - ux * uy)
+    c1 = (0.01 * data_range) ** 2
+    c2 = (0.03 * data_range) ** 2
+    a1, a2, b1, b2 = (2 * ux * uy + c1, 2 * vxy + c2, ux**2 + uy**2 + c1, vx + vy + c2)
+    d = b1 * b2
+    s = (a1 * a2) / d
+    pad = (win - 1) // 2
+    crop = s[pad : s.shape[0] - pad, pad : s.shape[1] - pad]
+    return float(crop.mean(dtype=np.float64))
 
 
 def fit_gain_offset(reference: np.ndarray, estimate: np.ndarray) -> tuple[float, float]:
