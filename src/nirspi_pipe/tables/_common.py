@@ -16,7 +16,7 @@ where it holds after Holm's correction on both halves of the seeds (:func:`ranki
 from __future__ import annotations
 
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -39,7 +39,7 @@ __all__ = [
     "failures_note",
     "conditions_note",
     "bar_figure",
-    "bar_plot",
+    "save_figure",
     "cell",
     "ranking",
     "ranking_note",
@@ -49,6 +49,13 @@ __all__ = [
     "degenerate_count",
     "fmt_scored",
     "degenerate_note",
+    "scan_groups",
+    "klux_levels",
+    "compared_row",
+    "column_rankings",
+    "column_notes",
+    "rows_note",
+    "write_csv",
 ]
 
 #: The paper's four scan methods, in its row order.
@@ -76,6 +83,25 @@ def ok_rows(frame: pd.DataFrame, need: list[str], experiment: str) -> pd.DataFra
     if df.empty:
         raise ValueError(f"no successful job of the four scan methods: run `nirspi-run -m +experiment={experiment}`")
     return df
+
+
+def scan_groups(df: pd.DataFrame) -> Iterator[tuple[str, pd.DataFrame]]:
+    """``(scan, rows)`` for each of :data:`SCANS` (in the paper's order) that ``df`` has rows of."""
+    for scan in SCANS:
+        g = df[df["scan"] == scan]
+        if not g.empty:
+            yield scan, g
+
+
+def klux_levels(df: pd.DataFrame) -> Iterator[tuple[Any, pd.DataFrame]]:
+    """``(level, rows)`` for each background light level of ``df`` (``illumination.klux``), ascending."""
+    for klux in sorted(df["illumination.klux"].unique()):
+        yield klux, df[df["illumination.klux"] == klux]
+
+
+def write_csv(table: pd.DataFrame, path: Path) -> None:
+    """A table builder's CSV: no index, six significant digits."""
+    table.to_csv(path, index=False, float_format="%.6g")
 
 
 #: A normalised score's column (``metrics.<prefix>psnr`` / ``ssim``).
@@ -203,6 +229,15 @@ def compare_metric(
     }
 
 
+def compared_row(df: pd.DataFrame, scan: str, g: pd.DataFrame, columns: dict[str, str], paper: pd.DataFrame) -> dict:
+    """One scan's row of a table comparing metrics with the paper: ``scan``, ``n`` (rows of
+    ``g``) and :func:`compare_metric` of each ``key -> column`` of ``columns``."""
+    row: dict = {"scan": scan, "n": int(len(g))}
+    for key, col in columns.items():
+        row.update(compare_metric(df, g, scan, key, col, paper))
+    return row
+
+
 def cell(group: pd.DataFrame, col: str, key: str) -> dict[str, float]:
     """``{key}_se`` (the cell mean's standard error clustered by seed) and ``{key}_clusters`` (the
     number of seeds) of column ``col`` over one table cell's rows (:func:`nirspi_pipe.stats.cell_summary`)."""
@@ -219,6 +254,24 @@ def ranking(df: pd.DataFrame, col: str, higher_is_better: bool, where: dict | No
     for k, v in (where or {}).items():
         out.insert(0, k, v)
     return out
+
+
+def column_rankings(df: pd.DataFrame, columns: dict[str, str], higher_is_better: Callable[[str], bool]) -> pd.DataFrame:
+    """:func:`ranking` of each ``key -> column`` of ``columns`` over ``df`` (its family named in
+    the ``column`` column), corrected across the families (:func:`nirspi_pipe.stats.across_families`)."""
+    claims = pd.concat(
+        [
+            ranking(df, col, higher_is_better=higher_is_better(key), where={"column": key})
+            for key, col in columns.items()
+        ],
+        ignore_index=True,
+    )
+    return st.across_families(claims)
+
+
+def column_notes(claims: pd.DataFrame) -> str:
+    """The replicated claims of each family of :func:`column_rankings`, as ``key: claims; …``."""
+    return "; ".join(f"{key}: {ranking_note(c)}" for key, c in claims.groupby("column", sort=False))
 
 
 def ranking_note(claims: pd.DataFrame) -> str:
@@ -284,6 +337,12 @@ def failures_note(frame: pd.DataFrame, used: pd.DataFrame) -> str:
     return note + "."
 
 
+def rows_note(df: pd.DataFrame, frame: pd.DataFrame) -> str:
+    """The Markdown's last line: the conditions ``df`` (the rows used) covers and how many of
+    ``frame``'s jobs it used (:func:`conditions_note`, :func:`failures_note`)."""
+    return f"Rows: {conditions_note(df)}; {failures_note(frame, df)}"
+
+
 def conditions_note(df: pd.DataFrame) -> str:
     """Objects, seeds and kLux levels that the rows cover."""
     parts = []
@@ -304,26 +363,15 @@ def count_range(n: pd.Series) -> str:
     return f"{lo}" if lo == hi else f"{lo}–{hi}"
 
 
-#: Hatchings of the paper's bars in :func:`bar_plot`, one per paper series (in order).
+#: Hatchings of the paper's bars in :func:`bar_figure`, one per paper series (in order).
 PAPER_HATCHES = ("//", "\\\\", "xx", "..", "--")
 
 
-def bar_plot(
-    path: Path,
-    title: str,
-    groups: list[str],
-    series: dict[str, tuple[list[float], list[float]]],
-    paper: dict[str, list[float]] | None,
-    ylabel: str,
-    errbars: str,
-) -> None:
-    """Grouped bars (one group per scan method): ours (mean, error bars) and the paper's values
-    (hatched), written as a PNG. ``errbars`` says what the error bars are; it is printed under
-    the plot. The legend sits right of the axes, where it covers no bar (issue 34)."""
+def save_figure(path: Path, fig: Any, dpi: int = 100) -> None:
+    """Write a builder's figure as a PNG (tight, with a small margin) and close it."""
     import matplotlib.pyplot as plt  # start-up: loads matplotlib, PIL, cycler (267 ms here)
 
-    fig = bar_figure(title, groups, series, paper, ylabel, errbars)
-    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
 
 
@@ -335,9 +383,11 @@ def bar_figure(
     ylabel: str,
     errbars: str,
 ) -> Any:
-    """:func:`bar_plot`'s matplotlib figure (the caller closes it). Each paper series is hatched
-    in its own pattern (:data:`PAPER_HATCHES`) and outlined in the colour of our series of the
-    same name."""
+    """Grouped bars (one group per scan method): ours (mean, error bars) and the paper's values
+    (hatched), as a matplotlib figure (:func:`save_figure` writes and closes it). ``errbars`` says
+    what the error bars are; it is printed under the plot. The legend sits right of the axes,
+    where it covers no bar (issue 34). Each paper series is hatched in its own pattern
+    (:data:`PAPER_HATCHES`) and outlined in the colour of our series of the same name."""
     import matplotlib  # start-up: loads matplotlib, PIL, cycler (76 ms here)
 
     matplotlib.use("Agg")

@@ -30,26 +30,7 @@ import numpy as np
 import pandas as pd
 
 from nirspi_pipe import stats as st
-from nirspi_pipe.tables._common import (
-    SCAN_LABELS,
-    SCANS,
-    conditions_note,
-    count_range,
-    degenerate_count,
-    degenerate_note,
-    failures_note,
-    fmt_scored,
-    ok_rows,
-    paired_vs_basic,
-    paper_reference,
-    ranking,
-    ranking_note,
-    scan_by_level_rows,
-    score_flag_columns,
-    stats,
-    with_families,
-)
-from nirspi_pipe.tables._common import cell as cell_se
+from nirspi_pipe.tables import _common as common
 
 __all__ = ["build"]
 
@@ -71,37 +52,33 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     scores (:mod:`nirspi_pipe.metrics`), on the upscaled grid when the runs were upscaled."""
     out_dir = Path(out_dir)
     metrics = _pooled(frame)
-    df = ok_rows(frame, [*metrics.values(), "illumination.klux"], "figure9")
-    paper = paper_reference("figure9").set_index(["scan", "klux"])
+    df = common.ok_rows(frame, [*metrics.values(), "illumination.klux"], "figure9")
+    paper = common.paper_reference("figure9").set_index(["scan", "klux"])
     rows = []
-    for klux in sorted(df["illumination.klux"].unique()):
-        dk = df[df["illumination.klux"] == klux]
-        for scan in SCANS:
-            g = dk[dk["scan"] == scan]
-            if g.empty:
-                continue
+    for klux, dk in common.klux_levels(df):
+        for scan, g in common.scan_groups(dk):
             row: dict = {"scan": scan, "klux": float(klux), "n": int(len(g))}
             for key, col in metrics.items():
-                row.update(stats(g[col], key))
-                row.update(degenerate_count(g, col, key))
-                d, se, _ = paired_vs_basic(dk, col, scan)
+                row.update(common.stats(g[col], key))
+                row.update(common.degenerate_count(g, col, key))
+                d, se, _ = common.paired_vs_basic(dk, col, scan)
                 row.update({f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se})
                 idx = (scan, float(klux))
                 row[f"paper_{key}"] = float(paper.loc[idx, key]) if idx in paper.index else np.nan
             for key, col in metrics.items():
-                row.update(cell_se(g, col, key))
+                row.update(common.cell(g, col, key))
             rows.append(row)
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "figure9.csv", index=False, float_format="%.6g")
+    common.write_csv(table, out_dir / "figure9.csv")
     scores = {k: c for k, c in SCORES.items() if c in df.columns and df[c].notna().any()}
     objects, claims = _per_object(df, scores)
     if len(objects):
-        objects.to_csv(out_dir / "figure9_objects.csv", index=False, float_format="%.6g")
+        common.write_csv(objects, out_dir / "figure9_objects.csv")
         claims = st.across_families(claims)
-        claims.to_csv(out_dir / "figure9_rankings.csv", index=False, float_format="%.6g")
+        common.write_csv(claims, out_dir / "figure9_rankings.csv")
         _plot_objects(objects, scores, paper, out_dir / "figure9_objects.png")
     (out_dir / "figure9.md").write_text(
-        with_families(_markdown(table, frame, df, paper, objects, claims, scores), claims)
+        common.with_families(_markdown(table, frame, df, paper, objects, claims, scores), claims)
     )
     _plot(table, paper, out_dir / "figure9.png")
     return table
@@ -110,7 +87,9 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
 def _pooled(frame: pd.DataFrame) -> dict[str, str]:
     """The pooled figure's columns: the upscaled scores when the runs were upscaled (a score that
     every job left out as degenerate has only its flag columns), else the camera's."""
-    have = [c in frame.columns or any(f in frame.columns for f in score_flag_columns(c)) for c in UPSCALED.values()]
+    have = [
+        c in frame.columns or any(f in frame.columns for f in common.score_flag_columns(c)) for c in UPSCALED.values()
+    ]
     return UPSCALED if all(have) else METRICS
 
 
@@ -126,21 +105,16 @@ def _per_object(df: pd.DataFrame, scores: dict[str, str]) -> tuple[pd.DataFrame,
         return pd.DataFrame(), pd.DataFrame()
     rows, fams = [], []
     for scene in _order(list(df["scene"].dropna().unique())):
-        ds = df[df["scene"] == scene]
-        for klux in sorted(ds["illumination.klux"].unique()):
-            dk = ds[ds["illumination.klux"] == klux]
-            for scan in SCANS:
-                g = dk[dk["scan"] == scan]
-                if g.empty:
-                    continue
+        for klux, dk in common.klux_levels(df[df["scene"] == scene]):
+            for scan, g in common.scan_groups(dk):
                 row: dict = {"scene": scene, "klux": float(klux), "scan": scan, "n": int(len(g))}
                 for key, col in scores.items():
                     row[f"{key}_mean"] = float(g[col].mean())
-                    row.update(cell_se(g, col, key))
-                    row.update(degenerate_count(g, col, key))
+                    row.update(common.cell(g, col, key))
+                    row.update(common.degenerate_count(g, col, key))
                 rows.append(row)
             for key, col in scores.items():
-                fams.append(ranking(dk, col, True, where={"scene": scene, "klux": float(klux), "score": key}))
+                fams.append(common.ranking(dk, col, True, where={"scene": scene, "klux": float(klux), "score": key}))
     return pd.DataFrame(rows), (pd.concat(fams, ignore_index=True) if fams else pd.DataFrame())
 
 
@@ -151,7 +125,9 @@ def _object_cell(o: pd.DataFrame, scan: str, k: float, scores: dict[str, str]) -
         return "n/a"
     r0 = r.iloc[0]
     return (
-        " / ".join(fmt_scored(r0[f"{key}_mean"], r0[f"{key}_se"], r0[f"{key}_degenerate"], r0["n"]) for key in scores)
+        " / ".join(
+            common.fmt_scored(r0[f"{key}_mean"], r0[f"{key}_se"], r0[f"{key}_degenerate"], r0["n"]) for key in scores
+        )
         + f" (n={int(r0['n'])})"
     )
 
@@ -167,14 +143,14 @@ def _object_section(
         "| scan | " + " | ".join(f"{k:g} kLux" for k in levels) + " |",
         "|---|" + "---:|" * len(levels),
     ]
-    for scan in SCANS:
+    for scan in common.SCANS:
         cells = [_object_cell(o, scan, k, scores) for k in levels]
-        lines.append(f"| {SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {common.SCAN_LABELS[scan]} | " + " | ".join(cells) + " |")
     c = claims[claims["scene"] == scene]
     notes = [
-        f"{k:g} kLux, {key}: {ranking_note(f)}"
+        f"{k:g} kLux, {key}: {common.ranking_note(f)}"
         for (k, key), f in c.groupby(["klux", "score"], sort=False)
-        if ranking_note(f) != "none"
+        if common.ranking_note(f) != "none"
     ]
     return [
         *lines,
@@ -198,10 +174,10 @@ def _sphere_line(objects: pd.DataFrame, scan: str, klux: float, p: pd.Series, sc
         return None
     r0 = sph.iloc[0]
     return (
-        f"Ours, sphere, {SCAN_LABELS.get(scan, scan)}, {klux:g} kLux: "
+        f"Ours, sphere, {common.SCAN_LABELS.get(scan, scan)}, {klux:g} kLux: "
         + ", ".join(
             f"{SCORE_LABELS[k]} "
-            + fmt_scored(r0[f"{k}_mean"], r0[f"{k}_se"], r0[f"{k}_degenerate"], r0["n"])
+            + common.fmt_scored(r0[f"{k}_mean"], r0[f"{k}_se"], r0[f"{k}_degenerate"], r0["n"])
             + (
                 f" dB ({r0[f'{k}_mean'] - p['psnr_db']:+.2f} dB from the paper's {p['psnr_db']:g})"
                 if np.isfinite(r0[f"{k}_mean"])
@@ -219,7 +195,7 @@ def _paper_lines(paper: pd.DataFrame, objects: pd.DataFrame, scores: dict[str, s
     for (scan, klux), p in paper.iterrows():
         vals = ", ".join(f"{k} = {p[k]:g}" for k in ("ssim", "psnr_db") if np.isfinite(p.get(k, np.nan)))
         if vals:
-            lines += ["", f"Paper (text of §7): {SCAN_LABELS.get(scan, scan)} at {klux:g} kLux: {vals}."]
+            lines += ["", f"Paper (text of §7): {common.SCAN_LABELS.get(scan, scan)} at {klux:g} kLux: {vals}."]
             ours = _sphere_line(objects, scan, klux, p, scores)
             if ours is not None:
                 lines.append(ours)
@@ -253,18 +229,18 @@ def _markdown(
         "Each cell: SSIM / PSNR (dB) at the figure's resolution, mean ± std over objects × seeds.",
         "",
     ]
-    lines += scan_by_level_rows(
+    lines += common.scan_by_level_rows(
         table,
         levels,
         lambda r: (
-            fmt_scored(r["ssim_mean"], r["ssim_std"], r["ssim_degenerate"], r["n"], 3)
+            common.fmt_scored(r["ssim_mean"], r["ssim_std"], r["ssim_degenerate"], r["n"], 3)
             + " / "
-            + fmt_scored(r["psnr_db_mean"], r["psnr_db_std"], r["psnr_db_degenerate"], r["n"])
+            + common.fmt_scored(r["psnr_db_mean"], r["psnr_db_std"], r["psnr_db_degenerate"], r["n"])
         ),
     )
     lines += _paper_lines(paper, objects, scores)
-    lines += ["", f"Rows: {conditions_note(df)}; {failures_note(frame, df)}"]
-    note = degenerate_note(
+    lines += ["", common.rows_note(df, frame)]
+    note = common.degenerate_note(
         df, {**{SCORE_LABELS[k]: c for k, c in SCORES.items()}, **{f"pooled {k}": c for k, c in _pooled(df).items()}}
     )
     if note:
@@ -283,11 +259,16 @@ def _plot_objects(objects: pd.DataFrame, scores: dict[str, str], paper: pd.DataF
     for j, scene in enumerate(scenes):
         for i, key in enumerate(scores):
             ax = axes[i][j]
-            for scan in SCANS:
+            for scan in common.SCANS:
                 t = objects[(objects["scene"] == scene) & (objects["scan"] == scan)].sort_values("klux")
                 if len(t):
                     ax.errorbar(
-                        t["klux"], t[f"{key}_mean"], yerr=t[f"{key}_se"], marker="o", capsize=2, label=SCAN_LABELS[scan]
+                        t["klux"],
+                        t[f"{key}_mean"],
+                        yerr=t[f"{key}_se"],
+                        marker="o",
+                        capsize=2,
+                        label=common.SCAN_LABELS[scan],
                     )
             if key == "psnr32" and j == 0 and "psnr_db" in paper:  # the paper's 28 dB, beside the sphere only
                 for (_, klux), v in paper["psnr_db"].dropna().items():
@@ -310,8 +291,7 @@ def _plot_objects(objects: pd.DataFrame, scores: dict[str, str], paper: pd.DataF
         ha="right",
         va="bottom",
     )
-    fig.savefig(path, dpi=90, bbox_inches="tight", pad_inches=0.1)
-    plt.close(fig)
+    common.save_figure(path, fig, dpi=90)
 
 
 def _plot(table: pd.DataFrame, paper: pd.DataFrame, path: Path) -> None:
@@ -324,20 +304,22 @@ def _plot(table: pd.DataFrame, paper: pd.DataFrame, path: Path) -> None:
     levels = np.sort(table["klux"].unique())
     span = float(levels[-1] - levels[0]) if len(levels) > 1 else 1.0
     for ax, key, label in zip(axes, ("ssim", "psnr_db"), ("(a) SSIM", "(b) PSNR (dB)"), strict=True):
-        for i, scan in enumerate(SCANS):
+        for i, scan in enumerate(common.SCANS):
             t = table[table["scan"] == scan].sort_values("klux")
             if t.empty:
                 continue
             x = t["klux"].to_numpy() + (i - 1.5) * 0.008 * span  # small offsets keep error bars apart
-            ax.errorbar(x, t[f"{key}_mean"], yerr=t[f"{key}_std"], marker="o", capsize=3, label=SCAN_LABELS[scan])
+            ax.errorbar(
+                x, t[f"{key}_mean"], yerr=t[f"{key}_std"], marker="o", capsize=3, label=common.SCAN_LABELS[scan]
+            )
         pts = paper[key].dropna() if key in paper else pd.Series(dtype=float)
         for (scan, klux), v in pts.items():
-            ax.plot([klux], [v], "k*", markersize=12, label=f"paper: {SCAN_LABELS.get(scan, scan)}")
+            ax.plot([klux], [v], "k*", markersize=12, label=f"paper: {common.SCAN_LABELS.get(scan, scan)}")
         ax.set_xlabel("background light (kLux)")
         ax.set_title(label)
         ax.grid(alpha=0.3)
     fig.suptitle("Figure 9: 2D reconstruction in fog at 20 cm, 100 % of the patterns", fontsize=10)
-    n = count_range(table["n"]) if "n" in table and len(table) else "the"
+    n = common.count_range(table["n"]) if "n" in table and len(table) else "the"
     fig.tight_layout(rect=(0.0, 0.12, 1.0, 1.0))  # room under the panels for the legend and caption
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 0.055), ncol=len(labels), fontsize=8)
@@ -353,5 +335,4 @@ def _plot(table: pd.DataFrame, paper: pd.DataFrame, path: Path) -> None:
         va="bottom",
         wrap=True,
     )
-    fig.savefig(path, dpi=100, bbox_inches="tight", pad_inches=0.1)
-    plt.close(fig)
+    common.save_figure(path, fig)

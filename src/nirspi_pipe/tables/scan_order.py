@@ -17,18 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nirspi_pipe.tables._common import (
-    PAIR_KEYS,
-    SCAN_LABELS,
-    SCANS,
-    degenerate_count,
-    degenerate_note,
-    failures_note,
-    ok_rows,
-    paired_vs_basic,
-    signif,
-    stats,
-)
+from nirspi_pipe.tables import _common as common
 
 __all__ = ["best_scan", "build", "MECHANISMS"]
 
@@ -40,25 +29,22 @@ METRICS = {"psnr8_db": "metrics.psnr", "psnr32_db": "metrics.upscale_psnr"}
 def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build the scan-order study's table (CSV, Markdown) from a results frame into ``out_dir``."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, ["mechanism", "scan.ratio", *METRICS.values()], "scan_order")
+    df = common.ok_rows(frame, ["mechanism", "scan.ratio", *METRICS.values()], "scan_order")
     rows = []
     mechs = [m for m in MECHANISMS if m in set(df["mechanism"])] + sorted(set(df["mechanism"]) - set(MECHANISMS))
     for mech in mechs:
         for ratio in sorted(df["scan.ratio"].unique(), reverse=True):
             sub = df[(df["mechanism"] == mech) & (df["scan.ratio"] == ratio)]
-            for scan in SCANS:
-                g = sub[sub["scan"] == scan]
-                if g.empty:
-                    continue
+            for scan, g in common.scan_groups(sub):
                 row: dict = {"mechanism": mech, "ratio": float(ratio), "scan": scan, "n": int(len(g))}
                 for key, col in METRICS.items():
-                    row.update(stats(g[col], key))
-                    row.update(degenerate_count(g, col, key))
-                    d, se, pairs = paired_vs_basic(sub, col, scan)
+                    row.update(common.stats(g[col], key))
+                    row.update(common.degenerate_count(g, col, key))
+                    d, se, pairs = common.paired_vs_basic(sub, col, scan)
                     row.update({f"{key}_d_vs_basic": d, f"{key}_se_vs_basic": se, f"{key}_pairs": pairs})
                 rows.append(row)
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "scan_order.csv", index=False, float_format="%.6g")
+    common.write_csv(table, out_dir / "scan_order.csv")
     (out_dir / "scan_order.md").write_text(_markdown(table, frame, df))
     return table
 
@@ -67,7 +53,7 @@ def _paired(sub: pd.DataFrame, metric: str, a: str, b: str) -> tuple[float, floa
     """Mean and standard error of ``metric(a) − metric(b)`` over the samples both scans have,
     paired as :func:`~nirspi_pipe.tables._common.paired_vs_basic` pairs them (NaN standard
     error with fewer than two pairs)."""
-    keys = [k for k in PAIR_KEYS if k in sub.columns]
+    keys = [k for k in common.PAIR_KEYS if k in sub.columns]
     if not keys:
         return np.nan, np.nan
     wide = sub[sub["scan"].isin([a, b])].pivot_table(index=keys, columns="scan", values=metric, aggfunc="mean")
@@ -87,7 +73,7 @@ def best_scan(sub: pd.DataFrame, metric: str) -> str:
     "none (within noise)", naming the leaders (the top scan and those within its noise) when
     some scans are behind them. "none (degenerate)" when no scan has a score."""
     means = sub.groupby("scan")[metric].mean().dropna()
-    means = means[[s for s in SCANS if s in means.index] + sorted(set(means.index) - set(SCANS))]
+    means = means[[s for s in common.SCANS if s in means.index] + sorted(set(means.index) - set(common.SCANS))]
     if means.empty:
         return "none (degenerate)"
     top = str(means.idxmax())
@@ -96,13 +82,13 @@ def best_scan(sub: pd.DataFrame, metric: str) -> str:
         if other == top:
             continue
         d, se = _paired(sub, metric, top, str(other))
-        if not (signif(d, se) and d > 0):
+        if not (common.signif(d, se) and d > 0):
             leaders.append(str(other))
     if len(leaders) == 1:
-        return SCAN_LABELS.get(top, top)
+        return common.SCAN_LABELS.get(top, top)
     if len(leaders) == len(means):
         return "none (within noise)"
-    names = ", ".join(SCAN_LABELS.get(s, s) for s in means.index if s in leaders)
+    names = ", ".join(common.SCAN_LABELS.get(s, s) for s in means.index if s in leaders)
     return f"none (within noise: {names})"
 
 
@@ -117,7 +103,7 @@ def _cell(r: pd.Series, scan: str, key: str) -> str:
     d, se = r[f"{key}_d_vs_basic"], r[f"{key}_se_vs_basic"]
     if not np.isfinite(d):
         return f"n/a{mark}"
-    return (f"{d:+.2f} ± {se:.2f}{signif(d, se)}" if np.isfinite(se) else f"{d:+.2f}") + mark
+    return (f"{d:+.2f} ± {se:.2f}{common.signif(d, se)}" if np.isfinite(se) else f"{d:+.2f}") + mark
 
 
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str:
@@ -131,20 +117,20 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
         "with the leaders that are within noise of each other.",
         "",
         "| mechanism | sampling | "
-        + " | ".join(f"{SCAN_LABELS[s]} 8²" for s in SCANS)
+        + " | ".join(f"{common.SCAN_LABELS[s]} 8²" for s in common.SCANS)
         + " | "
-        + " | ".join(f"{SCAN_LABELS[s]} 32²" for s in SCANS)
+        + " | ".join(f"{common.SCAN_LABELS[s]} 32²" for s in common.SCANS)
         + " | best (8²) |",
-        "|---|---:|" + "---:|" * (2 * len(SCANS)) + "---|",
+        "|---|---:|" + "---:|" * (2 * len(common.SCANS)) + "---|",
     ]
     for (mech, ratio), g in table.groupby(["mechanism", "ratio"], sort=False):
         g = g.set_index("scan")
-        cells8 = [_cell(g.loc[s], s, "psnr8_db") if s in g.index else "" for s in SCANS]
-        cells32 = [_cell(g.loc[s], s, "psnr32_db") if s in g.index else "" for s in SCANS]
+        cells8 = [_cell(g.loc[s], s, "psnr8_db") if s in g.index else "" for s in common.SCANS]
+        cells32 = [_cell(g.loc[s], s, "psnr32_db") if s in g.index else "" for s in common.SCANS]
         best = best_scan(df[(df["mechanism"] == mech) & (df["scan.ratio"] == ratio)], METRICS["psnr8_db"])
         lines.append(f"| {mech} | {ratio:.0%} | " + " | ".join(cells8) + " | " + " | ".join(cells32) + f" | {best} |")
-    lines += ["", failures_note(frame, df), ""]
-    note = degenerate_note(df, {"8²": METRICS["psnr8_db"], "32²": METRICS["psnr32_db"]})
+    lines += ["", common.failures_note(frame, df), ""]
+    note = common.degenerate_note(df, {"8²": METRICS["psnr8_db"], "32²": METRICS["psnr32_db"]})
     if note:
         lines += [note, ""]
     return "\n".join(lines)

@@ -24,22 +24,7 @@ import numpy as np
 import pandas as pd
 
 from nirspi_pipe.stats import across_families
-from nirspi_pipe.tables._common import (
-    SCAN_LABELS,
-    SCANS,
-    bar_plot,
-    conditions_note,
-    failures_note,
-    fmt,
-    ok_rows,
-    paired_vs_basic,
-    paper_reference,
-    ranking,
-    ranking_note,
-    stats,
-    with_families,
-)
-from nirspi_pipe.tables._common import cell as cell_se
+from nirspi_pipe.tables import _common as common
 
 __all__ = ["build"]
 
@@ -80,21 +65,17 @@ def fogged(df: pd.DataFrame) -> pd.Series:
 def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build Table 3 from a results frame into ``out_dir`` (see the module docstring)."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, [METRIC, "illumination.klux"], "table3")
+    df = common.ok_rows(frame, [METRIC, "illumination.klux"], "table3")
     df = df[fogged(df)]
     if df.empty:
         raise ValueError("table3 needs fogged jobs: run `nirspi-run -m +experiment=table3`")
-    paper = paper_reference("table3").set_index(["scan", "klux"])["improvement_pct"]
+    paper = common.paper_reference("table3").set_index(["scan", "klux"])["improvement_pct"]
     rows = []
-    for klux in sorted(df["illumination.klux"].unique()):
-        dk = df[df["illumination.klux"] == klux]
-        for scan in SCANS:
-            g = dk[dk["scan"] == scan]
-            if g.empty:
-                continue
-            d, se, _ = paired_vs_basic(dk, METRIC, scan)
+    for klux, dk in common.klux_levels(df):
+        for scan, g in common.scan_groups(dk):
+            d, se, _ = common.paired_vs_basic(dk, METRIC, scan)
             p = float(paper.get((scan, float(klux)), np.nan))
-            st = stats(g[METRIC], "improvement_pct")
+            st = common.stats(g[METRIC], "improvement_pct")
             rows.append(
                 {
                     "scan": scan,
@@ -117,28 +98,28 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
             )
     table = pd.DataFrame(rows)
     claims = across_families(_rankings(df))
-    claims.to_csv(out_dir / "table3_rankings.csv", index=False, float_format="%.6g")
+    common.write_csv(claims, out_dir / "table3_rankings.csv")
     objects = _objects(df)
-    objects.to_csv(out_dir / "table3_objects.csv", index=False, float_format="%.6g")
-    table.to_csv(out_dir / "table3.csv", index=False, float_format="%.6g")
-    (out_dir / "table3.md").write_text(with_families(_markdown(table, frame, df, claims, objects), claims))
+    common.write_csv(objects, out_dir / "table3_objects.csv")
+    common.write_csv(table, out_dir / "table3.csv")
+    (out_dir / "table3.md").write_text(common.with_families(_markdown(table, frame, df, claims, objects), claims))
     levels = sorted(table["klux"].unique())
     series = {}
     prim = "offsetfree" if "offsetfree_mean" in table else "centre"
     for k in levels:
-        t = table[table["klux"] == k].set_index("scan").reindex(list(SCANS))
+        t = table[table["klux"] == k].set_index("scan").reindex(list(common.SCANS))
         series[f"{k:g} kLux"] = (t[f"{prim}_mean"].tolist(), t[f"{prim}_se"].fillna(0).tolist())
-    pap = {f"{k:g} kLux": [float(paper.get((s, float(k)), np.nan)) for s in SCANS] for k in levels}
-    bar_plot(
-        out_dir / "table3.png",
+    pap = {f"{k:g} kLux": [float(paper.get((s, float(k)), np.nan)) for s in common.SCANS] for k in levels}
+    bar = common.bar_figure(
         "Table 3: improvement rate (Eq. 17), fog",
-        [SCAN_LABELS[s] for s in SCANS],
+        [common.SCAN_LABELS[s] for s in common.SCANS],
         series,
         pap,
         "improvement of depth RMSE (%), " + ("offset-free baseline" if prim == "offsetfree" else "centre-placed"),
         "Error bars: ± 1 standard error of the cell's mean, clustered by seed (objects and scans of one seed "
         "share its noise draws); hatched: the paper's Table 3.",
     )
+    common.save_figure(out_dir / "table3.png", bar)
     return table
 
 
@@ -149,7 +130,7 @@ def _baselines(g: pd.DataFrame) -> dict[str, float]:
         if col not in g:
             continue
         out[f"{key}_mean"] = float(g[col].mean())
-        out.update(cell_se(g, col, key))
+        out.update(common.cell(g, col, key))
         rm = BASELINE_RMSE[key]
         if rm in g and FUSED_RMSE in g:  # Eq. 17 of the mean RMSEs (not the mean of the jobs' rates)
             before, after = float(g[rm].mean()), float(g[FUSED_RMSE].mean())
@@ -159,11 +140,12 @@ def _baselines(g: pd.DataFrame) -> dict[str, float]:
 
 def _rankings(df: pd.DataFrame) -> pd.DataFrame:
     parts = []
-    for klux in sorted(df["illumination.klux"].unique()):
-        dk = df[df["illumination.klux"] == klux]
+    for klux, dk in common.klux_levels(df):
         for key, col in BASELINES.items():
             if col in dk and dk[col].notna().any():
-                parts.append(ranking(dk, col, higher_is_better=True, where={"klux": float(klux), "baseline": key}))
+                parts.append(
+                    common.ranking(dk, col, higher_is_better=True, where={"klux": float(klux), "baseline": key})
+                )
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
@@ -206,13 +188,13 @@ def _markdown(
     ]
     for r in table.itertuples():
         cells = [
-            fmt(getattr(r, f"{k}_mean", np.nan), getattr(r, f"{k}_se", np.nan), 1)
+            common.fmt(getattr(r, f"{k}_mean", np.nan), getattr(r, f"{k}_se", np.nan), 1)
             for k in (("offsetfree", "centre", "fit") if has_free else ("centre", "fit"))
         ]
         if not has_free:
             cells.insert(0, "n/a")
         lines.append(
-            f"| {SCAN_LABELS[r.scan]} | {r.klux:g} | {r.paper_improvement_pct:.2f} | "
+            f"| {common.SCAN_LABELS[r.scan]} | {r.klux:g} | {r.paper_improvement_pct:.2f} | "
             + " | ".join(cells)
             + f" | {r.n} | {'n/a' if np.isnan(r.flagged) else int(r.flagged)} |"
         )
@@ -234,7 +216,7 @@ def _markdown(
             "Eq. 17 of each cell's mean RMSEs (instead of the mean of the jobs' rates), offset-free / "
             "centre-placed / global-fit: "
             + "; ".join(
-                f"{SCAN_LABELS[r.scan]} {r.klux:g} kLux {r.offsetfree_of_means:.1f} / {r.centre_of_means:.1f} / "
+                f"{common.SCAN_LABELS[r.scan]} {r.klux:g} kLux {r.offsetfree_of_means:.1f} / {r.centre_of_means:.1f} / "
                 f"{r.fit_of_means:.1f} %"
                 for r in table.itertuples()
             )
@@ -252,8 +234,8 @@ def _markdown(
         ]
         for o in objects.itertuples():
             lines.append(
-                f"| {o.scene} | {o.klux:g} | {fmt(o.offsetfree_mean, o.offsetfree_se, 1)} | "
-                f"{fmt(o.centre_mean, o.centre_se, 1)} | {fmt(o.fit_mean, o.fit_se, 1)} | "
+                f"| {o.scene} | {o.klux:g} | {common.fmt(o.offsetfree_mean, o.offsetfree_se, 1)} | "
+                f"{common.fmt(o.centre_mean, o.centre_se, 1)} | {common.fmt(o.fit_mean, o.fit_se, 1)} | "
                 f"{o.offset_mm_mean:+.1f} | {100 * o.offset_share:.0f} % | {o.n} |"
             )
         lines.append("")
@@ -261,7 +243,7 @@ def _markdown(
         f"Depth RMSE (Eq. 16), mean over all rows: SFS centre-placed {table['depth_rmse_sfs_mm_mean'].mean():.1f} mm, "
         f"after Alg. A3 {table['depth_rmse_fused_mm_mean'].mean():.1f} mm.",
         "",
-        f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame)], df)}",
+        common.rows_note(df, frame[fogged(frame)]),
     ]
     return "\n".join(lines) + "\n"
 
@@ -272,7 +254,7 @@ def _claims_lines(claims: pd.DataFrame) -> str:
         return "Rankings: no comparison possible."
     parts = []
     for (klux, base), c in claims.groupby(["klux", "baseline"], sort=False):
-        parts.append(f"{klux:g} kLux, {base}: {ranking_note(c)}")
+        parts.append(f"{klux:g} kLux, {base}: {common.ranking_note(c)}")
     return (
         "Rankings (a scan better than another only where the paired difference holds after Holm's correction "
         "over the six pairs in both seed halves): " + "; ".join(parts) + "."

@@ -21,23 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from nirspi_pipe import stats as st
-from nirspi_pipe.tables._common import (
-    SCAN_LABELS,
-    SCANS,
-    bar_plot,
-    compare_metric,
-    conditions_note,
-    count_range,
-    failures_note,
-    fmt,
-    ok_rows,
-    paper_reference,
-    ranking,
-    ranking_note,
-    with_families,
-)
-from nirspi_pipe.tables._common import cell as cell_se
+from nirspi_pipe.tables import _common as common
 from nirspi_pipe.tables.table3 import fogged
 
 __all__ = ["build", "build_skewness"]
@@ -57,63 +41,47 @@ def _split_remesh(df: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
 def build_skewness(frame: pd.DataFrame, out_dir: Path, name: str, fog: bool) -> pd.DataFrame:
     """Skewness table ``name`` (table4: ``fog=False``, table5: ``fog=True``) into ``out_dir``."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, list(COLUMNS.values()), name)
+    df = common.ok_rows(frame, list(COLUMNS.values()), name)
     df = df[fogged(df) == fog]
     if df.empty:
         raise ValueError(f"{name} needs {'fogged' if fog else 'fog-free'} jobs: run `nirspi-run -m +experiment={name}`")
     df, plain = _split_remesh(df)
     if df.empty:
         raise ValueError(f"{name} needs jobs with the default remeshing: run `nirspi-run -m +experiment={name}`")
-    paper = paper_reference(name).set_index("scan")
-    rows = []
-    for scan in SCANS:
-        g = df[df["scan"] == scan]
-        if g.empty:
-            continue
-        row: dict = {"scan": scan, "n": int(len(g))}
-        for key, col in COLUMNS.items():
-            row.update(compare_metric(df, g, scan, key, col, paper))
-        rows.append(row)
-    table = pd.DataFrame(rows)
-    table.to_csv(out_dir / f"{name}.csv", index=False, float_format="%.6g")
-    claims = pd.concat(
-        [ranking(df, col, higher_is_better=False, where={"column": key}) for key, col in COLUMNS.items()],
-        ignore_index=True,
-    )
-    claims = st.across_families(claims)
-    claims.to_csv(out_dir / f"{name}_rankings.csv", index=False, float_format="%.6g")
+    paper = common.paper_reference(name).set_index("scan")
+    table = pd.DataFrame([common.compared_row(df, scan, g, COLUMNS, paper) for scan, g in common.scan_groups(df)])
+    common.write_csv(table, out_dir / f"{name}.csv")
+    claims = common.column_rankings(df, COLUMNS, lambda key: False)  # lower skewness is better
+    common.write_csv(claims, out_dir / f"{name}_rankings.csv")
     noremesh = _noremesh(plain)
     if len(noremesh):
-        noremesh.to_csv(out_dir / f"{name}_noremesh.csv", index=False, float_format="%.6g")
+        common.write_csv(noremesh, out_dir / f"{name}_noremesh.csv")
     (out_dir / f"{name}.md").write_text(
-        with_families(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh), claims)
+        common.with_families(_markdown(table, frame, pd.concat([df, plain]), name, fog, claims, noremesh), claims)
     )
-    t = table.set_index("scan").reindex(list(SCANS))
-    bar_plot(
-        out_dir / f"{name}.png",
+    t = table.set_index("scan").reindex(list(common.SCANS))
+    bar = common.bar_figure(
         f"Table {name[len('table') :]}: equiangle skewness, {'fog' if fog else 'no fog'}",
-        [SCAN_LABELS[s] for s in SCANS],
+        [common.SCAN_LABELS[s] for s in common.SCANS],
         {k: (t[f"{k}_mean"].tolist(), t[f"{k}_std"].tolist()) for k in COLUMNS},
         {k: t[f"paper_{k}"].tolist() for k in COLUMNS},
         "mean equiangle skewness (0 best, 1 degenerate)",
-        f"Error bars: ± 1 standard deviation of the jobs' mean skewness ({count_range(t['n'])} "
+        f"Error bars: ± 1 standard deviation of the jobs' mean skewness ({common.count_range(t['n'])} "
         "jobs per scan: objects × kLux × seeds), the spread between jobs, not the uncertainty of the mean "
         f"({name}.md gives the standard errors clustered by seed).",
     )
+    common.save_figure(out_dir / f"{name}.png", bar)
     return table
 
 
 def _noremesh(plain: pd.DataFrame) -> pd.DataFrame:
     """Per scan: both skewness columns of the jobs without remeshing (mean, clustered SE, n)."""
     rows = []
-    for scan in SCANS:
-        g = plain[plain["scan"] == scan]
-        if g.empty:
-            continue
+    for scan, g in common.scan_groups(plain):
         row: dict = {"scan": scan, "n": int(len(g))}
         for key, col in COLUMNS.items():
             row[f"{key}_mean"] = float(g[col].mean())
-            row.update(cell_se(g, col, key))
+            row.update(common.cell(g, col, key))
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -156,27 +124,26 @@ def _markdown(
     ]
     for r in table.itertuples():
         cells = [
-            f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_se'), 3)} ({getattr(r, f'paper_{k}'):.2f})"
+            f"{common.fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_se'), 3)} ({getattr(r, f'paper_{k}'):.2f})"
             for k in COLUMNS
         ]
         if nr is not None and r.scan in nr.index:
             o = nr.loc[r.scan]
-            cells.append(fmt(o["skewness_mesh_itof_mean"], o["skewness_mesh_itof_se"], 3))
+            cells.append(common.fmt(o["skewness_mesh_itof_mean"], o["skewness_mesh_itof_se"], 3))
             cells.append(f"{r.n} ({int(o['n'])})")
         else:
             cells.append(str(r.n))
-        lines.append(f"| {SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
-    notes = "; ".join(f"{key}: {ranking_note(c)}" for key, c in claims.groupby("column", sort=False))
+        lines.append(f"| {common.SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "Rankings (lower skewness better; only where the paired difference holds after Holm's correction "
-        f"over the six pairs in both seed halves): {notes}.",
+        f"over the six pairs in both seed halves): {common.column_notes(claims)}.",
         "",
         f"Ranges over all jobs: SFS {table['skewness_sfs_min'].min():.2f}–{table['skewness_sfs_max'].max():.2f}, "
         f"mesh+iToF {table['skewness_mesh_itof_min'].min():.2f}–{table['skewness_mesh_itof_max'].max():.2f}. "
         f"Mean change SFS → mesh+iToF: {(table['skewness_mesh_itof_mean'] - table['skewness_sfs_mean']).mean():+.2f} "
         f"(paper: {(table['paper_skewness_mesh_itof'] - table['paper_skewness_sfs']).mean():+.2f}).",
         "",
-        f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame) == fog], df)}",
+        common.rows_note(df, frame[fogged(frame) == fog]),
     ]
     return "\n".join(lines) + "\n"

@@ -20,18 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nirspi_pipe.tables._common import (
-    SCAN_LABELS,
-    SCANS,
-    bar_plot,
-    conditions_note,
-    count_range,
-    failures_note,
-    fmt,
-    ok_rows,
-    paper_reference,
-    stats,
-)
+from nirspi_pipe.tables import _common as common
 from nirspi_pipe.tables.table3 import fogged
 
 __all__ = ["build", "stage_times"]
@@ -49,44 +38,41 @@ def stage_times(df: pd.DataFrame) -> pd.DataFrame:
 def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build Table 6 from a results frame into ``out_dir`` (see the module docstring)."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, ["timings_ms.sfs", "timings_ms.fusion", "timings_ms.surface"], "table6")
+    df = common.ok_rows(frame, ["timings_ms.sfs", "timings_ms.fusion", "timings_ms.surface"], "table6")
     if fogged(df).any():  # the paper's timing runs are the fog runs of Tables 3/5/7
         df = df[fogged(df)]
     times = stage_times(df)
-    paper = paper_reference("table6").set_index("scan")
+    paper = common.paper_reference("table6").set_index("scan")
     backend = "info.sfs.backend"
     rows = []
-    for scan in SCANS:
-        sel = df["scan"] == scan
-        if not sel.any():
-            continue
-        row: dict = {"scan": scan, "n": int(sel.sum())}
+    for scan, g in common.scan_groups(df):
+        row: dict = {"scan": scan, "n": int(len(g))}
         if backend in df.columns:
-            row["sfs_backend"] = ",".join(sorted(df.loc[sel, backend].dropna().astype(str).unique()))
+            row["sfs_backend"] = ",".join(sorted(g[backend].dropna().astype(str).unique()))
         for key in KEYS:
-            row.update(stats(times.loc[sel, key], key))
+            row.update(common.stats(times.loc[g.index, key], key))
         for key in KEYS:
             p = float(paper.loc[scan, key]) if scan in paper.index else np.nan
             row[f"paper_{key}"] = p
             row[f"{key}_ratio"] = row[f"{key}_mean"] / p if p else np.nan
         rows.append(row)
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "table6.csv", index=False, float_format="%.6g")
+    common.write_csv(table, out_dir / "table6.csv")
     (out_dir / "table6.md").write_text(_markdown(table, frame, df))
-    t = table.set_index("scan").reindex(list(SCANS))
-    bar_plot(
-        out_dir / "table6.png",
+    t = table.set_index("scan").reindex(list(common.SCANS))
+    bar = common.bar_figure(
         "Table 6: 3D processing time per job",
-        [SCAN_LABELS[s] for s in SCANS],
+        [common.SCAN_LABELS[s] for s in common.SCANS],
         {
             "SFS": (t["time_sfs_ms_mean"].tolist(), t["time_sfs_ms_std"].tolist()),
             "3D mesh": (t["time_3dmesh_ms_mean"].tolist(), t["time_3dmesh_ms_std"].tolist()),
         },
         {"SFS": t["paper_time_sfs_ms"].tolist(), "3D mesh": t["paper_time_3dmesh_ms"].tolist()},
         "ms",
-        f"Error bars: ± 1 standard deviation of the jobs' times ({count_range(t['n'])} jobs "
+        f"Error bars: ± 1 standard deviation of the jobs' times ({common.count_range(t['n'])} jobs "
         "per scan: objects × kLux × seeds), the spread between jobs, not the uncertainty of the mean.",
     )
+    common.save_figure(out_dir / "table6.png", bar)
     return table
 
 
@@ -107,15 +93,16 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame) -> str
     ]
     for r in table.itertuples():
         cells = [
-            f"{fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'), 1)} ({getattr(r, f'paper_{k}'):.2f})" for k in KEYS
+            f"{common.fmt(getattr(r, f'{k}_mean'), getattr(r, f'{k}_std'), 1)} ({getattr(r, f'paper_{k}'):.2f})"
+            for k in KEYS
         ]
-        lines.append(f"| {SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
+        lines.append(f"| {common.SCAN_LABELS[r.scan]} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "Ours / paper (total): "
-        + ", ".join(f"{SCAN_LABELS[r.scan]} {r.time_total_ms_ratio:.2f}×" for r in table.itertuples())
+        + ", ".join(f"{common.SCAN_LABELS[r.scan]} {r.time_total_ms_ratio:.2f}×" for r in table.itertuples())
         + ".",
         "",
-        f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame)] if fogged(df).all() else frame, df)}",
+        common.rows_note(df, frame[fogged(frame)] if fogged(df).all() else frame),
     ]
     return "\n".join(lines) + "\n"

@@ -21,22 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from nirspi_pipe.stats import across_families
-from nirspi_pipe.tables._common import (
-    SCAN_LABELS,
-    SCANS,
-    compare_metric,
-    conditions_note,
-    failures_note,
-    fmt,
-    ok_rows,
-    paper_reference,
-    ranking,
-    ranking_note,
-    stats,
-    with_families,
-)
-from nirspi_pipe.tables._common import cell as cell_se
+from nirspi_pipe.tables import _common as common
 from nirspi_pipe.tables.table3 import fogged
 from nirspi_pipe.tables.table6 import stage_times
 
@@ -49,23 +34,20 @@ OFFSETFREE = "metrics.improvement_offsetfree_pct"
 def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
     """Build Table 7 from a results frame into ``out_dir`` (see the module docstring)."""
     out_dir = Path(out_dir)
-    df = ok_rows(frame, [*QUALITY.values(), "timings_ms.sfs", "timings_ms.fusion", "timings_ms.surface"], "table7")
+    df = common.ok_rows(
+        frame, [*QUALITY.values(), "timings_ms.sfs", "timings_ms.fusion", "timings_ms.surface"], "table7"
+    )
     df = df[fogged(df)]
     if df.empty:
         raise ValueError("table7 needs fogged jobs: run `nirspi-run -m +experiment=table7`")
     df = df.assign(time_total_ms=stage_times(df)["time_total_ms"])
     if "surface.remesh_iterations" in df.columns:  # Table 7 is the default (remeshed) pipeline
         df = df[pd.to_numeric(df["surface.remesh_iterations"], errors="coerce") != 0]
-    paper = paper_reference("table7").set_index("scan")
+    paper = common.paper_reference("table7").set_index("scan")
     rows = []
-    for scan in SCANS:
-        g = df[df["scan"] == scan]
-        if g.empty:
-            continue
-        row: dict = {"scan": scan, "n": int(len(g))}
-        for key, col in QUALITY.items():
-            row.update(compare_metric(df, g, scan, key, col, paper))
-        st = stats(g["time_total_ms"], "time_total_ms")
+    for scan, g in common.scan_groups(df):
+        row = common.compared_row(df, scan, g, QUALITY, paper)
+        st = common.stats(g["time_total_ms"], "time_total_ms")
         p = float(paper.loc[scan, "time_total_ms"]) if scan in paper.index else np.nan
         row.update(
             {
@@ -77,24 +59,24 @@ def build(frame: pd.DataFrame, out_dir: Path) -> pd.DataFrame:
         )
         if OFFSETFREE in g:
             row["improvement_offsetfree_pct_mean"] = float(g[OFFSETFREE].mean())
-            row.update(cell_se(g, OFFSETFREE, "improvement_offsetfree_pct"))
+            row.update(common.cell(g, OFFSETFREE, "improvement_offsetfree_pct"))
         rows.append(row)
     table = pd.DataFrame(rows)
-    table.to_csv(out_dir / "table7.csv", index=False, float_format="%.6g")
+    common.write_csv(table, out_dir / "table7.csv")
     cols = {**QUALITY, **({"improvement_offsetfree_pct": OFFSETFREE} if OFFSETFREE in df else {})}
-    claims = pd.concat(
-        [ranking(df, col, higher_is_better=key != "skewness", where={"column": key}) for key, col in cols.items()],
-        ignore_index=True,
-    )
-    claims = across_families(claims)
-    claims.to_csv(out_dir / "table7_rankings.csv", index=False, float_format="%.6g")
-    (out_dir / "table7.md").write_text(with_families(_markdown(table, frame, df, claims), claims))
+    claims = common.column_rankings(df, cols, lambda key: key != "skewness")  # lower skewness, higher improvement
+    common.write_csv(claims, out_dir / "table7_rankings.csv")
+    (out_dir / "table7.md").write_text(common.with_families(_markdown(table, frame, df, claims), claims))
     return table
 
 
 def _rank(table: pd.DataFrame, col: str, ascending: bool) -> str:
     order = table.sort_values(col, ascending=ascending)["scan"]
-    return " < ".join(SCAN_LABELS[s] for s in order) if ascending else " > ".join(SCAN_LABELS[s] for s in order)
+    return (
+        " < ".join(common.SCAN_LABELS[s] for s in order)
+        if ascending
+        else " > ".join(common.SCAN_LABELS[s] for s in order)
+    )
 
 
 def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, claims: pd.DataFrame) -> str:
@@ -110,24 +92,23 @@ def _markdown(table: pd.DataFrame, frame: pd.DataFrame, df: pd.DataFrame, claims
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r in table.itertuples():
-        f = fmt(r.improvement_offsetfree_pct_mean, r.improvement_offsetfree_pct_se, 1) if free else "n/a"
+        f = common.fmt(r.improvement_offsetfree_pct_mean, r.improvement_offsetfree_pct_se, 1) if free else "n/a"
         lines.append(
-            f"| {SCAN_LABELS[r.scan]} "
-            f"| {fmt(r.skewness_mean, r.skewness_se, 3)} ({r.paper_skewness:.2f}) "
+            f"| {common.SCAN_LABELS[r.scan]} "
+            f"| {common.fmt(r.skewness_mean, r.skewness_se, 3)} ({r.paper_skewness:.2f}) "
             f"| {f} ({r.paper_improvement_pct:.0f}) "
-            f"| {fmt(r.improvement_pct_mean, r.improvement_pct_se, 1)} "
-            f"| {fmt(r.time_total_ms_mean, r.time_total_ms_std, 1)} ({r.paper_time_total_ms:.2f}) | {r.n} |"
+            f"| {common.fmt(r.improvement_pct_mean, r.improvement_pct_se, 1)} "
+            f"| {common.fmt(r.time_total_ms_mean, r.time_total_ms_std, 1)} ({r.paper_time_total_ms:.2f}) | {r.n} |"
         )
     paper = table.rename(columns={"paper_skewness": "ps", "paper_improvement_pct": "pi"})
-    notes = "; ".join(f"{key}: {ranking_note(c)}" for key, c in claims.groupby("column", sort=False))
     lines += [
         "",
         "Rankings supported by the data (paired on object, seed and kLux, standard errors clustered by "
-        "seed, Holm over the six pairs, holding in both seed halves): " + notes + ".",
+        "seed, Holm over the six pairs, holding in both seed halves): " + common.column_notes(claims) + ".",
         f"Order of the means (not a claim): skewness {_rank(table, 'skewness_mean', True)}; improvement "
         f"{_rank(table, 'improvement_offsetfree_pct_mean' if free else 'improvement_pct_mean', False)}.",
         f"Ranking, paper: skewness {_rank(paper, 'ps', True)}; improvement {_rank(paper, 'pi', False)}.",
         "",
-        f"Rows: {conditions_note(df)}; {failures_note(frame[fogged(frame)], df)}",
+        common.rows_note(df, frame[fogged(frame)]),
     ]
     return "\n".join(lines) + "\n"
