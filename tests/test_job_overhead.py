@@ -310,21 +310,15 @@ _PLAIN_TREES = st.recursive(
 
 
 @settings(max_examples=200, deadline=None)
-@given(
-    _PLAIN_TREES,
-    st.lists(
-        st.tuples(
-            st.lists(_KEYS, min_size=1, max_size=3).map(".".join),
-            st.one_of(st.integers(), st.lists(st.integers(), max_size=2), st.just({"x": 1})),
-        ),
-        max_size=4,
-    ),
-)
-def test_set_plain_copies_on_write(base: dict[str, Any], updates: list[tuple[str, Any]]) -> None:
+@given(_PLAIN_TREES, st.data())
+def test_set_plain_copies_on_write(base: dict[str, Any], data: st.DataObject) -> None:
     import copy
 
     from nirspi_pipe.app.jobcomposer import set_plain
 
+    paths = _paths(base) + ["nope", "a.nope.x"]  # existing keys at any depth, and absent ones
+    values = st.one_of(st.integers(), st.lists(st.integers(), max_size=2), st.just({"x": 1}))
+    updates = data.draw(st.lists(st.tuples(st.sampled_from(paths), values), max_size=4))
     before = copy.deepcopy(base)
     new, old = dict(base), copy.deepcopy(base)
     for dotted, value in updates:
