@@ -29,6 +29,7 @@ import signal
 import sys
 import traceback
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,7 @@ __all__ = [
     "CHILD_FAILED_STATUS",
     "OUTPUT_FAILED_STATUS",
     "ClaimedJob",
+    "SweepJob",
     "crash_message",
     "execute_attempt",
     "execute_job",
@@ -159,6 +161,22 @@ def _done_ok(folder: Path, sweep_file: Path | None, resume: bool) -> dict[str, A
     return rec if rec.get("meta", {}).get("status") == "ok" else None
 
 
+@dataclass(frozen=True)
+class SweepJob:
+    """What one sweep job runs, written once: ``execute(cfg, out_dir, choices, overrides,
+    job_num, attempt=n)`` (:func:`nirspi_pipe.execute.execute_job`'s parameters)."""
+
+    cfg: Any
+    out_dir: Path
+    choices: dict[str, str]
+    overrides: list[str]
+    job_num: int | None = None
+
+    def run(self, execute: Callable[..., dict[str, Any]], attempt: int) -> dict[str, Any]:
+        """``execute`` of this job, attempt ``attempt``: the record it wrote."""
+        return execute(self.cfg, self.out_dir, self.choices, self.overrides, self.job_num, attempt=attempt)
+
+
 def run_sweep_job(
     execute: Callable[..., dict[str, Any]],
     cfg: Any,
@@ -173,7 +191,7 @@ def run_sweep_job(
     job's record) as described in the module docstring. Never raises for a failing or crashing
     job; returns the record written (or, when even that could not be written, the one meant)."""
     try:
-        job = ClaimedJob.claim(cfg, out_dir, choices, overrides, job_num, sweep_file, resume, wait=True)
+        job = ClaimedJob.claim(SweepJob(cfg, out_dir, choices, overrides, job_num), sweep_file, resume, wait=True)
     except OutputError as exc:  # disk full, a folder that is a link: this job fails, the others go on
         return unwritten_failure(out_dir, overrides, job_num, exc)
     assert job is not None  # wait=True always takes the lock
@@ -181,7 +199,7 @@ def run_sweep_job(
         return job.finish(None)
     if not hasattr(os, "fork"):  # pragma: no cover - Windows: no isolation
         try:
-            job.done = execute(cfg, out_dir, choices, overrides, job_num, attempt=job.attempt)
+            job.done = job.job.run(execute, job.attempt)
         except BaseException:
             job.lock.release()
             raise
@@ -202,21 +220,13 @@ CHILD_FAILED_STATUS = _CHILD_FAILED << 8
 OUTPUT_FAILED_STATUS = _OUTPUT_FAILED << 8
 
 
-def execute_attempt(
-    execute: Callable[..., dict[str, Any]],
-    cfg: Any,
-    out_dir: Path,
-    choices: dict[str, str],
-    overrides: list[str],
-    job_num: int | None,
-    attempt: int,
-) -> int:
+def execute_attempt(execute: Callable[..., dict[str, Any]], job: SweepJob, attempt: int) -> int:
     """Run attempt ``attempt`` of a claimed job in this process (a forked child, or a runner of
     the ``nirspi`` launcher); the wait status a child doing it would give: 0, or
     :data:`CHILD_FAILED_STATUS` when ``execute`` raised (traceback on stderr), or
     :data:`OUTPUT_FAILED_STATUS` when it could not write the record (one line, no traceback)."""
     try:
-        execute(cfg, out_dir, choices, overrides, job_num, attempt=attempt)
+        job.run(execute, attempt)
     except OutputError as exc:  # disk full, unwritable folder: one line naming the file
         print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)
         return OUTPUT_FAILED_STATUS
@@ -236,50 +246,39 @@ class ClaimedJob:
     each with 0 when its runner reports it done, or with the runner's wait status when the
     runner died running it."""
 
-    def __init__(self, lock: JobLock, out_dir: Path, fields: dict[str, Any]) -> None:
-        self.lock, self.out_dir, self.fields = lock, out_dir, fields
+    def __init__(self, lock: JobLock, job: SweepJob) -> None:
+        self.lock, self.job, self.out_dir = lock, job, job.out_dir
         self.attempt = 0
         self.done: dict[str, Any] | None = None
 
     @classmethod
     def claim(
-        cls,
-        cfg: Any,
-        out_dir: Path,
-        choices: dict[str, str],
-        overrides: list[str],
-        job_num: int | None = None,
-        sweep_file: Path | None = None,
-        resume: bool = False,
-        wait: bool = True,
+        cls, job: SweepJob, sweep_file: Path | None = None, resume: bool = False, wait: bool = True
     ) -> ClaimedJob | None:
         """Take the job folder's lock, then either find the job done (``done``: its ``ok``
         record; nothing to run) or count this attempt (``attempt``). With ``wait=False`` returns
         None, without side effects, when another process holds the lock."""
-        out_dir = Path(out_dir)
+        out_dir = Path(job.out_dir)
         lock = JobLock(out_dir)
         if not lock.acquire(wait=False):
             if not wait:
                 return None
             print(f"nirspi-run: job {out_dir.name} is running in another process; waiting for it", flush=True)
             lock.acquire()
-        job = cls(lock, out_dir, {"cfg": cfg, "choices": choices, "overrides": overrides, "job_num": job_num})
+        claimed = cls(lock, replace(job, out_dir=out_dir))
         try:
-            job.done = _done_ok(out_dir, sweep_file, resume)
-            if job.done is None:
-                job.attempt = _bump_attempts(out_dir)
+            claimed.done = _done_ok(out_dir, sweep_file, resume)
+            if claimed.done is None:
+                claimed.attempt = _bump_attempts(out_dir)
                 provenance()  # computed once per process (cached), inherited by every forked child
         except BaseException:
             lock.release()
             raise
-        return job
+        return claimed
 
     def run_here(self, execute: Callable[..., dict[str, Any]]) -> int:
-        """Run the job in this process: :func:`execute_attempt` of its fields."""
-        f = self.fields
-        return execute_attempt(
-            execute, f["cfg"], self.out_dir, f["choices"], f["overrides"], f["job_num"], self.attempt
-        )
+        """Run the job in this process: :func:`execute_attempt` of its job."""
+        return execute_attempt(execute, self.job, self.attempt)
 
     def fork(self, execute: Callable[..., dict[str, Any]]) -> int:
         """Run the job in a forked child; its pid (wait for it, then :meth:`finish`)."""
@@ -318,18 +317,7 @@ class ClaimedJob:
             rec = _own_record(self.out_dir, self.attempt)
             if rec is not None and os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0:
                 return rec
-            f = self.fields
-            return _record_crash(
-                self.out_dir,
-                status,
-                rec,
-                f["cfg"],
-                f["choices"],
-                f["overrides"],
-                f["job_num"],
-                self.attempt,
-                deadline_s,
-            )
+            return _record_crash(self.job, status, rec, self.attempt, deadline_s)
         finally:
             self.lock.release()
 
@@ -343,15 +331,7 @@ def _own_record(out_dir: Path, attempt: int) -> dict[str, Any] | None:
 
 
 def _record_crash(
-    out_dir: Path,
-    status: int,
-    rec: dict[str, Any] | None,
-    cfg: Any,
-    choices: dict[str, str],
-    overrides: list[str],
-    job_num: int | None,
-    attempt: int,
-    deadline_s: float | None = None,
+    job: SweepJob, status: int, rec: dict[str, Any] | None, attempt: int, deadline_s: float | None = None
 ) -> dict[str, Any]:
     message, fields = crash_message(status)
     if rec is not None and rec.get("meta", {}).get("status") == "failed":
@@ -362,13 +342,15 @@ def _record_crash(
         fields["timeout_s"] = deadline_s
     config: dict[str, Any]
     try:
-        container = plain_config(cfg)
+        container = plain_config(job.cfg)
         config = container if isinstance(container, dict) else {}
     except Exception:  # noqa: BLE001 - the record must still be written
         config = {}
-    record = new_record(config, choices, overrides, job_num, attempt, error=message, error_type=error_type, **fields)
+    record = new_record(
+        config, job.choices, job.overrides, job.job_num, attempt, error=message, error_type=error_type, **fields
+    )
     try:
-        write_record(out_dir, record)
+        write_record(job.out_dir, record)
     except OutputError as exc:
         if status != OUTPUT_FAILED_STATUS:  # else the job has just said it, in the same words
             print(f"nirspi-run: error: {exc}", file=sys.stderr, flush=True)

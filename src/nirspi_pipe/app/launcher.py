@@ -127,6 +127,7 @@ class NirspiLauncherBase(Launcher):
         # start-up: loads hydra, hydra_plugins (62 ms here)
         from nirspi_pipe.app.jobs import (
             ClaimedJob,
+            SweepJob,
             run_sweep_job,
             unwritten_failure,
         )
@@ -157,7 +158,7 @@ class NirspiLauncherBase(Launcher):
             out_dir, num, job = items[i]
             try:
                 return ClaimedJob.claim(
-                    job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume, wait=wait
+                    SweepJob(job.config, out_dir, job.choices, job.task_overrides, num), sweep_file, resume, wait=wait
                 )
             except OutputError as exc:
                 return unwritten_failure(out_dir, job.task_overrides, num, exc)
@@ -253,7 +254,7 @@ def _return_value(job: ComposedJob, rec: dict[str, Any] | None) -> Any:
 def _runner_main(conn: Any, items: list[tuple[Path, int, ComposedJob]]) -> None:
     """A runner: run the jobs the launcher sends (``(index, attempt)``), one at a time, and answer
     ``(index, wait status)`` for each; stop at ``None`` or when the launcher is gone."""
-    from nirspi_pipe.app.jobs import execute_attempt  # start-up: loads hydra, hydra_plugins (62 ms here)
+    from nirspi_pipe.app.jobs import SweepJob, execute_attempt  # start-up: loads hydra, hydra_plugins (62 ms here)
 
     while True:
         try:
@@ -264,7 +265,7 @@ def _runner_main(conn: Any, items: list[tuple[Path, int, ComposedJob]]) -> None:
             return
         i, attempt = msg
         out_dir, num, job = items[i]
-        status = execute_attempt(_execute, job.config, out_dir, job.choices, job.task_overrides, num, attempt)
+        status = execute_attempt(_execute, SweepJob(job.config, out_dir, job.choices, job.task_overrides, num), attempt)
         sys.stdout.flush()
         sys.stderr.flush()
         conn.send((i, status))
