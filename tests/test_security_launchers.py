@@ -44,17 +44,19 @@ def _plugins() -> None:
 
 def _combination_folder(root: Path, victim: Path) -> Path:
     """A ``-cd`` folder where ``+experiment=a`` and ``metrics=x`` are each harmless, and together
-    choose ``hydra/job_logging=x``, a logging config that truncates ``victim``."""
+    choose ``hydra/hydra_logging=x``, a logging config that truncates ``victim``. (Hydra's own
+    logging: conf/config.yaml chooses ``hydra/job_logging`` itself, and the primary config's
+    choice wins over an option file's, so an option file cannot reach that group.)"""
     conf = root / "conf"
-    for sub in ("experiment", "metrics", "hydra/job_logging"):
+    for sub in ("experiment", "metrics", "hydra/hydra_logging"):
         (conf / sub).mkdir(parents=True)
     (conf / "experiment" / "a.yaml").write_text(
         "# @package _global_\ndefaults:\n  - override /metrics: default\n"
-        "  - override /hydra/job_logging: ${metrics}\nseed: 3\n"
+        "  - override /hydra/hydra_logging: ${metrics}\nseed: 3\n"
     )
     (conf / "experiment" / "b.yaml").write_text("# @package _global_\nseed: 4\n")
     (conf / "metrics" / "x.yaml").write_text((CONF / "metrics" / "default.yaml").read_text())
-    (conf / "hydra" / "job_logging" / "x.yaml").write_text(
+    (conf / "hydra" / "hydra_logging" / "x.yaml").write_text(
         f"version: 1\nhandlers:\n  f:\n    class: logging.FileHandler\n    filename: {victim}\n    mode: w\n"
         "root:\n  handlers: [f]\n"
     )
@@ -78,7 +80,7 @@ def test_swept_groups_are_checked_in_combination(tmp_path: Path) -> None:
     check_invocation([*base, "metrics=x,default"])
     with pytest.raises(Refused) as err:
         check_invocation([*base, "+experiment=a,b", "metrics=x,default"])
-    assert "hydra/job_logging=x" in str(err.value) and "\n" not in str(err.value)
+    assert "hydra/hydra_logging=x" in str(err.value) and "\n" not in str(err.value)
 
 
 @pytest.mark.slow  # 11-20 s at load 4-6: each check composes every value and combination
@@ -188,8 +190,8 @@ def test_a_combination_of_swept_groups_is_refused_before_hydras_launchers(launch
         res = _cli([*_hydra_pair(launcher), *sweep], work)
         written = list(work.iterdir())
     lines = res.stderr.strip().splitlines()
-    assert res.returncode == 2 and len(lines) == 1 and "hydra/job_logging=x" in lines[0], res.stderr[-2000:]
-    assert "allowed: default, disabled, none, stdout" in lines[0], lines[0]  # also from the job gate in an app
+    assert res.returncode == 2 and len(lines) == 1 and "hydra/hydra_logging=x" in lines[0], res.stderr[-2000:]
+    assert "allowed: default, disabled, hydra_debug, none" in lines[0], lines[0]  # also from the job gate in an app
     assert victim.read_text() == VICTIM_TEXT and not written
 
 

@@ -73,16 +73,18 @@ def _planting_folder(root: Path, victim: Path) -> Path:
     for name, text in files.items():
         (conf / "experiment" / f"{name}.yaml").write_text(text)
     # two harmless choices that together pick a logging config of this folder (the defaults list
-    # interpolates another group's choice): +experiment=comb metrics=comb
+    # interpolates another group's choice): +experiment=comb metrics=comb. Hydra's own logging
+    # (hydra_logging): conf/config.yaml chooses hydra/job_logging itself, and the primary config's
+    # choice wins over an option file's (tests/test_logging_presets.py)
     (conf / "experiment" / "comb.yaml").write_text(
-        "# @package _global_\ndefaults:\n  - override /metrics: default\n  - override /hydra/job_logging: ${metrics}\n"
+        "# @package _global_\ndefaults:\n  - override /metrics: default\n  - override /hydra/hydra_logging: ${metrics}\n"
     )
     (conf / "metrics").mkdir()
     (conf / "metrics" / "comb.yaml").write_text(
         (Path(__file__).resolve().parents[1] / "conf/metrics/default.yaml").read_text()
     )
-    (conf / "hydra" / "job_logging").mkdir(parents=True)
-    (conf / "hydra" / "job_logging" / "comb.yaml").write_text(
+    (conf / "hydra" / "hydra_logging").mkdir(parents=True)
+    (conf / "hydra" / "hydra_logging" / "comb.yaml").write_text(
         f"version: 1\nhandlers:\n  f:\n    class: logging.FileHandler\n    filename: {victim}\n    mode: w\n"
         "root:\n  handlers: [f]\n"
     )
