@@ -200,3 +200,35 @@ def test_the_floor_truth_against_itself():
     # 0.054 pitch measured: hit samples on the limb steeper than the slope limit join no face,
     # so the mesh samples do not come near them
     assert chamfer < 0.1 * pitch
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.integers(1, 300),
+    st.integers(1, 300),
+    st.floats(1e-3, 1e3),
+    st.integers(0, 2**32 - 1),
+)
+def test_surface_distances_are_the_exact_nearest_distances(na, nb, spread, seed):
+    """The chamfer and Hausdorff distances (unbalanced trees) equal those of the full distance
+    matrix, to the bit: the tree changes the search, not the per-pair arithmetic."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.distance import cdist
+
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(na, 3)) * spread
+    b = rng.normal(size=(nb, 3)) + rng.normal(size=3) * spread
+    chamfer, hausdorff = surface_distances(a, b)
+    da, db = cKDTree(b).query(a, k=1)[0], cKDTree(a).query(b, k=1)[0]
+    assert chamfer == 0.5 * (float(da.mean()) + float(db.mean()))
+    assert hausdorff == max(float(da.max()), float(db.max()))
+    full = cdist(a, b)
+    assert np.allclose(
+        [chamfer, hausdorff],
+        [
+            0.5 * (full.min(1).mean() + full.min(0).mean()),
+            max(full.min(1).max(), full.min(0).max()),
+        ],
+        rtol=1e-12,
+        atol=0,
+    )

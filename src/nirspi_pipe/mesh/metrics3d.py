@@ -235,9 +235,16 @@ def sample_surface(
 
 def surface_distances(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Symmetric chamfer distance (mean of the two directed mean distances) and Hausdorff
-    distance between point sets ``a`` and ``b`` ``(p, 3)``, in their units."""
-    da, _ = cKDTree(b).query(a, k=1)
-    db, _ = cKDTree(a).query(b, k=1)
+    distance between point sets ``a`` and ``b`` ``(p, 3)``, in their units.
+
+    The trees are built unbalanced and uncompacted (sliding-midpoint splits): the nearest distances
+    are exact either way (the same per-pair arithmetic, whatever the tree), and on the paper's 3D
+    jobs (a 32² device mesh of ~5000 samples against the ~19000-point true surface) building and
+    querying took 34-89 ms against 39-159 ms balanced (CPU, three Table 3 jobs; the distances
+    identical to the bit; ``tests/test_metrics3d_truth.py`` checks it against scipy's brute-force
+    distances on random clouds)."""
+    da, _ = cKDTree(b, balanced_tree=False, compact_nodes=False).query(a, k=1)
+    db, _ = cKDTree(a, balanced_tree=False, compact_nodes=False).query(b, k=1)
     return 0.5 * (float(da.mean()) + float(db.mean())), max(float(da.max()), float(db.max()))
 
 
