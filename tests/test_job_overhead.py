@@ -285,6 +285,22 @@ def test_atomic_write_fsyncs_unless_told_not_to(tmp_path: Path, monkeypatch: Any
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
 
 
+def test_the_attempts_count_is_written_without_a_flush(tmp_path: Path, monkeypatch: Any) -> None:
+    """attempts.json is bookkeeping (lost: one more try at worst): no fsync in the sweeping
+    process's claim of a job, and the count still goes up."""
+    import os
+
+    from nirspi_pipe import outputfiles
+    from nirspi_pipe.app import jobs
+
+    calls: list[int] = []
+    real = os.fsync
+    monkeypatch.setattr(outputfiles.os, "fsync", lambda fd: (calls.append(fd), real(fd))[1])
+    assert jobs._bump_attempts(tmp_path) == 1
+    assert jobs._bump_attempts(tmp_path) == 2
+    assert calls == [] and jobs.attempts_with_this_code(tmp_path) == 2
+
+
 # -- set_plain copies on write: the sweeper's base is never changed -----------------------------
 
 
