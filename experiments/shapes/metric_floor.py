@@ -31,7 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
+from nirspi_pipe.types import Camera
+
 SHAPES = ("sphere", "plate_edge", "ring", "bowl", "multi", "partial", "off_centre", "vase", "torus", "cube", "insect")
+#: The insect's turn about x, degrees (the docstring's "seen at 20°": a choice of this experiment).
+INSECT_ROTATION_DEG = (20.0, 0.0, 0.0)
 
 
 def _ellipsoid(c: np.ndarray, r: tuple[float, float, float], n: int = 24) -> tuple[np.ndarray, np.ndarray]:
@@ -92,12 +96,18 @@ def insect_obj(path: Path) -> Path:
     return path
 
 
+def insect_overrides(path: Path) -> list[str]:
+    """The ``nirspi-run`` overrides of the insect written at ``path`` (what :func:`scene_model` builds)."""
+    rx, ry, rz = (f"{v:g}" for v in INSECT_ROTATION_DEG)
+    return ["scene=mesh", f"scene.path={path}", f"scene.rotation_deg=[{rx},{ry},{rz}]"]
+
+
 def scene_model(shape: str, tmp: Path) -> object:
     """The scene model of ``shape`` (a config group option, or the generated insect)."""
     if shape == "insect":
         from nirspi_pipe.scene.shapes import MeshScene
 
-        return MeshScene(path=str(insect_obj(tmp / "insect.obj")), rotation_deg=(20.0, 0.0, 0.0))
+        return MeshScene(path=str(insect_obj(tmp / "insect.obj")), rotation_deg=INSECT_ROTATION_DEG)
     import nirspi_pipe
     from nirspi_pipe.instantiate import build
 
@@ -105,24 +115,24 @@ def scene_model(shape: str, tmp: Path) -> object:
     return build(dict(cfg["scene"]), "scene")
 
 
-def scores(model: object, resolution: int) -> dict[str, float]:
-    """The metrics of the exact point-sampled surface on the grid, plus the old reference's chamfer
-    and its bridging share."""
+def scores(model: object, resolution: int | Camera) -> dict[str, float]:
+    """The metrics of the exact point-sampled surface on the grid (``resolution`` pixels per side at
+    the default field of view, or a camera), plus the old reference's chamfer and its bridging share."""
     from scipy.spatial import cKDTree
 
     from nirspi_pipe.mesh.metrics3d import Metrics3D, sample_surface, surface_distances
     from nirspi_pipe.mesh.pointcloud import back_project, grid_triangles
     from nirspi_pipe.mesh.truthsurface import truth_surface
     from nirspi_pipe.stages import Products
-    from nirspi_pipe.types import Acquisition, Camera, DepthMap, Image2D, Mesh, PointCloud
+    from nirspi_pipe.types import Acquisition, DepthMap, Image2D, Mesh, PointCloud
 
-    cam = Camera(resolution)
+    cam = resolution if isinstance(resolution, Camera) else Camera(resolution)
     truth = model.render(cam)  # type: ignore[attr-defined]
     exact = truth_surface(dataclasses.replace(model, supersample=1).render(cam), None)  # type: ignore[call-overload]
     hit = exact.hit
     z = exact.points[:, 2].reshape(hit.shape)
-    n2 = resolution * resolution
-    acq = Acquisition(n=resolution, indices=np.arange(n2), y_pos=np.zeros(n2), truth=truth)
+    n2 = cam.resolution * cam.resolution
+    acq = Acquisition(n=cam.resolution, indices=np.arange(n2), y_pos=np.zeros(n2), truth=truth)
     products = Products(
         truth,
         acq,

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import warnings
 
 SHAPES = ("sphere", "plate_edge", "ring", "bowl", "multi", "partial", "off_centre", "vase", "torus", "cube")
@@ -33,25 +34,39 @@ def seeds_of(text: str) -> list[int]:
     return [int(v) for v in text.split(",")]
 
 
-def one(shape: str, sfs: str, seed: int, resolution: int, extra: list[str]) -> dict[str, float]:
-    """The metrics that the split needs, of one run (NaN where the run failed)."""
+def base_overrides(resolution: int, seed: int) -> list[str]:
+    """The noise-free study's overrides (``preset=off`` is ``preset=null``: no device preset), with
+    the iToF at its default noise, scored by ``metrics=full``."""
+    base = ["preset=off", "fog=none", "illumination=none", "detector=ideal", "itof=cw4", "fusion=itof"]
+    return [*base, "surface=power_crust", "metrics=full", f"camera.resolution={resolution}", f"seed={seed}"]
+
+
+def attempt(scene: list[str], sfs: str, seed: int, resolution: int, extra: list[str]) -> tuple[dict[str, float], str]:
+    """The metrics that the split needs, of one run on the scene ``scene`` (its overrides), and ""
+    or, where the run failed, NaN metrics and the reason in one line."""
     import nirspi_pipe
 
-    base = ["preset=off", "fog=none", "illumination=none", "detector=ideal", "itof=cw4", "fusion=itof"]
-    base += ["surface=power_crust", "metrics=full", f"camera.resolution={resolution}", f"seed={seed}"]
     nan = float("nan")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            r = nirspi_pipe.run([*base, f"scene={shape}", f"sfs={sfs}", *extra])
+            r = nirspi_pipe.run([*base_overrides(resolution, seed), *scene, f"sfs={sfs}", *extra])
     except Exception as exc:  # noqa: BLE001 - a failed run is a row with its reason
-        print(f"  {shape} sfs={sfs} seed={seed}: {type(exc).__name__}: {exc}")
-        return {"fused": nan, "chamfer": nan, "covered": nan}
+        reason = f"{type(exc).__name__}: {exc}".splitlines()[0] if str(exc) else type(exc).__name__
+        return {"fused": nan, "chamfer": nan, "covered": nan}, reason
     return {
         "fused": float(r.metrics.get("depth_rmse_fused_mm", nan)),
         "chamfer": float(r.metrics.get("chamfer_mm", nan)),
         "covered": float(r.info.get("surface", {}).get("cloud_covered_fraction", nan)),
-    }
+    }, ""
+
+
+def one(shape: str, sfs: str, seed: int, resolution: int, extra: list[str]) -> dict[str, float]:
+    """The metrics that the split needs, of one run (NaN where the run failed; its reason on stderr)."""
+    metrics, reason = attempt([f"scene={shape}"], sfs, seed, resolution, extra)
+    if reason:
+        print(f"  {shape} sfs={sfs} seed={seed}: {reason}", file=sys.stderr)
+    return metrics
 
 
 def summary(values: list[float], fmt: str) -> str:
