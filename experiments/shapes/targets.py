@@ -126,7 +126,7 @@ def markdown(row: Row) -> str:
         chamfer = "failed"
     floor = f"{row.floor_mm:.3f}" if row.floor_mm == row.floor_mm else "failed"
     ratio = f"{row.ratio:.1f}×" if row.ratio == row.ratio else "–"
-    failed = "; ".join(row.failures) if row.failures else "none"
+    failed = "; ".join(row.failures).replace("|", "\\|") if row.failures else "none"
     return (
         f"| {row.shape} | {chamfer} | {'yes' if row.chamfer_met else 'no'} | {_median(row.chamfer_truth)} "
         f"| {floor} | {ratio} | {'yes' if row.floor_met else 'no'} "
