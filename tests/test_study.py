@@ -152,7 +152,9 @@ def test_repeats_have_their_own_keys() -> None:
 
 def test_sweep_json_leaves_out_jobs_abandoned_without_a_record(tmp_path: Path) -> None:
     """CI at aeae266: a Ctrl-C'd trial's job stayed listed in sweep.json, so the resumed study
-    counted its missing record as a failed job and exited 1."""
+    counted its missing record as a failed job and exited 1. The same for the crash record the
+    launcher writes for a job Ctrl-C stopped (its runner's exit 130, or the launcher's SIGTERM):
+    listed, it made the resumed study exit 1 as well."""
     import json
     import subprocess
     import sys
@@ -168,6 +170,8 @@ def test_sweep_json_leaves_out_jobs_abandoned_without_a_record(tmp_path: Path) -
         "done": {},
         "interrupted": {"interrupted": True},
         "interrupted-with-record": {"interrupted": True},
+        "interrupted-exit-130": {"interrupted": True},
+        "interrupted-sigterm": {"interrupted": True},
         "dead-worker": {"worker": [_HOST, gone.pid], "running": True},
         "other-host": {"worker": ["another-host", 1], "running": True},
     }.items():
@@ -180,6 +184,11 @@ def test_sweep_json_leaves_out_jobs_abandoned_without_a_record(tmp_path: Path) -
         if name in ("done", "interrupted-with-record"):
             (tmp_path / key).mkdir()
             (tmp_path / key / "record.json").write_text("{}")
+        if name.startswith("interrupted-") and name != "interrupted-with-record":  # JobCrash records of a stop
+            crash = {"exit_code": 130, "signal": None} if name.endswith("130") else {"exit_code": -15, "signal": 15}
+            (tmp_path / key).mkdir()
+            meta = {"status": "failed", "error_type": "JobCrash", **crash}
+            (tmp_path / key / "record.json").write_text(json.dumps({"meta": meta}))
         if not attrs.get("running"):
             study.tell(trial, 1.0) if name == "done" else study.tell(trial, state=optuna.trial.TrialState.FAIL)
         states[key] = name

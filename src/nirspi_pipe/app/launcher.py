@@ -42,6 +42,7 @@ from hydra.plugins.launcher import Launcher
 from omegaconf import open_dict
 from threadpoolctl import threadpool_limits
 
+from nirspi_pipe.app import ctrlc
 from nirspi_pipe.app.jobcomposer import ComposedJob, composed_job
 from nirspi_pipe.app.launchsettings import DEFAULT_TIMEOUT_S, check_launcher_settings
 from nirspi_pipe.app.objective import objective_values
@@ -124,6 +125,15 @@ class NirspiLauncherBase(Launcher):
     def _run(
         self, items: list[tuple[Path, int, ComposedJob]], sweep_dir: Path, sweep_file: Path | None, resume: bool
     ) -> list[JobReturn]:
+        refuse_link(sweep_dir, "sweep folder")
+        # Ctrl-C is recorded and raised at the schedule's checks and waits, never lost in a fork
+        # (the provenance query's, a runner's): nirspi_pipe.app.ctrlc
+        with ctrlc.guarded():
+            return self._run_guarded(items, sweep_dir, sweep_file, resume)
+
+    def _run_guarded(
+        self, items: list[tuple[Path, int, ComposedJob]], sweep_dir: Path, sweep_file: Path | None, resume: bool
+    ) -> list[JobReturn]:
         # start-up: loads hydra, hydra_plugins (62 ms here)
         from nirspi_pipe.app.jobs import (
             ClaimedJob,
@@ -131,8 +141,6 @@ class NirspiLauncherBase(Launcher):
             run_sweep_job,
             unwritten_failure,
         )
-
-        refuse_link(sweep_dir, "sweep folder")
 
         sweep_dir.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
@@ -165,9 +173,10 @@ class NirspiLauncherBase(Launcher):
 
         if not hasattr(os, "fork"):  # pragma: no cover - Windows: in-process, one at a time
             for i, (out_dir, num, job) in enumerate(items):
-                rec = run_sweep_job(
-                    _execute, job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume
-                )
+                with ctrlc.interruptible():  # the job runs here: Ctrl-C stops it as it always did
+                    rec = run_sweep_job(
+                        _execute, job.config, out_dir, job.choices, job.task_overrides, num, sweep_file, resume
+                    )
                 finished(i, rec)
             return _returns(items, records)
         # BLAS/OpenMP threads per job as loky gives its workers (cores // jobs at once): the jobs
@@ -204,7 +213,8 @@ def _next_job(
             return
     else:
         i = deferred.pop(0)
-        claimed = claim(i, True)
+        with ctrlc.interruptible():  # waits for another process's lock
+            claimed = claim(i, True)
     assert claimed is not None  # wait=True always claims
     if isinstance(claimed, dict):
         finished(i, claimed)
@@ -223,6 +233,7 @@ def _schedule(
     deferred: list[int] = []  # another process holds the folder's lock: waited for at the end
     while pending or deferred or pool.busy:
         while pool.has_idle() and (pending or (deferred and not pool.busy)):
+            ctrlc.check()  # a Ctrl-C recorded since (in a fork, say): no further job is sent
             _next_job(pool, pending, deferred, claim, finished)
         if pool.busy:
             for i, claimed, status, late in pool.wait():
@@ -308,8 +319,11 @@ class _RunnerPool:
         if pid == 0:  # pragma: no cover - the runner (coverage does not follow forks)
             code = 0
             try:
+                ctrlc.in_child()  # SIGINT as before the launcher's guard: KeyboardInterrupt
                 parent_end.close()
                 _runner_main(child_end, self.items)
+            except KeyboardInterrupt:  # Ctrl-C: the job it ran (if any) is one the interrupt stopped
+                code = ctrlc.INTERRUPTED_EXIT
             except BaseException:  # noqa: BLE001 - a runner must never return into the launcher
                 code = 70
             finally:
@@ -336,7 +350,9 @@ class _RunnerPool:
         ended = []
         first = min(deadline for *_, deadline in self.running.values())
         timeout = None if first == float("inf") else max(0.0, first - time.monotonic())
-        for ready in wait(list(self.running), timeout=timeout):
+        with ctrlc.interruptible():  # Ctrl-C: KeyboardInterrupt at once, the runners are killed
+            ready_conns = wait(list(self.running), timeout=timeout)
+        for ready in ready_conns:
             runner, i, claimed, _deadline = self.running.pop(ready)
             conn = runner.conn
             try:

@@ -41,6 +41,7 @@ from __future__ import annotations
 import logging
 import os
 import shlex
+import signal
 import socket
 import sys
 import time
@@ -52,6 +53,7 @@ from typing import Any
 import yaml
 from omegaconf import OmegaConf
 
+from nirspi_pipe.app import ctrlc
 from nirspi_pipe.app.objective import directions_of, objective_names
 from nirspi_pipe.app.searchspace import (
     Dimension,
@@ -114,6 +116,18 @@ def _read(folder: Path) -> dict[str, Any] | None:
         return read_record(folder / RECORD_NAME)
     except (OSError, ValueError):
         return None
+
+
+def _stopped(record: dict[str, Any] | None) -> bool:
+    """Whether ``record`` is the launcher's crash record of a job that Ctrl-C stopped: its runner
+    ended with :data:`~nirspi_pipe.app.ctrlc.INTERRUPTED_EXIT` (``KeyboardInterrupt``), or by
+    ``SIGINT``, or by the ``SIGTERM`` the launcher sends its runners on an interrupt. Such a job
+    did not fail: its trial is interrupted, and a resumed study asks for a trial in its place."""
+    meta = (record or {}).get("meta") or {}
+    return meta.get("error_type") == "JobCrash" and (
+        meta.get("exit_code") == ctrlc.INTERRUPTED_EXIT
+        or meta.get("signal") in (int(signal.SIGINT), int(signal.SIGTERM))
+    )
 
 
 # -- the sweeper --------------------------------------------------------------------------------
@@ -223,6 +237,7 @@ class StudySweeperBase(NirspiSweeperBase):
         hasher = self.__dict__.setdefault("_hasher", InputHasher())
         prepared: list[tuple[str | Exception, Any]] = []
         for ov in overrides:
+            ctrlc.check()  # a composition takes a second or two: a Ctrl-C ends the study before the next
             try:
                 job = self._compose(ov, bases)
                 prepared.append((job_key_of(job.config, hasher.hashes(job.config)), job))
@@ -246,8 +261,9 @@ class StudySweeperBase(NirspiSweeperBase):
     def _write_sweep_file(self, sweep_dir: Path, study: Any, started: float, url: str) -> None:
         """List the jobs of the study's trials in ``sweep.json``: the ones collected into
         results.parquet. A trial interrupted by Ctrl-C, or left running by a worker that died, is
-        not listed unless its job wrote a record: a resumed study asks for a new trial in its place,
-        and its unwritten record is not a failed job of the study."""
+        not listed unless its job wrote a record other than the crash record of a job Ctrl-C
+        stopped (:func:`_stopped`): a resumed study asks for a new trial in its place, and its
+        unwritten record is not a failed job of the study."""
         # optional dependency: pip install '.[optuna]'
         from optuna.trial import TrialState
 
@@ -257,7 +273,7 @@ class StudySweeperBase(NirspiSweeperBase):
                 t.state == TrialState.RUNNING and not _alive(*(t.user_attrs.get("worker") or [None, None])[:2])
             )
             for key in t.user_attrs.get("jobs", []) or []:
-                if abandoned and not (sweep_dir / key / RECORD_NAME).is_file():
+                if abandoned and (not (sweep_dir / key / RECORD_NAME).is_file() or _stopped(_read(sweep_dir / key))):
                     continue
                 jobs.append(
                     {
@@ -299,25 +315,30 @@ class StudySweeperBase(NirspiSweeperBase):
         dims, fixed = self._space([f"{k}={v}" for k, v in self.params.items()] + list(arguments))
         study = self._open_study(optuna, study_name, url, directions)
         started = time.time()
-        self._check_objectives(sweep_dir, names, dims, fixed)
-        done_before = self._counted(study)
-        to_run = max(0, self.n_trials - done_before)
-        print(
-            f"nirspi-run: study {study_name!r} in {shown_url(url)}: {done_before} of {self.n_trials} trials "
-            f"finished or running, {to_run} to run"
-            + (f", {self.repeats} repeats each (median)" if self.repeats > 1 else ""),
-            flush=True,
-        )
-        self._write_sweep_file(sweep_dir, study, started, url)
         running: list[tuple[Any, list[tuple[str, list[str]]]]] = []  # the batch in flight, for an interrupt
         batch = _Batch(sweep_dir, started, url, dims, fixed, names)
-        try:
-            while (room := self.n_trials - self._counted(study)) > 0:
-                self._run_batch(study, batch, room, running)
-        except KeyboardInterrupt:
-            self._interrupted(study, running, names, sweep_dir, url)
-        self._write_sweep_file(sweep_dir, study, started, url)
-        self._write_results(study, sweep_dir, len(names))
+        # Ctrl-C is recorded and raised where the study can end cleanly: before each batch and
+        # each trial's composition, in the launcher's checks and waits; never lost (ctrlc)
+        with ctrlc.guarded():
+            try:
+                self._check_objectives(sweep_dir, names, dims, fixed)
+                done_before = self._counted(study)
+                to_run = max(0, self.n_trials - done_before)
+                print(
+                    f"nirspi-run: study {study_name!r} in {shown_url(url)}: {done_before} of {self.n_trials} "
+                    f"trials finished or running, {to_run} to run"
+                    + (f", {self.repeats} repeats each (median)" if self.repeats > 1 else ""),
+                    flush=True,
+                )
+                self._write_sweep_file(sweep_dir, study, started, url)
+                while (room := self.n_trials - self._counted(study)) > 0:
+                    ctrlc.check()
+                    self._run_batch(study, batch, room, running)
+                ctrlc.check()
+            except KeyboardInterrupt:
+                self._interrupted(study, running, names, sweep_dir, url)
+            self._write_sweep_file(sweep_dir, study, started, url)
+            self._write_results(study, sweep_dir, len(names))
         return []
 
     def _objectives(self) -> tuple[list[str], list[str]]:
@@ -393,6 +414,7 @@ class StudySweeperBase(NirspiSweeperBase):
                 if i and self._counted(study) >= self.n_trials:
                     break
                 trial = study.ask()
+                running.append((trial, []))  # from its ask on: told, or marked interrupted, on Ctrl-C
                 values = [d.suggest(trial) for d in batch.dims]
                 ov = [
                     *batch.fixed,
@@ -400,7 +422,6 @@ class StudySweeperBase(NirspiSweeperBase):
                 ]
                 trial.set_user_attr("overrides", ov)
                 trial.set_user_attr("worker", [_HOST, os.getpid()])
-                running.append((trial, []))
                 trial_ov.append(ov)
         return trial_ov
 
@@ -506,13 +527,17 @@ class StudySweeperBase(NirspiSweeperBase):
         url: str,
     ) -> None:
         """Ctrl-C: tell Optuna the trials whose jobs finished, mark the rest interrupted (not
-        counted, so a rerun runs them again), write the results and say how to resume."""
+        counted, so a rerun runs them again), write the results and say how to resume. A job
+        that Ctrl-C stopped (:func:`_stopped`) did not finish."""
         # optional dependency: pip install '.[optuna]'
         from optuna.trial import TrialState
 
+        still = {t.number for t in study.get_trials(deepcopy=False) if t.state == TrialState.RUNNING}
         for trial, jobs in running:
+            if trial.number not in still:  # told already
+                continue
             records = [_read(sweep_dir / key) for key, _ in jobs]
-            if jobs and all(r is not None for r in records):
+            if jobs and all(r is not None and not _stopped(r) for r in records):
                 self._tell(study, trial, jobs, names, sweep_dir, None)
             else:
                 trial.set_user_attr("interrupted", True)
