@@ -188,6 +188,18 @@ def test_a_shifted_surface_scores_its_shift(shift_mm):
     assert m["chamfer_mm"] == pytest.approx(abs(shift_mm), abs=FLOOR_PITCH * pitch_mm)
 
 
+def test_surface_distances_off_leaves_out_only_chamfer_and_hausdorff():
+    """``surface_distances: false`` (the paper's Table 3/4 experiments): the record has no chamfer
+    or Hausdorff key, and every other score is the same number."""
+    model = StepScene(depths_mm=(200.0, 240.0, 220.0, 280.0))
+    products = _exact_products(model, Camera(32), shift_m=1e-3)
+    on = Metrics3D(scene=model).compute(products)
+    off = Metrics3D(scene=model, surface_distances=False).compute(products)
+    assert {"chamfer_mm", "hausdorff_mm"} <= set(on)
+    assert set(on) - set(off) == {"chamfer_mm", "hausdorff_mm"}
+    assert off == {k: v for k, v in on.items() if k not in ("chamfer_mm", "hausdorff_mm")}
+
+
 def test_the_floor_truth_against_itself():
     """The true surface sampled as the metric samples a mesh, against the truth cloud: the floor
     of the metric without any grid limit (docs/mesh.md)."""
