@@ -31,6 +31,7 @@ from nirspi_pipe.app.objective import ObjectiveError, directions_of, objective_n
 from nirspi_pipe.app.registration import register_hydra_plugins
 from nirspi_pipe.app.sweeper import launcher_failures
 from nirspi_pipe.app.sweepfile import SweepFileError, load_sweep_file
+from nirspi_pipe.app.tablejobs import build_parts
 from nirspi_pipe.finite import drop_nonfinite
 from nirspi_pipe.outputfiles import OutputError, atomic_write, drop_links, refuse_link
 from nirspi_pipe.records import RECORD_NAME, read_record
@@ -393,9 +394,11 @@ def finish_sweep(sweep_dir: str | Path, tables: list[str] | None = None) -> pd.D
     if tables is not None:
         built += build_tables(frame, sweep, tables)
     else:
+        parts = []
         for exp, names in tables_by_experiment(frame).items():
             sub = frame[frame["experiment"] == exp] if exp and "experiment" in frame.columns else frame
-            built += build_tables(sub.reset_index(drop=True), sweep, names)
+            parts.append((sub.reset_index(drop=True), names))
+        built += build_parts(parts, sweep, build_tables)  # side by side, one experiment a process
     if len(built) > 1:
         path = write_report(sweep, built, frame)
         print(f"{_prog()}: report -> {path}")
