@@ -10,10 +10,13 @@ the full sweep) in a fresh folder and splits its wall time:
 * **other**: the rest of the workers' time — the launcher, each job's own Hydra composition,
   imports in fresh workers, writing records and tables.
 
-The reference workload, timed in the same process just before and after (the mean is used), is a
-fixed numpy task: 64² split-Hadamard simulation + fast inverse of the sphere, 50 times. Every time
-is printed in seconds and as a multiple of the reference, which is what to compare across runs
-on a shared machine.
+The reference workload, timed in the same process just before and after, is a fixed numpy task:
+64² split-Hadamard simulation + fast inverse of the sphere, 50 times. It lasts only tens of
+milliseconds, and one timing of it varied between 0.025 and 0.048 s in ten back-to-back timings
+on the idle 2-core machine (2026-11-28), so each side takes the median of :data:`REFERENCE_REPEATS`
+timings and the reference is the mean of the two medians; the smallest and largest single timing
+are printed beside it. Every time is printed in seconds and as a multiple of the reference, which
+is what to compare across runs on a shared machine.
 """
 
 from __future__ import annotations
@@ -33,9 +36,17 @@ from nirspi_pipe.patterns.orders import Basic
 from nirspi_pipe.scene.objects import Sphere
 from nirspi_pipe.types import Camera
 
+#: Timings of the reference workload on each side of the sweep (their median is used).
+REFERENCE_REPEATS = 7
+
+
+def reference_timings(repeats: int = REFERENCE_REPEATS) -> list[float]:
+    """``repeats`` timings (seconds) of the fixed reference workload (see module doc)."""
+    return [reference_s() for _ in range(repeats)]
+
 
 def reference_s() -> float:
-    """Seconds of the fixed reference workload (see module doc)."""
+    """Seconds of the fixed reference workload, timed once (see module doc)."""
     from nirspi_pipe.solvers.fwht import FWHTSolver  # start-up: loads scipy and numpy (1366 ms here)
     from nirspi_pipe.sources.simulator import Simulator  # start-up: loads 18 modules of ours (37 ms here)
 
@@ -56,7 +67,7 @@ def main(argv: list[str]) -> int:
     import pandas as pd  # start-up: loads pandas and numpy (1118 ms here)
 
     cpu0 = os.times()
-    ref_before = reference_s()
+    ref_before = reference_timings()
     with tempfile.TemporaryDirectory() as tmp:
         sweep = Path(ns.dir or Path(tmp) / "sweep")
         exe = Path(sys.executable).with_name("nirspi-run")
@@ -76,7 +87,9 @@ def main(argv: list[str]) -> int:
         info = json.loads((sweep / "sweep.json").read_text())
         keying = float(info["keying_s"])  # the sweeper's own measure (sweep.json is written after it)
         frame = pd.read_parquet(sweep / "results.parquet")
-    ref = 0.5 * (ref_before + reference_s())
+    ref_after = reference_timings()
+    ref = 0.5 * (float(np.median(ref_before)) + float(np.median(ref_after)))
+    ref_lo, ref_hi = min(ref_before + ref_after), max(ref_before + ref_after)
     stages = {
         c.split(".", 1)[1]: float(frame[c].fillna(0).sum()) / 1e3
         for c in frame.columns
@@ -86,7 +99,8 @@ def main(argv: list[str]) -> int:
     other = max(ns.workers * (wall - keying) - total_stage, 0.0)
     print(
         f"+experiment={ns.experiment}: {len(frame)} jobs run ({info['total']} in the grids), "
-        f"{ns.workers} workers; reference workload {ref:.3f} s"
+        f"{ns.workers} workers; reference workload {ref:.3f} s (median of {len(ref_before)} timings before and "
+        f"{len(ref_after)} after, single timings {ref_lo:.3f}-{ref_hi:.3f} s)"
     )
     print(f"{'part':<22} {'seconds':>9} {'share of wall':>13} {'x reference':>11}")
     print(f"{'wall time':<22} {wall:>9.2f} {1.0:>13.2f} {wall / ref:>11.1f}")
