@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nirspi_pipe.errors import ConfigError
+from nirspi_pipe.physics import range_model as rm
 from nirspi_pipe.physics.detector import Photodiode
 from nirspi_pipe.physics.fog import MieFog
 from nirspi_pipe.physics.range_model import calibrate, max_distance_m, paper_table2, snr
@@ -105,3 +106,24 @@ def test_range_is_finite_and_bounded_for_extremes(refl, beta, klux, noise):
     assert np.isfinite(z) and 1e-3 <= z <= 10.0
     if refl == 0.0:
         assert z == 1e-3
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    refl=st.floats(0.0, 1.0),
+    beta=st.floats(0.0, 50.0),
+    gain=st.floats(0.0, 2.0),
+)
+def test_remembered_range_is_the_computed_one(refl, beta, gain):
+    """max_distance_m remembers its result for hashable arguments (the jobs of a sweep repeat
+    them): the remembered value is the computed one to the bit, and an array condition (not
+    hashable) is computed each time."""
+    det = Photodiode()
+    cond = {"beta_per_m": beta, "backscatter_gain": gain}
+    fresh = rm._max_distance(refl, det, 1.0, 1e-3, 10.0, cond)
+    before = rm._remembered_max_distance.cache_info().hits
+    assert max_distance_m(refl, det, **cond) == fresh
+    assert max_distance_m(refl, det, **cond) == fresh
+    assert rm._remembered_max_distance.cache_info().hits >= before + 1
+    arr = {"beta_per_m": beta, "backscatter_gain": np.array(gain)}
+    assert max_distance_m(refl, det, **arr) == rm._max_distance(refl, det, 1.0, 1e-3, 10.0, arr)

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 from dataclasses import replace
+from functools import lru_cache
 from importlib import resources
 from typing import Any
 
@@ -148,6 +149,37 @@ def max_distance_m(
     beta = float(conditions.get("beta_per_m", 0.0))
     if not np.isfinite(beta) or beta < 0:
         raise ConfigError("beta_per_m", beta, "an extinction coefficient >= 0 in 1/m")
+    key = (float(reflectance), detector, float(snr_threshold), float(z_min_m), float(z_max_m))
+    try:
+        return _remembered_max_distance(*key, tuple(sorted(conditions.items())))
+    except TypeError:  # an unhashable detector or condition (an array): computed each time
+        return _max_distance(reflectance, detector, snr_threshold, z_min_m, z_max_m, conditions)
+
+
+@lru_cache(maxsize=256)
+def _remembered_max_distance(
+    reflectance: float,
+    detector: Photodiode,
+    snr_threshold: float,
+    z_min_m: float,
+    z_max_m: float,
+    conditions: tuple[tuple[str, Any], ...],
+) -> float:
+    """:func:`_max_distance`, remembered: a pure function of its (hashable, immutable) arguments,
+    which the jobs of a sweep repeat (a figure9 job's range is the same for every scan and seed of
+    its scene, light and fog; 2-3 ms of its source stage each time)."""
+    return _max_distance(reflectance, detector, snr_threshold, z_min_m, z_max_m, dict(conditions))
+
+
+def _max_distance(
+    reflectance: float,
+    detector: Photodiode,
+    snr_threshold: float,
+    z_min_m: float,
+    z_max_m: float,
+    conditions: dict[str, Any],
+) -> float:
+    """The search of :func:`max_distance_m` on checked arguments."""
 
     def excess(z: float) -> float:
         return float(np.log(max(float(snr(z, reflectance, detector, **conditions)), 1e-300)) - np.log(snr_threshold))

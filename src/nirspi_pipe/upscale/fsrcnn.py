@@ -359,13 +359,21 @@ def _load_cached(path: str) -> FsrcnnWeights:
 
 def packaged_weights_path(scale: int) -> Path:
     """Path of the shipped weights for ``scale`` (``nirspi_pipe/upscale/weights/fsrcnn_x{s}.npz``)."""
-    return Path(str(resources.files("nirspi_pipe.upscale") / "weights" / f"fsrcnn_x{int(scale)}.npz"))
+    return _weights_folder() / f"fsrcnn_x{int(scale)}.npz"
 
 
+@lru_cache(maxsize=1)
+def _weights_folder() -> Path:
+    """The package's weights folder, looked up once per process (the installed package does not
+    move while it runs; ``importlib.resources`` and the folder listing below cost about 1 ms a
+    call, and every upscaled job asked five times)."""
+    return Path(str(resources.files("nirspi_pipe.upscale") / "weights"))
+
+
+@lru_cache(maxsize=1)
 def shipped_weights() -> tuple[str, ...]:
     """File names of the weights shipped in the package (``nirspi_pipe/upscale/weights``)."""
-    folder = Path(str(resources.files("nirspi_pipe.upscale") / "weights"))
-    return tuple(sorted(p.name for p in folder.glob("*.npz")))
+    return tuple(sorted(p.name for p in _weights_folder().glob("*.npz")))
 
 
 def resolve_weights(scale: int, path: str | Path | None = None) -> Path:
