@@ -221,8 +221,9 @@ class StudySweeperBase(NirspiSweeperBase):
         run_composed = getattr(self.launcher, "run_composed", None)
         if run_composed is not None and all(key in composed for key, _ in jobs):
             run_composed([(key, ov, composed[key]) for key, ov in jobs], sweep_dir, sweep_file, True)
-            return
-        self._launch_with_retries(sweep_dir, sweep_file, jobs, [])
+            return  # the nirspi launcher checks for Ctrl-C itself, and waits for its runners interruptibly
+        with ctrlc.interruptible():  # another launcher (joblib, SLURM) waits: Ctrl-C stops it at once, as before
+            self._launch_with_retries(sweep_dir, sweep_file, jobs, [])
 
     def _prepare_trials(
         self, sweep_dir: Path, overrides: list[list[str]]
