@@ -111,6 +111,7 @@ PROJECT_TARGETS: frozenset[str] = frozenset(
         "nirspi_pipe.mesh.fusion.ItofFusion",
         "nirspi_pipe.mesh.powercrust.PowerCrust",
         "nirspi_pipe.mesh.poisson.ScreenedPoisson",
+        "nirspi_pipe.mesh.viewmesh.ViewTriangulation",
         # metrics
         "nirspi_pipe.metrics.ImageMetrics",
         "nirspi_pipe.upscale.metrics.UpscaleMetrics",
