@@ -41,8 +41,10 @@ def test_exact_sphere_keeps_every_point_and_scores_near_the_floor() -> None:
     exact = _exact_products(Sphere(), cam)  # the exact surface point-sampled at the pixel centres
     pts = exact.cloud.points_m
     mesh = ViewTriangulation().reconstruct(PointCloud(points_m=pts))
-    assert len(mesh.vertices_m) == len(pts)  # nothing lost: every point is a vertex
-    assert set(map(tuple, np.round(mesh.vertices_m, 12))) == set(map(tuple, np.round(pts, 12)))
+    # nothing lost: every point but the few limb points that join no face is a vertex
+    assert set(map(tuple, np.round(mesh.vertices_m, 12))) <= set(map(tuple, np.round(pts, 12)))
+    assert len(mesh.vertices_m) >= 0.99 * len(pts)
+    assert mesh.info["cloud_covered_fraction"] >= 0.99
     m = Metrics3D(scene=Sphere()).compute(dataclasses.replace(exact, mesh=mesh))
     floor = Metrics3D(scene=Sphere()).compute(exact)["chamfer_mm"]  # the grid mesh of the same points
     assert m["chamfer_mm"] < 1.5 * floor, (m["chamfer_mm"], floor)
@@ -61,7 +63,7 @@ def test_no_face_crosses_a_depth_jump(depths: list[float], n: int) -> None:
     pts = _cloud(depth, np.ones((n, n), dtype=bool), cam)
     verts, faces, info = view_faces(pts, 2.5)
     assert _edges_obey_jump_rule(verts, faces)
-    assert info["points"] == n * n
+    assert info["points"] == info["vertices"] == n * n
     # a block at one depth is one surface: its 2·(h−1)² grid triangles are all there (and faces
     # between blocks only where the rule calls the step a slope)
     assert len(faces) >= 4 * 2 * (h - 1) ** 2

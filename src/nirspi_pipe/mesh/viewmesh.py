@@ -31,6 +31,7 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from nirspi_pipe.errors import NirspiError
 from nirspi_pipe.mesh.outputs import warm_up as warm_up_outputs
+from nirspi_pipe.mesh.powercrust import cloud_coverage
 from nirspi_pipe.mesh.remesh import (
     MaxHoleEdges,
     RemeshEdgeFactor,
@@ -57,8 +58,9 @@ SNAP_RAD = 1e-9
 
 def view_faces(points_m: np.ndarray, max_edge_factor: float) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The triangulation of the module docstring: ``(vertices (v, 3), faces (f, 3), counts)``,
-    where the vertices are the distinct usable points (finite, ``z > 0``; one point per snapped
-    image position, the nearest kept) and the faces are oriented towards the camera. Raises
+    where the vertices are the usable points (finite, ``z > 0``; one point per snapped image
+    position, the nearest kept) that some kept face uses, and the faces are oriented towards the
+    camera. Raises
     :class:`NirspiError` in one line where no triangle can be made."""
     p = np.asarray(points_m, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -92,13 +94,16 @@ def view_faces(points_m: np.ndarray, max_edge_factor: float) -> tuple[np.ndarray
     normal = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
     away = np.einsum("ij,ij->i", normal, p[faces].mean(axis=1)) > 0  # normal along the ray: away
     faces[away] = faces[away][:, [0, 2, 1]]
+    used, faces = np.unique(faces, return_inverse=True)  # a point in no kept face is no vertex
+    faces = faces.reshape(-1, 3)
     counts = {
         "points": int(len(p)),
+        "vertices": int(len(used)),
         "triangles": int(len(tri)),
         "dropped_jump": int((~keep_jump).sum()),
         "dropped_long": int((keep_jump & ~keep_edge).sum()),
     }
-    return p, faces.astype(np.int64), counts
+    return p[used], faces.astype(np.int64), counts
 
 
 @dataclass(frozen=True)
@@ -166,4 +171,8 @@ class ViewTriangulation:
             out.update(rinfo)
             out["remesher"] = remesher
         out["faces"] = int(len(faces))
+        pts = np.asarray(cloud.points_m, dtype=np.float64)
+        pts = pts[np.isfinite(pts).all(axis=1) & (pts[:, 2] > 0)]
+        # the power crust's measure of what the mesh lies near (docs/mesh.md), for comparison
+        out["cloud_covered_fraction"] = cloud_coverage(verts, faces, pts, sample_spacing(pts))
         return Mesh(vertices_m=verts, faces=np.asarray(faces, dtype=np.int64), info=out)
