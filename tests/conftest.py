@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 from hypothesis import settings
@@ -32,6 +35,18 @@ def script(name: str) -> str:
     if found is None:
         pytest.fail(f"console script {name} is not installed; run `pip install .` first")
     return found
+
+
+def load_script(path: Path, name: str) -> Iterator[ModuleType]:
+    """A fixture body: the experiment script at ``path`` imported as module ``name`` (registered in
+    ``sys.modules`` while the fixture lives: dataclasses look their module up), removed after."""
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(name, None)
 
 
 def run_cli(args: list[str], cwd: Path, timeout: float = 300.0) -> subprocess.CompletedProcess[str]:

@@ -3,15 +3,15 @@ hand-made rows, and one real row at 16² (one shape, one seed, a few seconds).""
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import statistics
-import sys
 from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from conftest import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 NAN = math.nan
@@ -19,14 +19,7 @@ NAN = math.nan
 
 @pytest.fixture(scope="module")
 def targets():
-    path = ROOT / "experiments" / "shapes" / "targets.py"
-    spec = importlib.util.spec_from_file_location("shapes_targets", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop(spec.name, None)
+    yield from load_script(ROOT / "experiments" / "shapes" / "targets.py", "shapes_targets")
 
 
 def _row(targets, chamfer, truth=(0.3,), floor=0.2, failures=()):

@@ -3,9 +3,7 @@ sweep, its grid, and its table from a small hand-made results frame (no sweep ru
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,19 +13,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from conftest import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def front():
-    path = ROOT / "experiments" / "shapes" / "front.py"
-    spec = importlib.util.spec_from_file_location("front_3d", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop(spec.name, None)
+    yield from load_script(ROOT / "experiments" / "shapes" / "front.py", "front_3d")
 
 
 def _dominates(a: np.ndarray, b: np.ndarray) -> bool:
