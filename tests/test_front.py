@@ -62,6 +62,9 @@ def test_grid_builder(front):
     ov = front.sweep_overrides(g, "chamber")
     assert "fog=chamber" in ov and "preset=null" in ov and "detector=ingaas" in ov
     assert "camera.resolution=32,64,128" in ov and "sfs=second_order,perspective,truth" in ov
+    # the view triangulation beside the power crust; screened Poisson (seconds a job) in --full only
+    assert "surface=power_crust,view" in ov and "poisson" not in g.surface
+    assert {"power_crust", "view", "poisson"} <= set(front.FULL.surface)
     assert front.sweep_overrides(g, "noise_free")[:4] == list(front.FIXED)
     # the job count of one condition's sweep is the product of its comma lists
     n = 1

@@ -122,7 +122,7 @@ DEFAULT = Grid(
     resolution=(32, 64, 128),
     sfs=("second_order", "perspective", "truth"),
     averaging_s=(0.5, 8.0),
-    surface=("power_crust", "poisson"),
+    surface=("power_crust", "view"),
     shapes=("vase", "bowl"),
     seeds=(0, 1, 2),
 )
@@ -131,7 +131,7 @@ FULL = Grid(
     resolution=(32, 64, 128),
     sfs=("second_order", "lax_friedrichs", "godunov", "perspective", "oren_nayar", "phong", "truth"),
     averaging_s=(0.5, 2.0, 8.0),
-    surface=("power_crust", "poisson"),
+    surface=("power_crust", "view", "poisson"),
     shapes=("plate_edge", "ring", "bowl", "multi", "partial", "off_centre", "vase"),
     seeds=tuple(range(10)),
 )
@@ -312,7 +312,9 @@ def markdown(table: Any, front_only: bool = False) -> str:
 
 
 def figure(table: Any, path: Path) -> None:
-    """Error against time, one panel per (condition, metric); front members ringed and labelled."""
+    """Error against time, one panel per (condition, metric): colour the SFS variant (grey: the
+    ``sfs=truth`` oracle), marker the surface, filled the shortest iToF averaging and hollow the
+    longer ones; front members ringed and labelled with their resolution and surface."""
     # start-up: matplotlib loads only for the figure
     import matplotlib
 
@@ -323,31 +325,37 @@ def figure(table: Any, path: Path) -> None:
     # start-up: matplotlib loads only for the figure
     import matplotlib.ticker
 
+    # start-up: matplotlib loads only for the figure
+    from matplotlib.lines import Line2D
+
     conds = [c for c in CONDITIONS if c in set(table["condition"])]
     fig, axes = plt.subplots(len(conds), 2, figsize=(11, 3.8 * len(conds)), squeeze=False)
-    markers = {s: m for s, m in zip(sorted(set(table["sfs"])), "osD^v<>ph")}
+    variants = [v for v in sorted(set(table["sfs"])) if v != "truth"]
+    colours = {v: f"C{k}" for k, v in enumerate(variants)} | {"truth": "0.45"}
+    markers = {s: m for s, m in zip(sorted(set(table["surface"])), "osD^v<>ph")}
+    shortest = float(table[AVERAGING].min())
+    handles = [Line2D([], [], ls="none", marker="o", color=colours[v], label=v) for v in variants]
+    handles.append(Line2D([], [], ls="none", marker="o", color=colours["truth"], label="truth (oracle)"))
+    handles += [Line2D([], [], ls="none", marker=m, color="k", mfc="none", label=s) for s, m in markers.items()]
+    handles.append(Line2D([], [], ls="none", marker="o", ms=10, mfc="none", color="C3", label="on the front"))
     for i, cond in enumerate(conds):
         sub = table[table["condition"] == cond]
         for j, (stat, flag, label) in enumerate(
             (("chamfer_mm", "front_chamfer", "chamfer (mm)"), ("depth_mm", "front_depth", "fused depth RMSE (mm)"))
         ):
             ax = axes[i][j]
-            for sfs, part in sub.groupby("sfs"):
-                colours = ["C0" if a <= min(sub[AVERAGING]) else "C1" for a in part[AVERAGING]]
-                if sfs == "truth":  # the oracle: a reference, hollow
-                    ax.scatter(
-                        part["time_ms"],
-                        part[stat],
-                        marker=markers[str(sfs)],
-                        facecolors="none",
-                        edgecolors=colours,
-                        s=26,
-                        label="truth (oracle)",
-                    )
-                    continue
-                ax.scatter(part["time_ms"], part[stat], marker=markers[str(sfs)], c=colours, s=22, label=str(sfs))
+            for (sfs, surface, avg), part in sub.groupby(["sfs", "surface", AVERAGING]):
+                colour = colours[str(sfs)]
+                ax.scatter(
+                    part["time_ms"],
+                    part[stat],
+                    marker=markers[str(surface)],
+                    facecolors=colour if float(avg) <= shortest else "none",
+                    edgecolors=colour,
+                    s=24,
+                )
             front = sub[sub[flag]]
-            ax.scatter(front["time_ms"], front[stat], s=90, facecolors="none", edgecolors="C3", label="on the front")
+            ax.scatter(front["time_ms"], front[stat], s=90, facecolors="none", edgecolors="C3")
             for _, r in front.iterrows():  # which resolution and surface each member is
                 ax.annotate(
                     f"{int(r['camera.resolution'])}² {str(r['surface']).replace('power_crust', 'crust')}",
@@ -361,11 +369,11 @@ def figure(table: Any, path: Path) -> None:
             ax.set_xlabel("median time, timings_ms.total − scene − metrics (ms)")
             ax.set_ylabel(label)
             ax.set_title(
-                f"{cond}: mean of the shapes' medians; blue iToF avg {min(sub[AVERAGING]):g} s, orange longer",
+                f"{cond}: mean of the shapes' medians; filled iToF avg {shortest:g} s, hollow longer",
                 fontsize=9,
             )
             ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=7)
+            ax.legend(handles=handles, fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
