@@ -12,6 +12,7 @@ from nirspi_pipe.mesh.metrics3d import (
     Metrics3D,
     equiangle_skewness,
     improvement_rate,
+    skewness_candidates,
     skewness_summary,
     surface_distances,
 )
@@ -31,6 +32,41 @@ def test_skewness_reference_triangles():
 def test_skewness_in_unit_interval(coords):
     s = equiangle_skewness(np.array(coords).reshape(3, 3), np.array([[0, 1, 2]]))
     assert np.all(np.isfinite(s)) and 0.0 <= s[0] <= 1.0
+
+
+def _reference_angles(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Interior angles (degrees) written out independently: the law of cosines on edge lengths."""
+    p = v[f]
+    a = np.linalg.norm(p[:, 1] - p[:, 2], axis=1)  # opposite vertex 0
+    b = np.linalg.norm(p[:, 2] - p[:, 0], axis=1)
+    c = np.linalg.norm(p[:, 0] - p[:, 1], axis=1)
+    cos0 = (b**2 + c**2 - a**2) / (2 * b * c)
+    cos1 = (a**2 + c**2 - b**2) / (2 * a * c)
+    return np.degrees(np.arccos(np.clip(np.stack([cos0, cos1], axis=1), -1, 1)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(3, 40), st.integers(1, 80))
+def test_skewness_shapes_computed_once_give_the_same_numbers(seed: int, n: int, m: int) -> None:
+    """The 3D metrics compute each mesh's angles once for the skewness summary and the candidates
+    (issue 42 item 6): with the shared angles the candidates are the same bits as without, and the
+    angles are the triangles' (law of cosines, away from degenerate triangles)."""
+    from nirspi_pipe.mesh.metrics3d import _angles_and_lengths, triangle_angles
+
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    f = rng.integers(0, n, size=(m, 3))
+    shape = _angles_and_lengths(v, f)
+    alone, shared = skewness_candidates(v, f, "x"), skewness_candidates(v, f, "x", shape)
+    assert alone.keys() == shared.keys()
+    for key in alone:
+        assert np.array_equal(alone[key], shared[key], equal_nan=True), key
+    ang = triangle_angles(v, f)
+    assert np.array_equal(ang, shape[0])
+    good = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    if good.any():
+        np.testing.assert_allclose(ang[good, :2], _reference_angles(v, f[good]), atol=1e-4)
+        np.testing.assert_allclose(ang[good].sum(axis=1), 180.0, atol=1e-6)
 
 
 def test_bands_partition():

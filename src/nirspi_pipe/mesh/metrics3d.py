@@ -89,12 +89,12 @@ SKEWNESS_BANDS = (
 _DEGENERATE = 1.0 - 1e-9
 
 
-def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Equiangle skewness ``(f,)`` in [0, 1] of triangles: ``max((θmax − 60)/120, (60 − θmin)/60)``
-    with angles in degrees; 0 = equilateral, 1 = degenerate (a zero angle, or a zero-length edge)."""
+def _angles_and_lengths(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(angles (f, 3) degrees, edge lengths (f, 3) metres)`` of triangles: angle ``i`` at vertex
+    ``i``, edge ``i`` from vertex ``i`` to vertex ``i + 1``."""
     v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
     if len(v) == 0:
-        return np.zeros(0)
+        return np.zeros((0, 3)), np.zeros((0, 3))
     e = [v[:, (i + 1) % 3] - v[:, i] for i in range(3)]  # edges
     lengths = np.stack([np.linalg.norm(x, axis=1) for x in e], axis=1)
     angles = np.zeros((len(v), 3))
@@ -103,22 +103,27 @@ def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
         na, nb = lengths[:, (i + 2) % 3], lengths[:, i]
         cos = np.einsum("ij,ij->i", a, b) / np.maximum(na * nb, 1e-300)
         angles[:, i] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return angles, lengths
+
+
+def _skewness_of(angles: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """:func:`equiangle_skewness` from :func:`_angles_and_lengths`."""
+    if len(angles) == 0:
+        return np.zeros(0)
     skew = np.maximum((angles.max(axis=1) - 60.0) / 120.0, (60.0 - angles.min(axis=1)) / 60.0)
     degenerate = lengths.min(axis=1) <= 1e-12 * np.maximum(lengths.max(axis=1), 1e-300)
     return np.clip(np.where(degenerate, 1.0, skew), 0.0, 1.0)
 
 
+def equiangle_skewness(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Equiangle skewness ``(f,)`` in [0, 1] of triangles: ``max((θmax − 60)/120, (60 − θmin)/60)``
+    with angles in degrees; 0 = equilateral, 1 = degenerate (a zero angle, or a zero-length edge)."""
+    return _skewness_of(*_angles_and_lengths(vertices, faces))
+
+
 def triangle_angles(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``(f, 3)`` interior angles of triangles, degrees."""
-    v = np.asarray(vertices, dtype=np.float64)[np.asarray(faces, dtype=np.int64)]
-    if len(v) == 0:
-        return np.zeros((0, 3))
-    out = np.zeros((len(v), 3))
-    for i in range(3):
-        a, b = v[:, (i + 1) % 3] - v[:, i], v[:, (i + 2) % 3] - v[:, i]
-        cos = np.einsum("ij,ij->i", a, b) / np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
-        out[:, i] = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    return out
+    """``(f, 3)`` interior angles of triangles, degrees (angle ``i`` at vertex ``i``)."""
+    return _angles_and_lengths(vertices, faces)[0]
 
 
 #: scipy.stats.skew's thresholds (scipy 1.17 ``_stats_py.skew`` and ``_demean``): below
@@ -153,27 +158,31 @@ def sample_skewness(values: np.ndarray) -> float:
     return float(np.mean(d**2 * d) / m2**1.5)
 
 
-def skewness_candidates(vertices: np.ndarray, faces: np.ndarray, prefix: str) -> dict[str, float]:
+def skewness_candidates(
+    vertices: np.ndarray, faces: np.ndarray, prefix: str, shape: tuple[np.ndarray, np.ndarray] | None = None
+) -> dict[str, float]:
     """Quantities that could be the paper's "skewness" (issue 11; docs/paper.md, "Skewness"):
 
     * ``{prefix}_aspect_mean``: mean triangle aspect ratio, longest edge over the shortest
       altitude × √3/2 (1 = equilateral), minus 1;
     * ``{prefix}_angle_stat``: |statistical skewness| of all triangle angles;
     * ``{prefix}_equiangle_stat``: |statistical skewness| of the per-triangle equiangle skewness.
-    """
+
+    ``shape``: the triangles' ``_angles_and_lengths``, when the caller has them (the 3D metrics
+    compute them once per mesh for the skewness summary and these candidates; the same numbers)."""
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0:
         return {}
+    angles, lengths = _angles_and_lengths(vertices, faces) if shape is None else shape
     v = np.asarray(vertices, dtype=np.float64)[f]
-    edges = np.stack([np.linalg.norm(v[:, (i + 1) % 3] - v[:, i], axis=1) for i in range(3)], axis=1)
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    lmax = edges.max(axis=1)
+    lmax = lengths.max(axis=1)
     ok = area > 0
     aspect = np.where(ok, lmax * lmax / np.maximum(2 * area, 1e-300) * np.sqrt(3) / 2, np.nan)
     return {
         f"{prefix}_aspect_mean": float(np.nanmean(aspect) - 1.0) if ok.any() else float("nan"),
-        f"{prefix}_angle_stat": abs(sample_skewness(triangle_angles(vertices, faces))),
-        f"{prefix}_equiangle_stat": abs(sample_skewness(equiangle_skewness(vertices, faces))),
+        f"{prefix}_angle_stat": abs(sample_skewness(angles)),
+        f"{prefix}_equiangle_stat": abs(sample_skewness(_skewness_of(angles, lengths))),
     }
 
 
@@ -449,9 +458,14 @@ class Metrics3D:
     def _mesh_scores(self, truth: Any, mesh: Any, surface: TruthSurface) -> dict[str, float]:
         """The mesh's equiangle skewness (summary and candidates) and, where the true surface has
         samples and :attr:`surface_distances` is on, its chamfer and Hausdorff distances to it (mm)."""
-        out = dict(skewness_summary(equiangle_skewness(mesh.vertices_m, mesh.faces)))
+        shape = _angles_and_lengths(mesh.vertices_m, mesh.faces)  # once: the summary and the candidates
+        out = dict(skewness_summary(_skewness_of(*shape)))
         out.update(
-            {k: v for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh").items() if np.isfinite(v)}
+            {
+                k: v
+                for k, v in skewness_candidates(mesh.vertices_m, mesh.faces, "cand_mesh", shape).items()
+                if np.isfinite(v)
+            }
         )
         if not self.surface_distances:
             return out
@@ -475,12 +489,13 @@ def _sfs_skewness(cam: Camera, z_sfs: np.ndarray) -> dict[str, float]:
         return {}
     sfs_cam = cam if z_sfs.shape[0] == cam.resolution else cam.resampled(z_sfs.shape[0])
     verts = back_project(np.where(sfs_valid, z_sfs, 0.0), sfs_cam).reshape(-1, 3)
+    shape = _angles_and_lengths(verts, faces)  # once: the summary and the candidates
     out = {
         k: v
-        for k, v in skewness_summary(equiangle_skewness(verts, faces), "skewness_sfs").items()
+        for k, v in skewness_summary(_skewness_of(*shape), "skewness_sfs").items()
         if k in ("skewness_sfs_mean", "skewness_sfs_p95")
     }
-    out.update(skewness_candidates(verts, faces, "cand_sfs"))
+    out.update(skewness_candidates(verts, faces, "cand_sfs", shape))
     return out
 
 
