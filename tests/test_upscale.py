@@ -333,3 +333,55 @@ def test_train_command_smoke(tmp_path: Path) -> None:
     net = load_weights(3, tmp_path / "fsrcnn_x3.npz")
     assert net.residual and net.meta["iters"] == 3 and net.meta["numpy_vs_torch_max_abs"] < 1e-4
     assert {r["noise_rel"] for r in net.meta["heldout"]} == {0.0, 1e-3}
+
+
+def test_remembered_noise_free_images_give_the_same_scores() -> None:
+    """The upscale metrics remember the source's image of the fine scene and the upscaled
+    noise-free image across jobs (issue 42 item 6): a job after others (cache warm, seeds and
+    scan orders that share them) scores exactly as the same job alone (cache empty), and a
+    job of another scene or light level is not given their images."""
+    from nirspi_pipe.scene.render import forget_renders
+    from nirspi_pipe.upscale import metrics as um
+
+    base = ["upscale=fsrcnn", "upscale.scale=2", "metrics=upscale", "camera.resolution=16"]
+    jobs = [
+        [*base, "seed=1"],
+        [*base, "seed=2", "scan=hilbert"],
+        [*base, "seed=1", "scene=torus"],
+        [*base, "seed=1", "illumination=klux", "illumination.klux=30"],
+    ]
+    um._REMEMBERED.clear()
+    warm = [run_pipeline(_cfg(job)).metrics for job in jobs]
+    assert 2 <= len(um._REMEMBERED) <= um.MAX_REMEMBERED
+    assert all(not value.flags.writeable for _anchor, value in um._REMEMBERED.values())
+    for job, scores in zip(jobs, warm, strict=True):
+        um._REMEMBERED.clear()
+        forget_renders()
+        alone = run_pipeline(_cfg(job)).metrics
+        assert alone.keys() == scores.keys()
+        for key in alone:
+            assert np.array_equal(alone[key], scores[key], equal_nan=True), (job, key)
+    assert warm[0]["noise_psnr"] != warm[2]["noise_psnr"]  # another scene: not the torus's images
+
+
+def test_remembered_value_needs_its_anchor() -> None:
+    """A remembered image keyed by an object's identity is computed again for another object."""
+    from nirspi_pipe.upscale import metrics as um
+
+    um._REMEMBERED.clear()
+    a, b = object(), object()
+    calls: list[int] = []
+
+    def make() -> np.ndarray:
+        calls.append(1)
+        return np.zeros(3)
+
+    um._remembered(("k", 1), a, make)
+    um._remembered(("k", 1), a, make)
+    assert len(calls) == 1
+    um._remembered(("k", 1), b, make)
+    assert len(calls) == 2
+    um._remembered(("k", [1]), None, make)  # unhashable: computed each time, never kept
+    um._remembered(("k", [1]), None, make)
+    assert len(calls) == 4 and len(um._REMEMBERED) == 1
+    um._REMEMBERED.clear()

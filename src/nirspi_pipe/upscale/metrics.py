@@ -24,8 +24,10 @@ the fine scene carry (docs/paper.md, Figure 9).
 
 from __future__ import annotations
 
+import hashlib
 import warnings
-from collections.abc import Mapping
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -40,6 +42,42 @@ from nirspi_pipe.upscale.bicubic import bicubic
 from nirspi_pipe.upscale.data import RenderCamera
 
 __all__ = ["UpscaleMetrics"]
+
+#: How many noise-free images :func:`_remembered` keeps per process (a 256² image is 0.5 MB).
+MAX_REMEMBERED = 8
+_REMEMBERED: OrderedDict[tuple[Any, ...], tuple[Any, np.ndarray]] = OrderedDict()
+
+
+def _remembered(key: tuple[Any, ...], anchor: Any, compute: Callable[[], np.ndarray]) -> np.ndarray:
+    """``compute()``, remembered under ``key`` (read-only) for the next jobs of this process.
+
+    The metrics' two noise-free images are the same for every job of a sweep that differs only
+    in seed or scan order: the source's image of the fine scene and the upscaler applied to the
+    camera's noise-free image. A Figure 9 or Table 3 job spent about 5 ms of its metrics stage
+    making them again (``nirspi-bench paper --experiment paper``'s profile, issue 42 item 6).
+    ``anchor`` is an object the key names by identity (the fine scene :func:`render_cached` keeps):
+    it is kept with the value, and a value whose anchor is another object is computed again.
+    A key that cannot be hashed (a plugin's source or upscaler) is computed each time."""
+    try:
+        hash(key)
+    except TypeError:
+        return compute()
+    hit = _REMEMBERED.get(key)
+    if hit is not None and hit[0] is anchor:
+        _REMEMBERED.move_to_end(key)
+        return hit[1]
+    value = np.asarray(compute())
+    value.setflags(write=False)
+    _REMEMBERED[key] = (anchor, value)
+    while len(_REMEMBERED) > MAX_REMEMBERED:
+        _REMEMBERED.popitem(last=False)
+    return value
+
+
+def _digest(image: np.ndarray) -> tuple[Any, ...]:
+    """An image's identity by value: shape, dtype and SHA-1 of its bytes."""
+    a = np.ascontiguousarray(image)
+    return (a.shape, a.dtype.str, hashlib.sha1(a.tobytes()).digest())
 
 
 @dataclass(frozen=True)
@@ -99,13 +137,23 @@ class UpscaleMetrics(ImageMetrics):
             raise ValueError(f"upscaled image {est.shape} is not an integer multiple of {n}x{n}")
         fine = render_cached(self.scene, RenderCamera(resolution=n * scale, fov_deg=truth.camera.fov_deg))
         ref = fine.radiance
-        reference = self.source.reference_image(fine) if hasattr(self.source, "reference_image") else None
+        source = self.source
+        reference = (
+            _remembered(("reference", source, id(fine)), fine, lambda: source.reference_image(fine))
+            if hasattr(source, "reference_image")
+            else None
+        )
         assert camera is not None
         clean = products.acquisition.reference
         kw: dict[str, Any] = {"upstream": "" if camera.reason is None else f"{camera.flag}"}
         out.update(self.score(ref, est, reference, prefix="upscale_", **kw))
         if self.noise_scores and self.upscaler is not None and clean is not None:
-            clean_up = np.asarray(self.upscaler.upscale(Image2D(np.asarray(clean, dtype=np.float64))).data)
+            upscaler, clean64 = self.upscaler, np.asarray(clean, dtype=np.float64)
+            clean_up = _remembered(
+                ("upscaled", upscaler, _digest(clean64)),
+                None,
+                lambda: np.asarray(upscaler.upscale(Image2D(clean64)).data),
+            )
             if clean_up.shape == est.shape:  # the raw scores against the clean image: not kept
                 out.update(self.score(clean_up, est, clean_up, prefix="noise_", raw=False, **kw))
         if scale > 1:
