@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -32,6 +32,7 @@ __all__ = [
     "consistent_anchors",
     "worse_than_prior",
     "depth_noise",
+    "fit_with_shape_error",
     "anchor_weights",
     "region_weights",
 ]
@@ -116,6 +117,8 @@ class AnchorFit:
         dof: its degrees of freedom, anchors + priors − 2.
         anchor_chi2: the anchors' part of ``chi2``.
         cov: ``(2, 2)`` covariance of ``(u, ln c)``.
+        shape_error_m: ``τ``, the SFS shape error at the anchors that the fit added to every
+            anchor's σ (metres; :func:`fit_with_shape_error`; 0 = none).
     """
 
     scale: float
@@ -127,6 +130,7 @@ class AnchorFit:
     dof: int
     anchor_chi2: float
     cov: np.ndarray
+    shape_error_m: float = 0.0
 
     def predict(self, zr: np.ndarray, ref_zr: float, focal_px: float | None) -> tuple[np.ndarray, np.ndarray]:
         """Metric depth at relative depths ``zr`` and its variance from the fit (metres, m²)."""
@@ -470,6 +474,82 @@ def consistent_anchors(
         keep = keep[keep != worst]
         cur = fit(keep)
     return keep, rejected, cur
+
+
+@lru_cache(maxsize=64)
+def _chi2_quantile(alpha: float, dof: int) -> float:
+    """The χ² quantile at ``1 − alpha`` on ``dof`` degrees of freedom (:func:`fit_with_shape_error`'s
+    test), computed once per ``(alpha, dof)`` in a process."""
+    from scipy.stats import chi2 as chi2_dist  # start-up: loads scipy.stats (only for the test)
+
+    return float(chi2_dist.ppf(1.0 - alpha, dof))
+
+
+#: Relative precision of :func:`fit_with_shape_error`'s ``τ`` (Brent's method in ``ln τ``; assumed:
+#: 0.1 % of an SFS shape error is far below anything the fit's weights resolve).
+_TAU_REL_TOL = 1e-3
+
+
+def fit_with_shape_error(fit_sigma: Callable[[np.ndarray], AnchorFit], sigma: np.ndarray, alpha: float) -> AnchorFit:
+    """The anchors' fit with the SFS map's shape error ``τ`` added to every anchor's σ where the
+    anchors need it: ``fit_sigma(sqrt(σ² + τ²))``.
+
+    The fit ``z_k ≈ s·zr_k + t`` assumes the SFS shape is right up to scale and offset; it is not
+    (a few mm of relative-depth error at the spots, which the local offsets then absorb), and the
+    anchors' σ alone hides that once the anchors are precise: with ``σ`` ≈ 10 µm (a noiseless
+    iToF) the fit follows four spots' shape error wherever it leads, overrules the scale prior
+    and drives the scale to its bound. So: when the fit's χ² (anchors and priors) exceeds its
+    ``1 − alpha`` quantile on its ``dof`` (the anchors disagree with the SFS shape beyond their
+    σ: a heterogeneity test, Cochran's Q), ``τ`` is the Paule–Mandel estimate, the ``τ`` at
+    which the fit's χ² equals its degrees of freedom (Paule & Mandel, *Consensus values and
+    weighting factors*, J. Res. NBS 87, 377–385, 1982; the between-study variance of a
+    random-effects meta-analysis). Otherwise ``τ = 0`` and the fit is ``fit_sigma(σ)`` itself.
+
+    The χ² of the refit falls monotonically with ``τ`` (each weight does) towards the priors'
+    part alone, so ``τ`` is found by bracketing (×4 steps) and Brent's method in ``ln τ`` to ``_TAU_REL_TOL``. At
+    that ``τ`` the scale prior's term ``((e^u − 1)/scale_prior_rel)²`` is at most ``dof``: the
+    scale ratio stays within ``1 ± scale_prior_rel·sqrt(dof)``, and without ``τ`` within
+    ``1 ± scale_prior_rel·sqrt(q)`` (``q`` the quantile), however precise the anchors.
+    ``fit_sigma`` raises (:class:`NirspiError`) as :func:`fit_anchors` does.
+    """
+    from scipy.optimize import brentq  # start-up: loads scipy.optimize (only when the test fires)
+
+    sig = np.asarray(sigma, dtype=np.float64)
+    cur = fit_sigma(sig)
+    if cur.dof < 1 or not cur.chi2 > _chi2_quantile(alpha, cur.dof):
+        return cur
+    target = float(cur.dof)
+    fits: dict[float, AnchorFit] = {}
+
+    def excess(log_tau: float) -> float:
+        """``ln(χ²(τ)/dof)``: positive below the root, negative above it."""
+        tau = math.exp(log_tau)
+        fits[log_tau] = replace(fit_sigma(np.sqrt(sig * sig + tau * tau)), shape_error_m=tau)
+        return math.log(max(fits[log_tau].chi2, 1e-300) / target)
+
+    # the start: the residual that would give this chi2 (chi2 ~ k r²/σ²), then bracket by x4 steps
+    lo = hi = math.log(max(float(np.max(sig, initial=0.0)), 1e-12) * math.sqrt(cur.chi2 / target))
+    step = math.log(4.0)
+    if excess(hi) > 0:
+        for _ in range(64):  # 4^64: far beyond any chi2 the priors leave
+            lo, hi = hi, hi + step
+            if excess(hi) <= 0:
+                break
+        else:
+            return fits[hi]  # not bracketed: the largest τ tried
+    else:
+        for _ in range(16):  # 4^-16 of the start: τ that small changes no weight
+            hi, lo = lo, lo - step
+            if excess(lo) > 0:
+                break
+        else:
+            return fits[lo]  # the smallest τ tried already suffices
+    root = float(brentq(excess, lo, hi, xtol=_TAU_REL_TOL, rtol=4 * np.finfo(float).eps))
+    # the side of the root where χ² ≤ dof (brentq's answer is within xtol of it, either side)
+    for side in (root, min(root + 2.0 * _TAU_REL_TOL, hi), hi):
+        if excess(side) <= 0:
+            return fits[side]
+    return fits[hi]
 
 
 def worse_than_prior(cur: AnchorFit, prior_sigma_m: float | None, n_anchors: int, scale_prior: bool) -> str | None:

@@ -70,6 +70,7 @@ from nirspi_pipe.mesh.anchors import (
     consistent_anchors,
     depth_noise,
     fit_anchors,
+    fit_with_shape_error,
     worse_than_prior,
 )
 from nirspi_pipe.mesh.pointcloud import (
@@ -271,9 +272,15 @@ class ItofFusion:
 
         def fit_on(sig_all: np.ndarray) -> Callable[[np.ndarray], AnchorFit]:
             def fit(ix: np.ndarray) -> AnchorFit:
-                return fit_anchors(
-                    zr_u[ix], z_u[ix], sig_all[ix], ref_zr, focal, self._scale_prior(len(ix)), prior_m, prior_sig
-                )
+                def with_sigma(sig: np.ndarray) -> AnchorFit:
+                    return fit_anchors(
+                        zr_u[ix], z_u[ix], sig, ref_zr, focal, self._scale_prior(len(ix)), prior_m, prior_sig
+                    )
+
+                if self.anchor_alpha is None:
+                    return with_sigma(sig_all[ix])
+                # anchors that disagree with the SFS shape beyond their sigma: SFS's shape error
+                return fit_with_shape_error(with_sigma, sig_all[ix], self.anchor_alpha)
 
             return fit
 
@@ -355,6 +362,7 @@ class ItofFusion:
             "anchors_used": int(used.sum()),
             "anchors_rejected": {str(k): r for k, r in enumerate(reasons) if r},
             "sfs_noise_m": float(sfs_sigma),
+            "sfs_shape_error_m": float(cur.shape_error_m),
             "spikes_removed": spikes,
             **quality,
         }
