@@ -7,6 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nirspi_pipe.stats import (
     across_families,
@@ -172,3 +174,28 @@ def test_across_families_is_holm_over_all_pairs_and_never_claims_more():
     text = family_sentence(claims)
     assert "48 families (288 pairs)" in text and "48 × 0.05² = 0.12" in text
     assert f"{len(all_claims)} claim" in text
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 60), st.floats(0.0, 0.5))
+def test_wide_is_pivot_tables_mean(seed: int, rows: int, nan_share: float) -> None:
+    """``stats._wide`` (groupby + unstack, issue 42 item 6) is ``pivot_table(aggfunc="mean")``:
+    the same rows, columns, order and values, with NaN values, missing pairs, duplicate rows
+    and all-NaN scans."""
+    from nirspi_pipe.stats import _wide
+
+    rng = np.random.default_rng(seed)
+    frame = pd.DataFrame(
+        {
+            "scene": rng.choice(["sphere", "torus"], rows),
+            "seed": rng.integers(0, 4, rows),
+            "illumination.klux": rng.choice([5.0, 15.0], rows),
+            "scan": rng.choice(["basic", "hilbert", "zigzag"], rows),
+            "v": np.where(rng.random(rows) < nan_share, np.nan, rng.normal(size=rows)),
+        }
+    )
+    frame.loc[frame["scan"] == "zigzag", "v"] = np.nan if seed % 2 else frame["v"]
+    keys = ["scene", "seed", "illumination.klux"]
+    expected = frame.pivot_table(index=keys, columns="scan", values="v", aggfunc="mean")
+    got = _wide(frame, "v", "scan", keys)
+    pd.testing.assert_frame_equal(got, expected.astype(np.float64), check_exact=True)
