@@ -189,6 +189,8 @@ def summarise(frame: Any) -> Any:
     import pandas as pd
 
     keys = ["condition", *(col for col, _ in AXES)]
+    # consolidated: load_results' wide frame, built column by column, made every assign below warn
+    frame = frame.copy()
     rows = []
     for key, group in frame.groupby(keys, sort=True, dropna=False):
         ok = group[group["status"] == "ok"]
