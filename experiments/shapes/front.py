@@ -117,7 +117,8 @@ class Grid:
         return self.configurations() * len(self.shapes) * len(self.seeds) * len(self.conditions)
 
 
-#: Sized for about 10 minutes on an idle 2-core machine (what it took: docs/mesh.md's front section).
+#: Sized for about 10 minutes on an idle 2-core machine (what it took: docs/mesh.md's front section);
+#: the power crust and the view triangulation (screened Poisson, seconds a job: FULL only).
 DEFAULT = Grid(
     resolution=(32, 64, 128),
     sfs=("second_order", "perspective", "truth"),
@@ -126,7 +127,7 @@ DEFAULT = Grid(
     shapes=("vase", "bowl"),
     seeds=(0, 1, 2),
 )
-#: Every SFS variant of conf/sfs, three anchorings, all seven held-out shapes, seeds 0–9 (hours).
+#: Every SFS variant of conf/sfs, three anchorings, three surfaces, all seven held-out shapes, seeds 0–9 (hours).
 FULL = Grid(
     resolution=(32, 64, 128),
     sfs=("second_order", "lax_friedrichs", "godunov", "perspective", "oren_nayar", "phong", "truth"),
