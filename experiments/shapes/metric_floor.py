@@ -115,9 +115,12 @@ def scene_model(shape: str, tmp: Path) -> object:
     return build(dict(cfg["scene"]), "scene")
 
 
-def scores(model: object, resolution: int | Camera) -> dict[str, float]:
+def scores(model: object, resolution: int | Camera, depth_offset_m: float = 0.0) -> dict[str, float]:
     """The metrics of the exact point-sampled surface on the grid (``resolution`` pixels per side at
-    the default field of view, or a camera), plus the old reference's chamfer and its bridging share."""
+    the default field of view, or a camera), plus the old reference's chamfer and its bridging share.
+    ``depth_offset_m``: the exact surface placed that much farther along each pixel's ray (depth
+    ``z`` becomes ``z + offset``, the pixel's ray kept): what a fit that gets the shape and scale
+    right but the offset wrong by that much reconstructs (experiments/shapes/anchor_bound.py)."""
     from scipy.spatial import cKDTree
 
     from nirspi_pipe.mesh.metrics3d import Metrics3D, sample_surface, surface_distances
@@ -129,6 +132,10 @@ def scores(model: object, resolution: int | Camera) -> dict[str, float]:
     cam = resolution if isinstance(resolution, Camera) else Camera(resolution)
     truth = model.render(cam)  # type: ignore[attr-defined]
     exact = truth_surface(dataclasses.replace(model, supersample=1).render(cam), None)  # type: ignore[call-overload]
+    if depth_offset_m:
+        z0 = exact.points[:, 2:3]
+        moved = exact.points * np.where(z0 > 0, (z0 + depth_offset_m) / np.where(z0 > 0, z0, 1.0), 1.0)
+        exact = dataclasses.replace(exact, points=moved)
     hit = exact.hit
     z = exact.points[:, 2].reshape(hit.shape)
     n2 = cam.resolution * cam.resolution
