@@ -9,8 +9,10 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    iToF anchors (:func:`fit_anchors`) as a placement ``c`` (the metric depth at the anchors'
    mean SFS depth) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel
    pitch at the anchors' depth), so the scale is positive by construction; weighted least squares with
-   weights ``1/(σ_k² + σ_SFS²)`` (``σ_SFS`` the SFS noise estimated from the map,
-   :func:`depth_noise`), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
+   weights ``1/(σ_k² + σ_SFS² + τ²)`` (``σ_SFS`` the SFS noise estimated from the map,
+   :func:`depth_noise`; ``τ`` the SFS shape error at the spots, 0 unless the fit's χ² exceeds its
+   ``1 − anchor_alpha`` quantile, then the Paule–Mandel root χ² = dof, :func:`fit_with_shape_error`:
+   precise anchors no longer follow SFS's few mm of shape error into a collapsed scale), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
    ``c``, the set-up's working distance (``prior_distance_mm``, ± ``prior_distance_rel``): an
    anchor whose σ is far above the prior's moves nothing. Anchors whose σ is at least the
    ambiguity range/√12 (a wrapped phase that noisy is about uniform) are not used; the rest pass
@@ -113,8 +115,9 @@ class ItofFusion:
         prior_distance_rel: its relative standard deviation (assumed 0.25: the paper's objects
             stand at 20 cm in a 35 cm chamber, ±5 cm).
         anchor_alpha: level of the χ² test of the anchors' consistency (an anchor beyond its
-            noise of the others' prediction is rejected, :func:`consistent_anchors`); null = no
-            test.
+            noise of the others' prediction is rejected, :func:`consistent_anchors`) and of the
+            test that adds the SFS shape error to the anchors' σ (:func:`fit_with_shape_error`);
+            null = neither.
         local_offsets: with at least ``min_anchors_local`` valid anchors, each anchor's image
             region gets its own offset: the anchor's residual after the global fit, shrunk by
             how well SFS and iToF already agree there (module docstring).
