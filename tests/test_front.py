@@ -154,3 +154,15 @@ def test_bad_arguments_get_one_line_and_run_nothing(front, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     with pytest.raises(SystemExit, match="no sweep folder"):
         front.main(["--out", str(tmp_path / "empty"), "--tables-only"])
+
+
+def test_the_figure_draws_every_surface_and_variant(front, tmp_path):
+    # two surfaces and the oracle: each (sfs, surface, averaging) group gets a marker and a colour
+    f = _frame()
+    view = f.assign(surface="view")
+    view["timings_ms.total"] -= 50.0
+    slow = f.assign(**{"itof.averaging_s": 8.0})
+    table = front.summarise(pd.concat([f, view, slow], ignore_index=True))
+    assert set(table["surface"]) == {"power_crust", "view"}
+    front.figure(table, tmp_path / "front.png")
+    assert (tmp_path / "front.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
