@@ -47,11 +47,13 @@ def _sfs(scene, pitch: float, eta: np.ndarray) -> DepthMap:
     return DepthMap(depth_m=np.where(mask, rel, np.nan), mask=mask, metric=False)
 
 
-def _fuse(scene, depth: DepthMap, itof: ItofSample) -> tuple[float, dict]:
-    """The fused depth's RMSE against the truth (mm) and the fit."""
+def _fuse(scene, depth: DepthMap, itof: ItofSample, shape_error: bool = True) -> tuple[float, dict]:
+    """The fused depth's RMSE against the truth (mm) and the fit (``+fusion.shape_error=true``
+    unless ``shape_error`` is False)."""
+    fusion = ItofFusion(prior_distance_mm=PRIOR_MM, shape_error=shape_error)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        zm, valid, fit = ItofFusion(prior_distance_mm=PRIOR_MM).metric_depth(depth, itof, scene.camera)
+        zm, valid, fit = fusion.metric_depth(depth, itof, scene.camera)
     m = valid & scene.mask & np.isfinite(scene.depth_m)
     return float(np.sqrt(np.mean((zm[m] - scene.depth_m[m]) ** 2)) * 1e3), fit
 
@@ -160,3 +162,15 @@ def test_the_shape_error_is_the_paule_mandel_root(zr, shape_mm, log_sigma, true_
     below = fit(np.sqrt(sig**2 + (tau * (1 - 1e-2)) ** 2))
     assert below.chi2 > got.dof
     assert abs(got.scale / got.scale_ref - 1.0) <= SCALE_PRIOR * np.sqrt(got.dof) * (1 + 1e-6)
+
+
+def test_the_shape_error_is_off_by_default(sphere):
+    """Off by default (the paper's Table 3/4 jobs keep their numbers): the stepped shape with
+    precise anchors then fits without it, as before b1cceda, and records 0; on, it is added."""
+    assert ItofFusion().shape_error is False
+    scene, itof, pitch = sphere
+    cols = np.arange(64)[None, :] * np.ones((64, 1))
+    depth = _sfs(scene, pitch, 10.0 * (cols > 31.5))
+    _rmse_off, fit_off = _fuse(scene, depth, itof, shape_error=False)
+    _rmse_on, fit_on = _fuse(scene, depth, itof)
+    assert fit_off["sfs_shape_error_m"] == 0.0 and fit_on["sfs_shape_error_m"] > 1e-3

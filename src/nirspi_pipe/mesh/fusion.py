@@ -10,7 +10,7 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    mean SFS depth) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel
    pitch at the anchors' depth), so the scale is positive by construction; weighted least squares with
    weights ``1/(σ_k² + σ_SFS² + τ²)`` (``σ_SFS`` the SFS noise estimated from the map,
-   :func:`depth_noise`; ``τ`` the SFS shape error at the spots, 0 unless the fit's χ² exceeds its
+   :func:`depth_noise`; ``τ`` the SFS shape error at the spots, with ``shape_error`` only, 0 unless the fit's χ² exceeds its
    ``1 − anchor_alpha`` quantile, then the Paule–Mandel root χ² = dof, :func:`fit_with_shape_error`:
    precise anchors no longer follow SFS's few mm of shape error into a collapsed scale), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
    ``c``, the set-up's working distance (``prior_distance_mm``, ± ``prior_distance_rel``): an
@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated
 
 import numpy as np
@@ -115,9 +115,11 @@ class ItofFusion:
         prior_distance_rel: its relative standard deviation (assumed 0.25: the paper's objects
             stand at 20 cm in a 35 cm chamber, ±5 cm).
         anchor_alpha: level of the χ² test of the anchors' consistency (an anchor beyond its
-            noise of the others' prediction is rejected, :func:`consistent_anchors`) and of the
-            test that adds the SFS shape error to the anchors' σ (:func:`fit_with_shape_error`);
-            null = neither.
+            noise of the others' prediction is rejected, :func:`consistent_anchors`) and, with
+            ``shape_error``, of the test that adds the SFS shape error to the anchors' σ
+            (:func:`fit_with_shape_error`); null = neither.
+        shape_error: add the SFS shape error ``τ`` to the anchors' σ when they disagree with the
+            SFS shape beyond it (step 1 above; ``+fusion.shape_error=true``); off by default.
         local_offsets: with at least ``min_anchors_local`` valid anchors, each anchor's image
             region gets its own offset: the anchor's residual after the global fit, shrunk by
             how well SFS and iToF already agree there (module docstring).
@@ -160,6 +162,13 @@ class ItofFusion:
     time_step: Annotated[float, Range(0.0, None, "a dimensionless step")] = 8.0
     adaptive_step: Annotated[bool, OneOf((True, False), "true or false")] = True
     diffuse: Annotated[str, OneOf(("range", "xyz"))] = "range"
+    # Not in the generated config schema (never a key of fusion=itof; +fusion.shape_error=true sets
+    # it): the configs and job keys of fusion runs stay as they were. Off by default because it
+    # changes the paper's Table 3/4 jobs where the anchors disagree with the SFS shape (docs/mesh.md,
+    # "Cleaner anchors"), and the claims made of those tables were derived without it.
+    shape_error: Annotated[bool, OneOf((True, False), "true or false")] = field(
+        default=False, metadata={"config": False}
+    )
 
     def __post_init__(self) -> None:
         check_ranges(self)
@@ -280,7 +289,7 @@ class ItofFusion:
                         zr_u[ix], z_u[ix], sig, ref_zr, focal, self._scale_prior(len(ix)), prior_m, prior_sig
                     )
 
-                if self.anchor_alpha is None:
+                if self.anchor_alpha is None or not self.shape_error:
                     return with_sigma(sig_all[ix])
                 # anchors that disagree with the SFS shape beyond their sigma: SFS's shape error
                 return fit_with_shape_error(with_sigma, sig_all[ix], self.anchor_alpha)
