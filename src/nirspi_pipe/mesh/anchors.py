@@ -490,7 +490,12 @@ def _chi2_quantile(alpha: float, dof: int) -> float:
 _TAU_REL_TOL = 1e-3
 
 
-def fit_with_shape_error(fit_sigma: Callable[[np.ndarray], AnchorFit], sigma: np.ndarray, alpha: float) -> AnchorFit:
+def fit_with_shape_error(
+    fit_sigma: Callable[[np.ndarray], AnchorFit],
+    sigma: np.ndarray,
+    alpha: float,
+    misfit: Callable[[np.ndarray], AnchorFit] | None = None,
+) -> AnchorFit:
     """The anchors' fit with the SFS map's shape error ``τ`` added to every anchor's σ where the
     anchors need it: ``fit_sigma(sqrt(σ² + τ²))``.
 
@@ -498,19 +503,21 @@ def fit_with_shape_error(fit_sigma: Callable[[np.ndarray], AnchorFit], sigma: np
     (a few mm of relative-depth error at the spots, which the local offsets then absorb), and the
     anchors' σ alone hides that once the anchors are precise: with ``σ`` ≈ 10 µm (a noiseless
     iToF) the fit follows four spots' shape error wherever it leads, overrules the scale prior
-    and drives the scale to its bound. So: when the fit's χ² (anchors and priors) exceeds its
-    ``1 − alpha`` quantile on its ``dof`` (the anchors disagree with the SFS shape beyond their
-    σ: a heterogeneity test, Cochran's Q), ``τ`` is the Paule–Mandel estimate, the ``τ`` at
-    which the fit's χ² equals its degrees of freedom (Paule & Mandel, *Consensus values and
+    and drives the scale to its bound. So ``τ > 0`` only when two χ² tests at level ``alpha``
+    both fail: the fit's own (anchors and priors, on its ``dof``), and the anchors' against the
+    best *positive* scale and offset for them alone, ``misfit`` (the caller: the same fit without
+    the scale prior; None = the fit itself). The second keeps ``τ = 0`` where the anchors agree
+    with an SFS depth of another scale than the prior's (SFS's scale is off, not its shape: the
+    anchors are then right to move it). ``τ`` is then the Paule–Mandel estimate on ``misfit``:
+    the ``τ`` at which its χ² equals its degrees of freedom (Paule & Mandel, *Consensus values and
     weighting factors*, J. Res. NBS 87, 377–385, 1982; the between-study variance of a
-    random-effects meta-analysis). Otherwise ``τ = 0`` and the fit is ``fit_sigma(σ)`` itself.
+    random-effects meta-analysis; the tests are Cochran's Q). Otherwise the result is
+    ``fit_sigma(σ)`` itself.
 
-    The χ² of the refit falls monotonically with ``τ`` (each weight does) towards the priors'
-    part alone, so ``τ`` is found by bracketing (×4 steps) and Brent's method in ``ln τ`` to ``_TAU_REL_TOL``. At
-    that ``τ`` the scale prior's term ``((e^u − 1)/scale_prior_rel)²`` is at most ``dof``: the
-    scale ratio stays within ``1 ± scale_prior_rel·sqrt(dof)``, and without ``τ`` within
-    ``1 ± scale_prior_rel·sqrt(q)`` (``q`` the quantile), however precise the anchors.
-    ``fit_sigma`` raises (:class:`NirspiError`) as :func:`fit_anchors` does.
+    The χ² of the refit falls monotonically with ``τ`` (each weight does), so ``τ`` is found by
+    bracketing (×4 steps) and Brent's method in ``ln τ`` to ``_TAU_REL_TOL``. ``fit_sigma`` raises
+    (:class:`NirspiError`) as :func:`fit_anchors` does; where ``misfit`` raises (one anchor, or
+    all at one SFS depth: no scale of their own), ``τ = 0``.
     """
     from scipy.optimize import brentq  # start-up: loads scipy.optimize (only when the test fires)
 
@@ -518,38 +525,51 @@ def fit_with_shape_error(fit_sigma: Callable[[np.ndarray], AnchorFit], sigma: np
     cur = fit_sigma(sig)
     if cur.dof < 1 or not cur.chi2 > _chi2_quantile(alpha, cur.dof):
         return cur
-    target = float(cur.dof)
+    judge = fit_sigma if misfit is None else misfit
+    try:
+        base = cur if misfit is None else misfit(sig)
+    except NirspiError:
+        return cur
+    if base.dof < 1 or not base.chi2 > _chi2_quantile(alpha, base.dof):
+        return cur
+    target = float(base.dof)
     fits: dict[float, AnchorFit] = {}
 
     def excess(log_tau: float) -> float:
-        """``ln(χ²(τ)/dof)``: positive below the root, negative above it."""
+        """``ln(χ²(τ)/dof)`` of ``judge``: positive below the root, negative above it."""
         tau = math.exp(log_tau)
-        fits[log_tau] = replace(fit_sigma(np.sqrt(sig * sig + tau * tau)), shape_error_m=tau)
+        fits[log_tau] = replace(judge(np.sqrt(sig * sig + tau * tau)), shape_error_m=tau)
         return math.log(max(fits[log_tau].chi2, 1e-300) / target)
 
     # the start: the residual that would give this chi2 (chi2 ~ k r²/σ²), then bracket by x4 steps
-    lo = hi = math.log(max(float(np.max(sig, initial=0.0)), 1e-12) * math.sqrt(cur.chi2 / target))
+    lo = hi = math.log(max(float(np.max(sig, initial=0.0)), 1e-12) * math.sqrt(base.chi2 / target))
     step = math.log(4.0)
+    root = None
     if excess(hi) > 0:
         for _ in range(64):  # 4^64: far beyond any chi2 the priors leave
             lo, hi = hi, hi + step
             if excess(hi) <= 0:
                 break
         else:
-            return fits[hi]  # not bracketed: the largest τ tried
+            root = hi  # not bracketed: the largest τ tried
     else:
         for _ in range(16):  # 4^-16 of the start: τ that small changes no weight
             hi, lo = lo, lo - step
             if excess(lo) > 0:
                 break
         else:
-            return fits[lo]  # the smallest τ tried already suffices
-    root = float(brentq(excess, lo, hi, xtol=_TAU_REL_TOL, rtol=4 * np.finfo(float).eps))
-    # the side of the root where χ² ≤ dof (brentq's answer is within xtol of it, either side)
-    for side in (root, min(root + 2.0 * _TAU_REL_TOL, hi), hi):
-        if excess(side) <= 0:
-            return fits[side]
-    return fits[hi]
+            root = lo  # the smallest τ tried already suffices
+    if root is None:
+        root = float(brentq(excess, lo, hi, xtol=_TAU_REL_TOL, rtol=4 * np.finfo(float).eps))
+        # the side of the root where χ² ≤ dof (brentq's answer is within xtol of it, either side)
+        for side in (root, min(root + 2.0 * _TAU_REL_TOL, hi), hi):
+            if excess(side) <= 0:
+                root = side
+                break
+    if misfit is None:
+        return fits[root]
+    tau = fits[root].shape_error_m
+    return replace(fit_sigma(np.sqrt(sig * sig + tau * tau)), shape_error_m=tau)
 
 
 def worse_than_prior(cur: AnchorFit, prior_sigma_m: float | None, n_anchors: int, scale_prior: bool) -> str | None:

@@ -289,10 +289,13 @@ class ItofFusion:
                         zr_u[ix], z_u[ix], sig, ref_zr, focal, self._scale_prior(len(ix)), prior_m, prior_sig
                     )
 
+                def free_scale(sig: np.ndarray) -> AnchorFit:  # the anchors' own scale: no scale prior
+                    return fit_anchors(zr_u[ix], z_u[ix], sig, ref_zr, focal, None, prior_m, prior_sig)
+
                 if self.anchor_alpha is None or not self.shape_error:
                     return with_sigma(sig_all[ix])
-                # anchors that disagree with the SFS shape beyond their sigma: SFS's shape error
-                return fit_with_shape_error(with_sigma, sig_all[ix], self.anchor_alpha)
+                # anchors that no positive scale and offset fit within their sigma: SFS's shape error
+                return fit_with_shape_error(with_sigma, sig_all[ix], self.anchor_alpha, free_scale)
 
             return fit
 
