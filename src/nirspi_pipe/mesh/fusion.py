@@ -10,9 +10,11 @@ Steps (see docs/mesh.md for the derivations and the departures from the paper):
    mean SFS depth) and a log scale ratio ``u``, ``s = e^u·c/f`` (one relative unit is a pixel
    pitch at the anchors' depth), so the scale is positive by construction; weighted least squares with
    weights ``1/(σ_k² + σ_SFS² + τ²)`` (``σ_SFS`` the SFS noise estimated from the map,
-   :func:`depth_noise`; ``τ`` the SFS shape error at the spots, with ``shape_error`` only, 0 unless the fit's χ² exceeds its
-   ``1 − anchor_alpha`` quantile, then the Paule–Mandel root χ² = dof, :func:`fit_with_shape_error`:
-   precise anchors no longer follow SFS's few mm of shape error into a collapsed scale), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
+   :func:`depth_noise`; ``τ`` the SFS shape error at the spots, with ``shape_error`` only: 0
+   unless both the fit's χ² and that of the anchors' own best positive scale and offset exceed
+   their ``1 − anchor_alpha`` quantiles, then the latter's Paule–Mandel root χ² = dof,
+   :func:`fit_with_shape_error`: precise anchors no longer follow SFS's few mm of shape error
+   into a collapsed scale), a prior ``e^u ~ N(1, scale_prior_rel)`` on the scale and a Gaussian prior on
    ``c``, the set-up's working distance (``prior_distance_mm``, ± ``prior_distance_rel``): an
    anchor whose σ is far above the prior's moves nothing. Anchors whose σ is at least the
    ambiguity range/√12 (a wrapped phase that noisy is about uniform) are not used; the rest pass
