@@ -75,17 +75,23 @@ def _pixel_anchors(scene, sigma: float, noise=(0.0, 0.0, 0.0, 0.0)) -> ItofSampl
     return ItofSample(pts + (sigma * np.asarray(noise))[:, None] * rays, np.full(4, sigma), {})
 
 
+def _stepped(sphere):
+    """The sphere whose SFS depth steps 5 pixel pitches behind from column 35 on, and four
+    anchors at different depths exact to 10 µm."""
+    scene, _, _ = sphere
+    anchors = _pixel_anchors(scene, 1e-5)
+    pitch = float(np.mean(np.asarray(anchors.points_m)[:, 2])) / scene.camera.focal_px
+    cols = np.arange(64)[None, :] * np.ones((64, 1))
+    return scene, _sfs(scene, pitch, 5.0 * (cols > 34.5)), anchors
+
+
 def test_precise_anchors_on_a_stepped_sfs_shape(sphere):
     """SFS puts the sphere's right part 5 pixel pitches (about 5 mm) behind the rest (a region
     offset, as multi's separate SFS regions have); four anchors at different depths, exact to
     10 µm. With the shape error all four are kept, τ > 0, and the fused depth is 1 mm closer to
     the truth than without it (measured 3.48 against 4.75 mm; the scale 0.54 against 0.32 of the
     truth)."""
-    scene, _, _ = sphere
-    anchors = _pixel_anchors(scene, 1e-5)
-    pitch = float(np.mean(np.asarray(anchors.points_m)[:, 2])) / scene.camera.focal_px
-    cols = np.arange(64)[None, :] * np.ones((64, 1))
-    depth = _sfs(scene, pitch, 5.0 * (cols > 34.5))
+    scene, depth, anchors = _stepped(sphere)
     rmse_off, fit_off = _fuse(scene, depth, anchors, shape_error=False)
     rmse_on, fit_on = _fuse(scene, depth, anchors)
     assert fit_on["anchors_used"] == 4 and not fit_on["anchors_rejected"]
@@ -168,11 +174,7 @@ def test_the_shape_error_is_off_by_default(sphere):
     """Off by default (the paper's Table 3/4 jobs keep their numbers): the stepped shape with
     precise anchors then fits without it, as before b1cceda, and records 0; on, it is added."""
     assert ItofFusion().shape_error is False
-    scene, _, _ = sphere
-    anchors = _pixel_anchors(scene, 1e-5)
-    pitch = float(np.mean(np.asarray(anchors.points_m)[:, 2])) / scene.camera.focal_px
-    cols = np.arange(64)[None, :] * np.ones((64, 1))
-    depth = _sfs(scene, pitch, 5.0 * (cols > 34.5))
+    scene, depth, anchors = _stepped(sphere)
     _rmse_off, fit_off = _fuse(scene, depth, anchors, shape_error=False)
     _rmse_on, fit_on = _fuse(scene, depth, anchors)
     assert fit_off["sfs_shape_error_m"] == 0.0 and fit_on["sfs_shape_error_m"] > 0
